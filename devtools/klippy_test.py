@@ -1,0 +1,111 @@
+"""Run a klippy batch-mode regression file (*.test) against a KlipperBuild.
+
+The file format is Klipper's own (scripts/test_klippy.py): CONFIG, DICTIONARY,
+GCODE and SHOULD_FAIL directives, every other line is G-code; '#' starts a
+comment. Several CONFIG lines make several runs, each with the G-code read
+so far. This is our own runner so that a run can be judged on its log too:
+an "Unknown command" anywhere in the log fails the run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+from pathlib import Path
+from typing import List, Optional
+
+from .stack import KlipperBuild, Venv
+
+
+class KlippyTestFailure(Exception):
+    pass
+
+
+@dataclasses.dataclass
+class Run:
+    config: Path
+    dictionaries: List[str]
+    gcode: List[str]
+    gcode_file: Optional[Path]
+    should_fail: bool
+
+
+def parse(test_file: Path, dict_dir: Path) -> List[Run]:
+    here = test_file.parent
+    config = gcode_file = None
+    dictionaries: List[str] = []
+    should_fail = multi = False
+    gcode: List[str] = []
+    runs: List[Run] = []
+
+    def launch(cfg: Path) -> None:
+        runs.append(Run(cfg, list(dictionaries), list(gcode), gcode_file, should_fail))
+
+    for raw in test_file.read_text().splitlines():
+        line = raw.split("#", 1)[0].strip()
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "CONFIG":
+            if config is not None and not multi:
+                multi = True
+                launch(config)
+            config = here / parts[1]
+            if multi:
+                launch(config)
+        elif parts[0] == "DICTIONARY":
+            dictionaries = [str(dict_dir / parts[1])]
+            for extra in parts[2:]:
+                mcu, fname = extra.split("=", 1)
+                dictionaries.append(f"{mcu.strip()}={dict_dir / fname.strip()}")
+        elif parts[0] == "GCODE":
+            gcode_file = here / parts[1]
+        elif parts[0] == "SHOULD_FAIL":
+            should_fail = True
+        else:
+            gcode.append(line)
+    if not multi:
+        if config is None:
+            raise KlippyTestFailure(f"{test_file}: no CONFIG line")
+        launch(config)
+    return runs
+
+
+def run_file(test_file: Path, build: KlipperBuild, venv: Venv, workdir: Path) -> str:
+    """Run every run of a .test file; return the logs, raise on failure."""
+    logs = []
+    for i, run in enumerate(parse(Path(test_file), build.dict_dir)):
+        if not run.dictionaries:
+            raise KlippyTestFailure(f"{test_file}: no DICTIONARY line")
+        if run.gcode_file is not None and run.gcode:
+            raise KlippyTestFailure(f"{test_file}: both GCODE and G-code lines")
+        gcode_file = run.gcode_file
+        if gcode_file is None:
+            gcode_file = workdir / f"run{i}.gcode"
+            gcode_file.write_text("\n".join(run.gcode + [""]))
+        log_file = workdir / f"run{i}.log"
+        cmd = [str(venv.python), str(build.klippy), str(run.config),
+               "-i", str(gcode_file), "-o", str(workdir / f"run{i}.output"),
+               "-l", str(log_file), "-v"]
+        for d in run.dictionaries:
+            cmd += ["-d", d]
+        proc = subprocess.run(cmd, cwd=build.tree, capture_output=True, text=True,
+                              timeout=600)
+        log = log_file.read_text(errors="replace") if log_file.exists() else ""
+        log += proc.stdout + proc.stderr
+        logs.append(log)
+        where = f"{Path(test_file).name} ({run.config.name})"
+        if run.should_fail and proc.returncode == 0:
+            raise KlippyTestFailure(f"{where}: expected klippy to fail, it did not\n"
+                                    + _tail(log))
+        if not run.should_fail and proc.returncode != 0:
+            raise KlippyTestFailure(f"{where}: klippy failed ({proc.returncode})\n"
+                                    + _tail(log))
+        unknown = [ln for ln in log.splitlines() if "Unknown command" in ln]
+        if unknown:
+            raise KlippyTestFailure(f"{where}: {unknown[0].strip()}\n" + _tail(log))
+    return "\n".join(logs)
+
+
+def _tail(log: str, chars: int = 6000) -> str:
+    return log[-chars:]

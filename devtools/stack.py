@@ -1,0 +1,357 @@
+"""The real hosts for tests and the demo: a patched Klipper build, the host
+virtualenvs, and klippy/Moonraker processes on loopback.
+
+- The user's Klipper checkout (KLIPPER_PATH, default ~/klipper) is copied into
+  a cache keyed by its commit, its local changes and flowloop's patch inputs,
+  patched with flowloop.install (the code `flowloop install` runs), and
+  Klipper's own `make` builds the MCU data dictionaries for the targets below.
+- Host virtualenvs are built as users build them: the host's pinned
+  requirements first, then flowloop; the freeze before and after is kept so a
+  test can prove nothing pinned moved.
+- Every process started here is stopped by its pid.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Dict, Iterator, List, Optional
+
+PROJECT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(PROJECT))
+
+from flowloop import install  # noqa: E402
+
+TARGETS = ("linuxprocess", "atmega2560")
+MOONRAKER_REQUIREMENT = "moonraker==0.11.0"
+
+
+def klipper_path() -> Path:
+    return Path(os.environ.get("KLIPPER_PATH", "~/klipper")).expanduser()
+
+
+def cache_dir() -> Path:
+    base = os.environ.get("FLOWLOOP_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME", "~/.cache"), "flowloop")
+    path = Path(base).expanduser()
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def missing_klipper_reason() -> Optional[str]:
+    path = klipper_path()
+    try:
+        install.check_klipper_tree(path)
+    except install.InstallError as e:
+        return (f"no Klipper checkout at {path} ({e}): the klippy tier and the klippy "
+                f"half of the moonraker tier are SKIPPED. Get one with "
+                f"'git clone https://github.com/Klipper3d/klipper ~/klipper' "
+                f"or set KLIPPER_PATH.")
+    return None
+
+
+def log(msg: str) -> None:
+    print(f"[flowloop stack] {msg}", file=sys.stderr, flush=True)
+
+
+def _run(cmd: List[str], cwd: Optional[Path] = None, **kw) -> str:
+    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, **kw)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(map(str, cmd))} failed ({proc.returncode}):\n"
+                           f"{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    return proc.stdout
+
+
+def _hash_files(h, paths: List[Path]) -> None:
+    for path in paths:
+        h.update(str(path.relative_to(PROJECT)).encode())
+        h.update(path.read_bytes() if path.is_file() else b"dir")
+
+
+@contextlib.contextmanager
+def _locked(name: str) -> Iterator[None]:
+    with open(cache_dir() / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
+class KlipperBuild:
+    """A patched copy of the user's Klipper with MCU dictionaries built."""
+
+    def __init__(self, tree: Path):
+        self.tree = tree
+        self.dict_dir = tree / "flowloop-dict"
+
+    @property
+    def klippy(self) -> Path:
+        return self.tree / "klippy" / "klippy.py"
+
+    def dictionary(self, target: str) -> Path:
+        return self.dict_dir / f"{target}.dict"
+
+    def elf(self, target: str) -> Path:
+        return self.dict_dir / f"{target}.elf"
+
+
+def klipper_key(source: Path = PROJECT) -> str:
+    kp = klipper_path()
+    h = hashlib.sha256()
+    h.update(_run(["git", "-C", str(kp), "rev-parse", "HEAD"]).encode())
+    h.update(_run(["git", "-C", str(kp), "status", "--porcelain"]).encode())
+    h.update(_run(["git", "-C", str(kp), "diff"]).encode())
+    h.update(str(source).encode())  # the symlinks point into this checkout
+    _hash_files(h, [source / "flowloop" / "install.py"]
+                + install.mcu_sources(source) + install.klippy_modules(source))
+    return h.hexdigest()[:16]
+
+
+def build_klipper(source: Path = PROJECT, targets=TARGETS) -> KlipperBuild:
+    key = klipper_key(source)
+    tree = cache_dir() / f"klipper-{key}"
+    build = KlipperBuild(tree)
+    with _locked("klipper"):
+        if (tree / ".flowloop-ready").exists():
+            return build
+        log(f"copying {klipper_path()} to {tree} and patching it")
+        tmp = tree.with_name(tree.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(klipper_path(), tmp, symlinks=True,
+                        ignore=shutil.ignore_patterns("out", ".config", "*.pyc",
+                                                      "__pycache__"))
+        install.apply(install.plan_klipper(tmp, source))
+        dict_dir = tmp / "flowloop-dict"
+        dict_dir.mkdir()
+        for target in targets:
+            log(f"building Klipper's MCU code for {target}")
+            _run(["make", "distclean"], cwd=tmp)
+            shutil.copy(tmp / "test" / "configs" / f"{target}.config", tmp / ".config")
+            _run(["make", "olddefconfig"], cwd=tmp)
+            _run(["make", f"-j{os.cpu_count() or 2}"], cwd=tmp)
+            shutil.copy(tmp / "out" / "klipper.dict", dict_dir / f"{target}.dict")
+            shutil.copy(tmp / "out" / "klipper.elf", dict_dir / f"{target}.elf")
+            shutil.copy(tmp / ".config", dict_dir / f"{target}.config")
+        _run(["make", "distclean"], cwd=tmp)
+        # Stale builds of older keys are dead weight: keep only this one.
+        for old in cache_dir().glob("klipper-*"):
+            if old.is_dir() and old != tmp:
+                shutil.rmtree(old, ignore_errors=True)
+        tmp.rename(tree)
+        (tree / ".flowloop-ready").write_text(key)
+    return build
+
+
+class Venv:
+    def __init__(self, path: Path):
+        self.path = path
+        self.python = path / "bin" / "python"
+
+    def freeze(self, which: str) -> Dict[str, str]:
+        return json.loads((self.path / f"freeze-{which}.json").read_text())
+
+
+def _freeze(python: Path) -> Dict[str, str]:
+    out = _run([str(python), "-m", "pip", "list", "--format=json",
+                "--disable-pip-version-check"])
+    return {p["name"].lower(): p["version"] for p in json.loads(out)}
+
+
+def _build_venv(name: str, host_install: List[str], extra: str,
+                key_parts: List[bytes]) -> Venv:
+    h = hashlib.sha256()
+    for part in key_parts + [str(PROJECT).encode(),
+                             (PROJECT / "pyproject.toml").read_bytes(),
+                             sys.version.encode()]:
+        h.update(part)
+    path = cache_dir() / f"{name}-{h.hexdigest()[:16]}"
+    venv = Venv(path)
+    with _locked(name):
+        if (path / ".flowloop-ready").exists():
+            return venv
+        log(f"building {name} virtualenv: host requirements, then flowloop")
+        shutil.rmtree(path, ignore_errors=True)
+        _run([sys.executable, "-m", "venv", str(path)])
+        pip = [str(venv.python), "-m", "pip", "install", "-q",
+               "--disable-pip-version-check"]
+        _run(pip + host_install)
+        (path / "freeze-host.json").write_text(json.dumps(_freeze(venv.python)))
+        _run(pip + ["-e", f"{PROJECT}{extra}"])
+        (path / "freeze-flowloop.json").write_text(json.dumps(_freeze(venv.python)))
+        for old in cache_dir().glob(f"{name}-*"):
+            if old.is_dir() and old != path and not old.name.endswith(".lock"):
+                shutil.rmtree(old, ignore_errors=True)
+        (path / ".flowloop-ready").write_text("ok")
+    return venv
+
+
+def klippy_venv() -> Venv:
+    reqs = klipper_path() / "scripts" / "klippy-requirements.txt"
+    return _build_venv("klippy-venv", ["-r", str(reqs)], "", [reqs.read_bytes()])
+
+
+def moonraker_venv() -> Venv:
+    venv = _build_venv("moonraker-venv", [MOONRAKER_REQUIREMENT], "[moonraker]",
+                       [MOONRAKER_REQUIREMENT.encode()])
+    # Install the component exactly as `flowloop install` does (idempotent).
+    install.apply(install.plan_moonraker(venv.path, PROJECT))
+    return venv
+
+
+# ---------------------------------------------------------------------------
+# Processes
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def short_tempdir(prefix: str) -> Path:
+    # Unix socket paths must stay under ~100 bytes: keep these out of pytest's tmp.
+    return Path(tempfile.mkdtemp(prefix=prefix, dir="/tmp"))
+
+
+class Process:
+    def __init__(self, name: str, cmd: List[str], log_path: Path, **kw):
+        self.name = name
+        self.log_path = log_path
+        self._out = open(log_path.with_suffix(".stdout"), "wb")
+        self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, **kw)
+        self.pid = self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, timeout: float = 10.0) -> None:
+        if self.proc.poll() is None:
+            os.kill(self.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.kill(self.pid, signal.SIGKILL)
+                self.proc.wait()
+        self._out.close()
+
+    def log_tail(self, chars: int = 4000) -> str:
+        text = ""
+        for path in (self.log_path, self.log_path.with_suffix(".stdout")):
+            if path.exists():
+                text += f"--- {path}\n" + path.read_text(errors="replace")[-chars:]
+        return text
+
+
+class Klippy(Process):
+    """klippy in batch mode (MCU output to a file) with an API socket and a pty."""
+
+    def __init__(self, build: KlipperBuild, venv: Venv, config: Path, workdir: Path,
+                 dictionaries: Optional[Dict[str, str]] = None):
+        self.workdir = workdir
+        self.api_socket = workdir / "klippy.sock"
+        self.pty = workdir / "printer"
+        dictionaries = dictionaries or {"mcu": "linuxprocess"}
+        cmd = [str(venv.python), str(build.klippy), str(config),
+               "-a", str(self.api_socket), "-I", str(self.pty),
+               "-o", str(workdir / "mcu-output"), "-l", str(workdir / "klippy.log")]
+        for mcu, target in dictionaries.items():
+            path = build.dictionary(target)
+            cmd += ["-d", str(path) if mcu == "mcu" else f"{mcu}={path}"]
+        super().__init__("klippy", cmd, workdir / "klippy.log", cwd=str(build.tree))
+
+    def wait_ready(self, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if not self.alive():
+                raise RuntimeError("klippy exited:\n" + self.log_tail())
+            if self.api_socket.exists():
+                return
+            time.sleep(0.1)
+        raise RuntimeError("klippy did not open its API socket:\n" + self.log_tail())
+
+
+MOONRAKER_CONF = """\
+[server]
+host: 127.0.0.1
+port: {port}
+klippy_uds_address: {klippy_uds}
+
+[authorization]
+trusted_clients:
+    {trusted}
+cors_domains:
+    *
+
+[machine]
+provider: none
+validate_service: False
+validate_config: False
+
+[flowloop]
+{extra}
+"""
+
+
+class Moonraker(Process):
+    def __init__(self, venv: Venv, data_dir: Path, klippy_uds: Optional[Path] = None,
+                 extra_conf: str = "", port: Optional[int] = None,
+                 trusted: str = "127.0.0.0/8"):
+        self.port = port or free_port()
+        self.data_dir = data_dir
+        config_dir = data_dir / "config"
+        config_dir.mkdir(parents=True, exist_ok=True)
+        conf = config_dir / "moonraker.conf"
+        if not conf.exists():
+            conf.write_text(MOONRAKER_CONF.format(
+                port=self.port, klippy_uds=klippy_uds or data_dir / "comms" / "none.sock",
+                trusted=trusted, extra=extra_conf))
+        cmd = [str(venv.python), "-m", "moonraker", "-d", str(data_dir),
+               "-l", str(data_dir / "moonraker.log")]
+        super().__init__("moonraker", cmd, data_dir / "moonraker.log")
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def request(self, method: str, path: str, body=None, timeout: float = 10.0,
+                headers: Optional[Dict[str, str]] = None):
+        """(status, decoded JSON or text) of one HTTP request."""
+        data = None if body is None else json.dumps(body).encode()
+        req = urllib.request.Request(self.url + path, data=data, method=method,
+                                     headers={"Content-Type": "application/json",
+                                              **(headers or {})})
+        try:
+            with urllib.request.urlopen(req, timeout=timeout) as resp:
+                status, raw = resp.status, resp.read()
+                ctype = resp.headers.get("Content-Type", "")
+        except urllib.error.HTTPError as e:
+            status, raw, ctype = e.code, e.read(), e.headers.get("Content-Type", "")
+        text = raw.decode(errors="replace")
+        return status, (json.loads(text) if "json" in ctype else text)
+
+    def wait_ready(self, timeout: float = 60.0, klippy: bool = False) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if not self.alive():
+                raise RuntimeError("moonraker exited:\n" + self.log_tail())
+            try:
+                status, body = self.request("GET", "/server/info", timeout=2)
+            except (OSError, ValueError):
+                status, body = None, None
+            if status == 200 and (not klippy or
+                                  body["result"]["klippy_state"] == "ready"):
+                return
+            time.sleep(0.2)
+        raise RuntimeError("moonraker not ready:\n" + self.log_tail())

@@ -1,0 +1,448 @@
+"""Install flowloop into a user's Klipper and Moonraker, and take it out again.
+
+Everything is planned first and checked (paths exist, trees are what they
+claim to be, files are writable, nobody else's file is in the way); only a
+plan that passes every check is applied, and a step that still fails rolls
+back the steps before it. Text files get marked blocks that --uninstall
+removes exactly, so an install followed by an uninstall leaves every file
+byte for byte as it was.
+
+The klippy tier of the tests patches its cached Klipper copy with this same
+code (plan_klipper + apply), so what the tests run is what users get.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Callable, List, Optional, Sequence
+
+from .errors import FlowloopError
+
+PROJECT_URL = "https://github.com/flowloop/klipper-flowloop"
+SENSOR_C = "sensor_ems22.c"
+LIMITED_MENU = 'menu "Optional features (to reduce code size)"'
+
+# Kconfig: the hidden symbol (default y wherever SPI exists) sits with Klipper's
+# other hidden WANT_ options; the prompt sits inside the limited-code-size menu,
+# which is where Klipper shows its optional sensors.
+KCONFIG_HIDDEN = """\
+config WANT_SENSOR_EMS22
+    bool
+    depends on WANT_SPI
+    default y
+config NEED_SENSOR_BULK
+    bool
+    depends on WANT_SENSOR_EMS22
+    default y
+"""
+KCONFIG_PROMPT = """\
+config WANT_SENSOR_EMS22
+    bool "Support EMS22 filament flow sensor (flowloop)"
+    depends on WANT_SPI
+"""
+MAKEFILE_LINES = "src-$(CONFIG_WANT_SENSOR_EMS22) += sensor_ems22.c\n"
+
+
+class InstallError(FlowloopError):
+    pass
+
+
+# ---------------------------------------------------------------------------
+# Marked blocks in text files
+
+
+def _markers(block_id: str, newline_added: bool = False) -> tuple[str, str]:
+    extra = " (newline added)" if newline_added else ""
+    return (f"# >>> flowloop:{block_id}{extra} >>>\n", f"# <<< flowloop:{block_id} <<<\n")
+
+
+def find_block(text: str, block_id: str) -> Optional[tuple[int, int, str, bool]]:
+    """Return (start, end, body, newline_added); start includes an added newline."""
+    for newline_added in (False, True):
+        begin, end = _markers(block_id, newline_added)
+        i = text.find(begin)
+        if i < 0:
+            continue
+        j = text.find(end, i + len(begin))
+        if j < 0:
+            raise InstallError(f"flowloop:{block_id} block is not closed")
+        start = i - 1 if newline_added and i > 0 and text[i - 1] == "\n" else i
+        return start, j + len(end), text[i + len(begin):j], newline_added
+    return None
+
+
+def put_block(text: str, block_id: str, body: str,
+              where: Optional[Callable[[str], int]] = None) -> str:
+    """Insert (or refresh) a marked block; where(text) gives the offset, else append."""
+    found = find_block(text, block_id)
+    if found is not None:
+        start, stop, old_body, newline_added = found
+        if old_body == body:
+            return text
+        # Refresh in place (an older flowloop's block), keeping how it was joined.
+        return text[:start] + _block(block_id, body, newline_added) + text[stop:]
+    if where is None:
+        newline_added = bool(text) and not text.endswith("\n")
+        return text + _block(block_id, body, newline_added)
+    pos = where(text)
+    return text[:pos] + _block(block_id, body, False) + text[pos:]
+
+
+def _block(block_id: str, body: str, newline_added: bool) -> str:
+    begin, end = _markers(block_id, newline_added)
+    return ("\n" if newline_added else "") + begin + body + end
+
+
+def drop_block(text: str, block_id: str) -> str:
+    found = find_block(text, block_id)
+    if found is None:
+        return text
+    start, stop = found[:2]
+    return text[:start] + text[stop:]
+
+
+def _line_offset(text: str, line: str, path: Path, after: int = 0) -> int:
+    for offset in _line_starts(text, after):
+        if text.startswith(line, offset):
+            return offset
+    raise InstallError(f"{path}: no line '{line}'; is this a Klipper tree of a "
+                       f"supported version?")
+
+
+def _line_starts(text: str, after: int):
+    offset = text.rfind("\n", 0, after) + 1 if after else 0
+    while offset < len(text):
+        yield offset
+        nl = text.find("\n", offset)
+        if nl < 0:
+            return
+        offset = nl + 1
+
+
+# ---------------------------------------------------------------------------
+# Changes: planned, checked, then applied with rollback
+
+
+@dataclasses.dataclass
+class Change:
+    path: Path
+    what: str
+    new_text: Optional[str] = None      # write this text
+    old_text: Optional[str] = None
+    link_to: Optional[Path] = None      # create this symlink
+    unlink: bool = False                # remove the symlink at path
+
+    def apply(self) -> None:
+        if self.link_to is not None:
+            os.symlink(self.link_to, self.path)
+        elif self.unlink:
+            os.unlink(self.path)
+        else:
+            _write_atomic(self.path, self.new_text)
+
+    def revert(self) -> None:
+        if self.link_to is not None or (self.new_text is not None
+                                        and self.old_text is None):
+            os.unlink(self.path)  # it did not exist before
+        elif self.unlink:
+            os.symlink(self.old_text, self.path)
+        else:
+            _write_atomic(self.path, self.old_text)
+
+    def check(self) -> None:
+        parent = self.path.parent
+        if not parent.is_dir():
+            raise InstallError(f"{parent}: no such directory")
+        if not os.access(parent, os.W_OK):
+            raise InstallError(f"{parent}: not writable")
+        if self.new_text is not None and self.path.exists() and not os.access(
+                self.path, os.W_OK):
+            raise InstallError(f"{self.path}: not writable")
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.flowloop-tmp")
+    mode = path.stat().st_mode & 0o7777 if path.exists() else 0o644
+    with open(tmp, "w", encoding="utf-8", newline="") as f:
+        f.write(text)
+    os.chmod(tmp, mode)
+    os.replace(tmp, path)
+
+
+def apply(changes: Sequence[Change]) -> None:
+    for change in changes:
+        change.check()
+    done: List[Change] = []
+    try:
+        for change in changes:
+            change.apply()
+            done.append(change)
+    except OSError as e:
+        for change in reversed(done):
+            change.revert()
+        raise InstallError(f"{e.filename or ''}: {e.strerror}; nothing was changed")
+
+
+def _edit(changes: List[Change], path: Path, what: str,
+          edit: Callable[[str], str]) -> None:
+    old = path.read_text(encoding="utf-8")
+    new = edit(old)
+    if new != old:
+        changes.append(Change(path, what, new_text=new, old_text=old))
+
+
+def _link(changes: List[Change], path: Path, target: Path, uninstall: bool) -> None:
+    present = path.is_symlink() or path.exists()
+    ours = path.is_symlink() and Path(os.readlink(path)) == target
+    if present and not ours:
+        if uninstall:
+            return  # not ours: leave it alone
+        raise InstallError(f"{path} exists and is not flowloop's link to {target}; "
+                           f"move it away first")
+    if uninstall and ours:
+        changes.append(Change(path, f"remove link {path}", unlink=True,
+                              old_text=str(target)))
+    elif not uninstall and not ours:
+        changes.append(Change(path, f"link {path} -> {target}", link_to=target))
+
+
+# ---------------------------------------------------------------------------
+# What goes where
+
+
+def source_tree() -> Path:
+    """The flowloop checkout this package was installed from."""
+    root = Path(__file__).resolve().parent.parent
+    if not (root / "klippy_extras").is_dir():
+        raise InstallError(f"{root} is not a flowloop checkout (no klippy_extras/); "
+                           f"run 'flowloop install' from the git checkout's venv")
+    return root
+
+
+def klippy_modules(source: Path) -> List[Path]:
+    extras = source / "klippy_extras"
+    return sorted(p for p in extras.iterdir()
+                  if (p.suffix == ".py" or (p / "__init__.py").is_file())
+                  and not p.name.startswith(("_", ".")))
+
+
+def mcu_sources(source: Path) -> List[Path]:
+    sensor = source / "mcu_sensor"
+    if not (sensor / SENSOR_C).is_file():
+        return []
+    return sorted(p for p in sensor.iterdir() if p.suffix in (".c", ".h"))
+
+
+def check_klipper_tree(klipper: Path) -> None:
+    for rel in ("klippy/klippy.py", "klippy/extras", "src/Makefile", "src/Kconfig"):
+        if not (klipper / rel).exists():
+            if not klipper.exists():
+                raise InstallError(f"{klipper}: no such directory")
+            raise InstallError(f"{klipper} is not a Klipper tree (no {rel})")
+
+
+def git_exclude_file(tree: Path) -> Optional[Path]:
+    dotgit = tree / ".git"
+    if dotgit.is_dir():
+        return dotgit / "info" / "exclude"
+    if dotgit.is_file():  # a worktree: "gitdir: PATH"
+        gitdir = dotgit.read_text().partition("gitdir:")[2].strip()
+        return (tree / gitdir).resolve() / "info" / "exclude"
+    return None
+
+
+def _exclude_changes(changes: List[Change], tree: Path, rel_paths: List[str],
+                     uninstall: bool) -> None:
+    exclude = git_exclude_file(tree)
+    if exclude is None:
+        return
+    body = "".join(f"/{rel}\n" for rel in rel_paths)
+    if not exclude.exists():
+        if not uninstall and body and exclude.parent.is_dir():
+            changes.append(Change(exclude, "git exclude",
+                                  new_text=put_block("", "files", body)))
+        return
+    if uninstall or not body:
+        _edit(changes, exclude, "git exclude", lambda t: drop_block(t, "files"))
+    else:
+        _edit(changes, exclude, "git exclude",
+              lambda t: put_block(t, "files", body))
+
+
+def plan_klipper(klipper: Path, source: Path, uninstall: bool = False) -> List[Change]:
+    klipper = Path(klipper).expanduser()
+    check_klipper_tree(klipper)
+    changes: List[Change] = []
+    excluded = []
+    for module in klippy_modules(source):
+        rel = f"klippy/extras/{module.name}"
+        _link(changes, klipper / rel, module, uninstall)
+        excluded.append(rel)
+    c_files = mcu_sources(source)
+    for c_file in c_files:
+        rel = f"src/{c_file.name}"
+        _link(changes, klipper / rel, c_file, uninstall or not c_files)
+        excluded.append(rel)
+    makefile = klipper / "src" / "Makefile"
+    kconfig = klipper / "src" / "Kconfig"
+    if uninstall or not c_files:
+        _edit(changes, makefile, "src/Makefile", lambda t: drop_block(t, "sensor"))
+        _edit(changes, kconfig, "src/Kconfig",
+              lambda t: drop_block(drop_block(t, "sensor-prompt"), "sensor"))
+    else:
+        _edit(changes, makefile, "src/Makefile",
+              lambda t: put_block(t, "sensor", MAKEFILE_LINES))
+
+        def kconfig_edit(text: str) -> str:
+            text = put_block(text, "sensor", KCONFIG_HIDDEN,
+                             lambda t: _line_offset(t, LIMITED_MENU, kconfig))
+            return put_block(text, "sensor-prompt", KCONFIG_PROMPT, lambda t: (
+                _line_offset(t, "endmenu", kconfig,
+                             _line_offset(t, LIMITED_MENU, kconfig))))
+        _edit(changes, kconfig, "src/Kconfig", kconfig_edit)
+    _exclude_changes(changes, klipper, excluded, uninstall)
+    return changes
+
+
+def moonraker_components_dir(moonraker: Path) -> Path:
+    """Find moonraker/components/ from a venv (ask its python) or a checkout."""
+    moonraker = Path(moonraker).expanduser()
+    if not moonraker.exists():
+        raise InstallError(f"{moonraker}: no such directory")
+    checkout = moonraker / "moonraker" / "components"
+    if (checkout / "klippy_apis.py").is_file():
+        return checkout
+    python = moonraker / "bin" / "python"
+    if not python.exists():
+        raise InstallError(f"{moonraker} is neither a Moonraker checkout nor a "
+                           f"virtualenv (no bin/python)")
+    proc = subprocess.run(
+        [str(python), "-c",
+         "import os, moonraker.components as c; print(os.path.dirname(c.__file__))"],
+        capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise InstallError(f"{python} cannot import moonraker; install Moonraker "
+                           f"into that virtualenv or pass the Moonraker checkout")
+    return Path(proc.stdout.strip())
+
+
+def plan_moonraker(moonraker: Path, source: Path,
+                   uninstall: bool = False) -> List[Change]:
+    components = moonraker_components_dir(moonraker)
+    changes: List[Change] = []
+    rels = []
+    for comp in sorted((source / "moonraker_components").glob("*.py")):
+        if comp.name.startswith("_"):
+            continue
+        _link(changes, components / comp.name, comp, uninstall)
+        rels.append(f"moonraker/components/{comp.name}")
+    checkout = components.parent.parent
+    if (checkout / ".git").exists():
+        _exclude_changes(changes, checkout, rels, uninstall)
+    return changes
+
+
+def update_manager_block(source: Path) -> str:
+    origin = _git_origin(source) or PROJECT_URL
+    return (f"[update_manager flowloop]\n"
+            f"type: git_repo\n"
+            f"path: {source}\n"
+            f"origin: {origin}\n"
+            f"primary_branch: main\n"
+            f"managed_services: klipper moonraker\n")
+
+
+def _git_origin(source: Path) -> Optional[str]:
+    try:
+        proc = subprocess.run(["git", "-C", str(source), "remote", "get-url", "origin"],
+                              capture_output=True, text=True)
+    except OSError:
+        return None
+    return proc.stdout.strip() or None if proc.returncode == 0 else None
+
+
+def plan_moonraker_conf(config_dir: Path, source: Path,
+                        uninstall: bool = False) -> List[Change]:
+    conf = Path(config_dir).expanduser() / "moonraker.conf"
+    if not conf.is_file():
+        raise InstallError(f"{conf}: no such file (use --config-dir)")
+    changes: List[Change] = []
+    if uninstall:
+        _edit(changes, conf, "moonraker.conf", lambda t: drop_block(t, "update-manager"))
+        return changes
+    text = conf.read_text(encoding="utf-8")
+    has_own = find_block(text, "update-manager") is not None
+    if not has_own and "[update_manager flowloop]" in text:
+        return changes  # the user wrote one: theirs wins
+    _edit(changes, conf, "moonraker.conf",
+          lambda t: put_block(t, "update-manager", "\n" + update_manager_block(source)))
+    return changes
+
+
+# ---------------------------------------------------------------------------
+# The command
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "install", help="link flowloop into Klipper and Moonraker",
+        description="Link flowloop's klippy modules, MCU sensor source and Moonraker "
+                    "component into the user's trees. Idempotent; --uninstall "
+                    "restores every file as it was.")
+    home = Path("~")
+    p.add_argument("--klipper", type=Path,
+                   default=Path(os.environ.get("KLIPPER_PATH", home / "klipper")),
+                   help="Klipper checkout (default: $KLIPPER_PATH or ~/klipper)")
+    p.add_argument("--moonraker", type=Path, default=None,
+                   help="Moonraker checkout or virtualenv (default: ~/moonraker, "
+                        "else ~/moonraker-env)")
+    p.add_argument("--config-dir", type=Path, default=home / "printer_data" / "config",
+                   help="folder with moonraker.conf (default: ~/printer_data/config)")
+    p.add_argument("--no-moonraker", action="store_true",
+                   help="only patch Klipper")
+    p.add_argument("--dry-run", action="store_true", help="print what would change")
+    p.add_argument("--uninstall", action="store_true", help="take flowloop out again")
+    p.set_defaults(func=run)
+
+
+def _default_moonraker() -> Path:
+    for candidate in (Path("~/moonraker"), Path("~/moonraker-env")):
+        if candidate.expanduser().exists():
+            return candidate
+    raise InstallError("no Moonraker at ~/moonraker or ~/moonraker-env; "
+                       "pass --moonraker or --no-moonraker")
+
+
+def plan(args, source: Path) -> List[Change]:
+    changes = plan_klipper(args.klipper, source, args.uninstall)
+    if not args.no_moonraker:
+        moonraker = args.moonraker or _default_moonraker()
+        changes += plan_moonraker(moonraker, source, args.uninstall)
+        changes += plan_moonraker_conf(args.config_dir, source, args.uninstall)
+    return changes
+
+
+def run(args) -> int:
+    source = source_tree()
+    changes = plan(args, source)
+    for change in changes:
+        change.check()
+    verb = "would " if args.dry_run else ""
+    for change in changes:
+        print(f"{verb}{change.what}: {change.path}")
+    if not changes:
+        print("nothing to do: " + ("flowloop is not installed" if args.uninstall
+                                   else "flowloop is installed"))
+        return 0
+    if args.dry_run:
+        return 0
+    apply(changes)
+    if not args.uninstall and mcu_sources(source):
+        print("MCU: rebuild and flash Klipper's firmware to get the EMS22 sensor "
+              "command (cd ~/klipper; make menuconfig; make flash)", file=sys.stdout)
+    print("restart klipper and moonraker to load the change")
+    return 0

@@ -1,0 +1,46 @@
+"""The klippy tier proves itself on Klipper's own regression files."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from devtools.klippy_test import KlippyTestFailure, parse, run_file
+
+
+def test_klippers_own_commands_test_runs_in_place(klipper_build, klippy_venv, short_tmp):
+    log = run_file(klipper_build.tree / "test" / "klippy" / "commands.test",
+                   klipper_build, klippy_venv, short_tmp)
+    assert "Starting Klippy" in log
+
+
+def test_import_test_passes_in_the_patched_tree(klipper_build, klippy_venv):
+    proc = subprocess.run([str(klippy_venv.python), str(klipper_build.klippy),
+                           "--import-test"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_an_unknown_command_fails_the_run(klipper_build, klippy_venv, short_tmp):
+    test = short_tmp / "unknown.test"
+    cfg = klipper_build.tree / "config" / "example-cartesian.cfg"
+    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nNO_SUCH_COMMAND_X\n")
+    with pytest.raises(KlippyTestFailure, match="Unknown command"):
+        run_file(test, klipper_build, klippy_venv, short_tmp)
+
+
+def test_several_config_lines_make_several_runs(tmp_path):
+    test = tmp_path / "multi.test"
+    test.write_text("DICTIONARY a.dict\nCONFIG one.cfg\nG28\nCONFIG two.cfg\n"
+                    "SHOULD_FAIL\n")
+    runs = parse(test, tmp_path)
+    assert [r.config.name for r in runs] == ["one.cfg", "two.cfg"]
+    assert runs[1].gcode == ["G28"]
+
+
+def test_installing_flowloop_moved_no_pinned_klippy_package(klippy_venv):
+    host, after = klippy_venv.freeze("host"), klippy_venv.freeze("flowloop")
+    moved = {name: (v, after.get(name)) for name, v in host.items()
+             if after.get(name) != v}
+    assert not moved
+    assert "klipper-flowloop" in after
