@@ -258,9 +258,10 @@ class Klippy(Process):
     """klippy in batch mode (MCU output to a file) with an API socket and a pty."""
 
     def __init__(self, build: KlipperBuild, venv: Venv, config: Path, workdir: Path,
-                 dictionaries: Optional[Dict[str, str]] = None):
+                 dictionaries: Optional[Dict[str, str]] = None,
+                 api_socket: Optional[Path] = None):
         self.workdir = workdir
-        self.api_socket = workdir / "klippy.sock"
+        self.api_socket = api_socket or workdir / "klippy.sock"
         self.pty = workdir / "printer"
         dictionaries = dictionaries or {"mcu": "linuxprocess"}
         cmd = [str(venv.python), str(build.klippy), str(config),
@@ -315,7 +316,8 @@ class Moonraker(Process):
         conf = config_dir / "moonraker.conf"
         if not conf.exists():
             conf.write_text(MOONRAKER_CONF.format(
-                port=self.port, klippy_uds=klippy_uds or data_dir / "comms" / "none.sock",
+                port=self.port,
+                klippy_uds=klippy_uds or data_dir / "comms" / "none.sock",
                 trusted=trusted, extra=extra_conf))
         cmd = [str(venv.python), "-m", "moonraker", "-d", str(data_dir),
                "-l", str(data_dir / "moonraker.log")]
@@ -355,3 +357,67 @@ class Moonraker(Process):
                 return
             time.sleep(0.2)
         raise RuntimeError("moonraker not ready:\n" + self.log_tail())
+
+
+class PrinterStack:
+    """klippy (batch mode, optional) + Moonraker laid out like ~/printer_data."""
+
+    def __init__(self, data_dir: Path, moonraker: Moonraker,
+                 klippy: Optional[Klippy]):
+        self.data_dir = data_dir
+        self.moonraker = moonraker
+        self.klippy = klippy
+
+    def gcode(self, script: str) -> str:
+        status, body = self.moonraker.request("POST", "/printer/gcode/script",
+                                              {"script": script}, timeout=120)
+        if status != 200:
+            raise RuntimeError(f"G-code {script!r} failed: {body}")
+        return body["result"]
+
+    def query(self, obj: str) -> dict:
+        from urllib.parse import quote
+        status, body = self.moonraker.request(
+            "GET", "/printer/objects/query?" + quote(obj))
+        if status != 200:
+            raise RuntimeError(f"query {obj!r} failed: {body}")
+        return body["result"]["status"].get(obj, {})
+
+
+@contextlib.contextmanager
+def printer_stack(printer_cfg: Optional[Path] = None, with_klippy: bool = True,
+                  moonraker_conf: str = "", trusted: str = "127.0.0.0/8",
+                  target: str = "atmega2560",
+                  data_dir: Optional[Path] = None) -> Iterator[PrinterStack]:
+    """Start Moonraker (and klippy with printer_cfg, default config/printer.cfg).
+
+    The printer config in data_dir/config/printer.cfg includes the given file
+    and points virtual_sdcard at data_dir/gcodes, as Moonraker expects.
+    """
+    own_dir = data_dir is None
+    data_dir = data_dir or short_tempdir("fl-stack-")
+    for sub in ("config", "gcodes", "comms", "logs"):
+        (data_dir / sub).mkdir(parents=True, exist_ok=True)
+    klippy = moonraker = None
+    try:
+        uds = data_dir / "comms" / "klippy.sock"
+        if with_klippy:
+            cfg = data_dir / "config" / "printer.cfg"
+            include = printer_cfg or PROJECT / "config" / "printer.cfg"
+            cfg.write_text(f"[include {include}]\n\n[virtual_sdcard]\n"
+                           f"path: {data_dir / 'gcodes'}\n")
+            klippy = Klippy(build_klipper(), klippy_venv(), cfg, data_dir / "logs",
+                            {"mcu": target}, api_socket=uds)
+        moonraker = Moonraker(moonraker_venv(), data_dir,
+                              klippy_uds=klippy.api_socket if klippy else None,
+                              extra_conf=moonraker_conf, trusted=trusted)
+        if klippy:
+            klippy.wait_ready()
+        moonraker.wait_ready(klippy=klippy is not None)
+        yield PrinterStack(data_dir, moonraker, klippy)
+    finally:
+        for proc in (moonraker, klippy):
+            if proc is not None:
+                proc.stop()
+        if own_dir:
+            shutil.rmtree(data_dir, ignore_errors=True)

@@ -25,7 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="flowloop",
         description="Closed-loop extrusion and precision calibration for Klipper.")
-    parser.add_argument("--version", action="version", version=f"flowloop {__version__}")
+    parser.add_argument("--version", action="version",
+                        version=f"flowloop {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub)

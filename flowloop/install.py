@@ -57,7 +57,8 @@ class InstallError(FlowloopError):
 
 def _markers(block_id: str, newline_added: bool = False) -> tuple[str, str]:
     extra = " (newline added)" if newline_added else ""
-    return (f"# >>> flowloop:{block_id}{extra} >>>\n", f"# <<< flowloop:{block_id} <<<\n")
+    return (f"# >>> flowloop:{block_id}{extra} >>>\n",
+            f"# <<< flowloop:{block_id} <<<\n")
 
 
 def find_block(text: str, block_id: str) -> Optional[tuple[int, int, str, bool]]:
@@ -184,7 +185,8 @@ def apply(changes: Sequence[Change]) -> None:
     except OSError as e:
         for change in reversed(done):
             change.revert()
-        raise InstallError(f"{e.filename or ''}: {e.strerror}; nothing was changed")
+        raise InstallError(f"{e.filename or ''}: {e.strerror}; nothing was changed"
+                           ) from None
 
 
 def _edit(changes: List[Change], path: Path, what: str,
@@ -372,7 +374,8 @@ def plan_moonraker_conf(config_dir: Path, source: Path,
         raise InstallError(f"{conf}: no such file (use --config-dir)")
     changes: List[Change] = []
     if uninstall:
-        _edit(changes, conf, "moonraker.conf", lambda t: drop_block(t, "update-manager"))
+        _edit(changes, conf, "moonraker.conf",
+              lambda t: drop_block(t, "update-manager"))
         return changes
     text = conf.read_text(encoding="utf-8")
     has_own = find_block(text, "update-manager") is not None

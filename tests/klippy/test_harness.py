@@ -9,10 +9,13 @@ import pytest
 from devtools.klippy_test import KlippyTestFailure, parse, run_file
 
 
-def test_klippers_own_commands_test_runs_in_place(klipper_build, klippy_venv, short_tmp):
+def test_klippers_own_commands_test_runs_in_place(klipper_build, klippy_venv,
+                                                  short_tmp):
+    # commands.test deliberately sends M206, unknown to its config: Klipper's
+    # own harness judges it on exit code alone, and so do we here.
     log = run_file(klipper_build.tree / "test" / "klippy" / "commands.test",
-                   klipper_build, klippy_venv, short_tmp)
-    assert "Starting Klippy" in log
+                   klipper_build, klippy_venv, short_tmp, allow_unknown=True)
+    assert "Exiting (print time" in log
 
 
 def test_import_test_passes_in_the_patched_tree(klipper_build, klippy_venv):

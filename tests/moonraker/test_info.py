@@ -1,0 +1,65 @@
+"""The moonraker tier: the real Moonraker from PyPI with flowloop's component."""
+
+from __future__ import annotations
+
+import pytest
+
+from devtools import stack
+
+
+@pytest.fixture(scope="module")
+def moonraker_only(moonraker_venv):
+    with stack.printer_stack(with_klippy=False) as printer:
+        yield printer
+
+
+@pytest.fixture(scope="module")
+def full_stack(klipper_build, klippy_venv, moonraker_venv):
+    with stack.printer_stack() as printer:
+        yield printer
+
+
+def test_info_without_klippy_says_it_is_not_connected(moonraker_only):
+    status, body = moonraker_only.moonraker.request("GET", "/server/flowloop/info")
+    assert status == 200
+    info = body["result"]
+    assert info["klippy_connected"] is False
+    assert info["version"] == __import__("flowloop").__version__
+
+
+def test_info_reports_what_klippy_loaded(full_stack):
+    status, body = full_stack.moonraker.request("GET", "/server/flowloop/info")
+    assert status == 200
+    info = body["result"]
+    assert info["klippy_connected"] is True
+    assert info["klippy_version"] == info["version"]
+    assert "mcu" in info["sensor_firmware"]
+
+
+def test_sensor_firmware_check_matches_the_built_dictionary(full_stack, klipper_build):
+    from flowloop import ems22
+    has_command = ems22.QUERY_CMD.split()[0] in klipper_build.dictionary(
+        "atmega2560").read_text()
+    info = full_stack.moonraker.request("GET", "/server/flowloop/info")[1]["result"]
+    assert info["sensor_firmware"]["mcu"] is has_command
+
+
+def test_gcode_reaches_the_batch_mode_klippy(full_stack):
+    full_stack.gcode("G28\nG1 X12 Y7 F3000")
+    assert full_stack.query("toolhead")["position"][:2] == [12.0, 7.0]
+
+
+def test_installing_flowloop_moved_no_pinned_moonraker_package(moonraker_venv):
+    host, after = moonraker_venv.freeze("host"), moonraker_venv.freeze("flowloop")
+    moved = {name: (v, after.get(name)) for name, v in host.items()
+             if after.get(name) != v}
+    assert not moved
+    assert "klipper-flowloop" in after
+
+
+def test_component_is_linked_the_way_flowloop_install_links_it(moonraker_venv):
+    from flowloop import install
+    components = install.moonraker_components_dir(moonraker_venv.path)
+    link = components / "flowloop.py"
+    assert link.is_symlink()
+    assert link.resolve() == stack.PROJECT / "moonraker_components" / "flowloop.py"

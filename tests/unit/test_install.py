@@ -1,0 +1,261 @@
+"""flowloop install on copies of real trees: dry-run, install, uninstall."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from devtools import stack
+from flowloop import cli, install
+
+PROJECT = stack.PROJECT
+
+
+def snapshot(root: Path) -> dict:
+    """Every path under root with its bytes (or link target) and mode."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            path = Path(dirpath) / name
+            rel = str(path.relative_to(root))
+            st = path.lstat()
+            if path.is_symlink():
+                out[rel] = ("link", os.readlink(path))
+            elif stat.S_ISREG(st.st_mode):
+                out[rel] = ("file", path.read_bytes(), st.st_mode)
+            else:
+                out[rel] = ("dir", st.st_mode)
+    return out
+
+
+@pytest.fixture
+def klipper_tree(tmp_path):
+    """A copy of the user's Klipper when there is one, else its skeleton."""
+    tree = tmp_path / "klipper"
+    if stack.missing_klipper_reason() is None:
+        kp = stack.klipper_path()
+        tree.mkdir()
+        for rel in ("klippy", "src", ".git"):
+            shutil.copytree(kp / rel, tree / rel, symlinks=True,
+                            ignore=shutil.ignore_patterns("__pycache__", "objects"))
+    else:
+        (tree / "klippy" / "extras").mkdir(parents=True)
+        (tree / "klippy" / "klippy.py").write_text("")
+        (tree / "src").mkdir()
+        (tree / "src" / "Makefile").write_text("src-y += sched.c\n")
+        (tree / "src" / "Kconfig").write_text(
+            f"config WANT_SPI\n    bool\n{install.LIMITED_MENU}\nendmenu\n")
+        (tree / ".git" / "info").mkdir(parents=True)
+        (tree / ".git" / "info" / "exclude").write_text("# git ls-files\n")
+    return tree
+
+
+@pytest.fixture
+def moonraker_checkout(tmp_path):
+    """Moonraker laid out as a git checkout (what KIAUH installs)."""
+    root = tmp_path / "moonraker"
+    comps = root / "moonraker" / "components"
+    comps.mkdir(parents=True)
+    (comps / "__init__.py").write_text("")
+    (comps / "klippy_apis.py").write_text("# stand-in\n")
+    (root / ".git" / "info").mkdir(parents=True)
+    (root / ".git" / "info" / "exclude").write_text("")
+    return root
+
+
+@pytest.fixture
+def config_dir(tmp_path):
+    cfg = tmp_path / "printer_data" / "config"
+    cfg.mkdir(parents=True)
+    (cfg / "moonraker.conf").write_text("[server]\nhost: 0.0.0.0")  # no final newline
+    return cfg
+
+
+def run_install(*args: str) -> int:
+    return cli.main(["install", *args])
+
+
+def args_for(klipper, moonraker, config_dir):
+    return ["--klipper", str(klipper), "--moonraker", str(moonraker),
+            "--config-dir", str(config_dir)]
+
+
+def test_dry_run_then_install_then_uninstall_restores_every_byte(
+        klipper_tree, moonraker_checkout, config_dir, capsys):
+    trees = (klipper_tree, moonraker_checkout, config_dir)
+    before = [snapshot(t) for t in trees]
+    args = args_for(*trees)
+
+    assert run_install(*args, "--dry-run") == 0
+    assert [snapshot(t) for t in trees] == before
+    assert "would link" in capsys.readouterr().out
+
+    assert run_install(*args) == 0
+    extras = klipper_tree / "klippy" / "extras" / "flowloop.py"
+    assert extras.is_symlink()
+    assert extras.resolve() == PROJECT / "klippy_extras" / "flowloop.py"
+    comp = moonraker_checkout / "moonraker" / "components" / "flowloop.py"
+    assert comp.resolve() == PROJECT / "moonraker_components" / "flowloop.py"
+    conf = (config_dir / "moonraker.conf").read_text()
+    assert "[update_manager flowloop]" in conf
+    assert "managed_services: klipper moonraker" in conf
+    exclude = (klipper_tree / ".git" / "info" / "exclude").read_text()
+    assert "/klippy/extras/flowloop.py" in exclude
+    installed = [snapshot(t) for t in trees]
+
+    assert run_install(*args) == 0  # idempotent
+    assert [snapshot(t) for t in trees] == installed
+    assert "nothing to do" in capsys.readouterr().out
+
+    assert run_install(*args, "--uninstall") == 0
+    assert [snapshot(t) for t in trees] == before
+
+
+def test_sensor_source_adds_makefile_and_kconfig_lines(klipper_tree, tmp_path):
+    source = tmp_path / "source"
+    shutil.copytree(PROJECT / "klippy_extras", source / "klippy_extras")
+    (source / "mcu_sensor").mkdir()
+    (source / "mcu_sensor" / install.SENSOR_C).write_text("/* sensor */\n")
+    before = snapshot(klipper_tree)
+    install.apply(install.plan_klipper(klipper_tree, source))
+    makefile = (klipper_tree / "src" / "Makefile").read_text()
+    kconfig = (klipper_tree / "src" / "Kconfig").read_text()
+    assert install.MAKEFILE_LINES in makefile
+    # the prompt sits inside the limited-code-size menu, the default outside it
+    menu = kconfig.index(install.LIMITED_MENU)
+    assert kconfig.index(install.KCONFIG_HIDDEN) < menu
+    prompt = kconfig.index(install.KCONFIG_PROMPT)
+    assert menu < prompt < kconfig.index("endmenu", menu)
+    assert (klipper_tree / "src" / install.SENSOR_C).is_symlink()
+    install.apply(install.plan_klipper(klipper_tree, source, uninstall=True))
+    assert snapshot(klipper_tree) == before
+
+
+def test_without_sensor_source_install_leaves_the_build_files_alone(klipper_tree,
+                                                                    tmp_path):
+    source = tmp_path / "source"
+    shutil.copytree(PROJECT / "klippy_extras", source / "klippy_extras")
+    makefile = (klipper_tree / "src" / "Makefile").read_bytes()
+    install.apply(install.plan_klipper(klipper_tree, source))
+    assert (klipper_tree / "src" / "Makefile").read_bytes() == makefile
+    assert not (klipper_tree / "src" / install.SENSOR_C).exists()
+
+
+def test_a_file_not_ending_in_newline_round_trips(tmp_path):
+    text = "[server]\nhost: 1"
+    added = install.put_block(text, "x", "a: 1\n")
+    assert added.startswith(text + "\n")
+    assert install.drop_block(added, "x") == text
+
+
+def test_an_older_block_is_refreshed_in_place():
+    text = install.put_block("head\n", "x", "old\n") + "tail\n"
+    refreshed = install.put_block(text, "x", "new\n")
+    assert refreshed == install.put_block("head\n", "x", "new\n") + "tail\n"
+
+
+@pytest.mark.parametrize("make_bad, message", [
+    (lambda t: t / "nope", "no such directory"),
+    (lambda t: (t / "plain").mkdir() or t / "plain", "is not a Klipper tree"),
+])
+def test_a_wrong_klipper_path_is_one_line_and_changes_nothing(
+        tmp_path, moonraker_checkout, config_dir, capsys, make_bad, message):
+    bad = make_bad(tmp_path)
+    before = snapshot(tmp_path)
+    assert run_install(*args_for(bad, moonraker_checkout, config_dir)) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err
+    assert snapshot(tmp_path) == before
+
+
+def test_a_foreign_file_in_the_way_is_refused(klipper_tree, moonraker_checkout,
+                                              config_dir, capsys):
+    (klipper_tree / "klippy" / "extras" / "flowloop.py").write_text("# someone's\n")
+    before = snapshot(klipper_tree)
+    assert run_install(*args_for(klipper_tree, moonraker_checkout, config_dir)) == 2
+    assert "is not flowloop's link" in capsys.readouterr().err
+    assert snapshot(klipper_tree) == before
+
+
+@pytest.fixture
+def read_only(tmp_path):
+    """Make a file unwritable even for root (chattr +i), else by its mode."""
+    made = []
+
+    def make(path: Path) -> None:
+        if os.geteuid() == 0:
+            if subprocess.run(["chattr", "+i", str(path)],
+                              capture_output=True).returncode != 0:
+                pytest.skip("running as root and chattr +i is not available here")
+            made.append(path)
+        else:
+            path.chmod(0o444)
+    yield make
+    for path in made:
+        subprocess.run(["chattr", "-i", str(path)], check=True)
+
+
+def test_an_unwritable_moonraker_conf_is_refused_before_anything_changes(
+        klipper_tree, moonraker_checkout, config_dir, capsys, read_only):
+    read_only(config_dir / "moonraker.conf")
+    before = snapshot(klipper_tree)
+    assert run_install(*args_for(klipper_tree, moonraker_checkout, config_dir)) == 2
+    err = capsys.readouterr().err.strip()
+    assert "moonraker.conf: not writable" in err and "\n" not in err
+    assert snapshot(klipper_tree) == before
+
+
+def test_a_failed_step_rolls_back_the_steps_before_it(klipper_tree, moonraker_checkout,
+                                                      config_dir, monkeypatch):
+    """What root's permissions hide: a write that fails midway undoes the rest."""
+    before = [snapshot(t) for t in (klipper_tree, moonraker_checkout, config_dir)]
+    real = install._write_atomic
+
+    def failing(path, text):
+        if path.name == "moonraker.conf":
+            raise PermissionError(13, "Permission denied", str(path))
+        real(path, text)
+    monkeypatch.setattr(install, "_write_atomic", failing)
+    trees = (klipper_tree, moonraker_checkout, config_dir)
+    assert run_install(*args_for(*trees)) == 2
+    assert [snapshot(t) for t in trees] == before
+
+
+def test_a_missing_moonraker_conf_is_named(klipper_tree, moonraker_checkout, tmp_path,
+                                            capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert run_install(*args_for(klipper_tree, moonraker_checkout, empty)) == 2
+    assert "moonraker.conf: no such file" in capsys.readouterr().err
+
+
+def test_a_venv_is_asked_where_its_moonraker_lives(tmp_path):
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)],
+                   check=True)
+    site = next(venv.glob("lib/python*/site-packages"))
+    comps = site / "moonraker" / "components"
+    comps.mkdir(parents=True)
+    (site / "moonraker" / "__init__.py").write_text("")
+    (comps / "__init__.py").write_text("")
+    assert install.moonraker_components_dir(venv).resolve() == comps.resolve()
+
+
+def test_a_venv_without_moonraker_is_refused(tmp_path):
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)],
+                   check=True)
+    with pytest.raises(install.InstallError, match="cannot import moonraker"):
+        install.moonraker_components_dir(venv)
+
+
+def test_a_users_own_update_manager_section_is_kept(config_dir):
+    conf = config_dir / "moonraker.conf"
+    conf.write_text("[update_manager flowloop]\ntype: git_repo\npath: ~/mine\n")
+    assert install.plan_moonraker_conf(config_dir, PROJECT) == []
