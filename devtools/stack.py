@@ -113,8 +113,9 @@ def klipper_key(source: Path = PROJECT) -> str:
     h.update(_run(["git", "-C", str(kp), "status", "--porcelain"]).encode())
     h.update(_run(["git", "-C", str(kp), "diff"]).encode())
     h.update(str(source).encode())  # the symlinks point into this checkout
-    _hash_files(h, [source / "flowloop" / "install.py"]
-                + install.mcu_sources(source) + install.klippy_modules(source))
+    _hash_files(h, [source / "flowloop" / "install.py"] + install.mcu_sources(source))
+    # klippy modules are links: their names shape the tree, their text does not.
+    h.update(" ".join(p.name for p in install.klippy_modules(source)).encode())
     return h.hexdigest()[:16]
 
 

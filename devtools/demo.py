@@ -1,0 +1,96 @@
+"""`make demo`: start the local stack and show what flowloop does.
+
+Starts a batch-mode klippy with config/printer.cfg and Moonraker with the
+flowloop component, both on 127.0.0.1, prints the Moonraker URL and what
+flowloop has loaded, then runs each feature's demo step (devtools/demo_*.py,
+each a `demo(ctx)` function). Ctrl-C stops everything. Without a Klipper
+checkout it says so and runs Moonraker alone, and the steps run offline.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import signal
+import sys
+import traceback
+from pathlib import Path
+from typing import Optional
+
+from devtools import stack
+from flowloop.info import describe
+
+
+class DemoContext:
+    def __init__(self, printer: Optional[stack.PrinterStack]):
+        self.printer = printer
+        self.project = stack.PROJECT
+
+    @property
+    def moonraker(self) -> Optional[stack.Moonraker]:
+        return self.printer.moonraker if self.printer else None
+
+    @property
+    def klippy_available(self) -> bool:
+        return bool(self.printer and self.printer.klippy)
+
+    def say(self, text: str = "") -> None:
+        print(text, flush=True)
+
+    def gcode(self, script: str) -> str:
+        return self.printer.gcode(script)
+
+    def query(self, obj: str) -> dict:
+        return self.printer.query(obj)
+
+
+def demo_steps():
+    for path in sorted(Path(__file__).parent.glob("demo_*.py")):
+        yield path.stem[len("demo_"):], importlib.import_module(f"devtools.{path.stem}")
+
+
+def run_steps(ctx: DemoContext) -> int:
+    failed = 0
+    for name, module in demo_steps():
+        ctx.say(f"\n=== {name.replace('_', ' ')} ===")
+        try:
+            module.demo(ctx)
+        except Exception:  # a broken step is reported, the others still run
+            failed += 1
+            ctx.say(f"!!! demo step {name} failed:\n{traceback.format_exc()}")
+    return failed
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="make demo",
+                                     description=__doc__.split("\n")[0])
+    parser.add_argument("--once", action="store_true",
+                        help="stop after the steps instead of waiting for Ctrl-C")
+    args = parser.parse_args(argv)
+    reason = stack.missing_klipper_reason()
+    if reason:
+        print("!!! " + reason, flush=True)
+        print("!!! The demo runs Moonraker alone; steps show what works offline.",
+              flush=True)
+    print("Starting the local stack (first run builds Klipper and two "
+          "virtualenvs: a few minutes)...", flush=True)
+    with stack.printer_stack(with_klippy=reason is None) as printer:
+        status, body = printer.moonraker.request("GET", "/server/flowloop/info")
+        print(f"\nMoonraker: {printer.moonraker.url}  (data: {printer.data_dir})")
+        print(f"  GET {printer.moonraker.url}/server/flowloop/info")
+        print("  " + describe(body["result"]).replace("\n", "\n  "))
+        failed = run_steps(DemoContext(printer))
+        if failed:
+            print(f"\n!!! {failed} demo step(s) failed (see above)")
+        if not args.once:
+            print(f"\nThe stack is running at {printer.moonraker.url}. "
+                  f"Ctrl-C stops everything.", flush=True)
+            try:
+                signal.pause()
+            except KeyboardInterrupt:
+                print("\nstopping klippy and Moonraker...")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
