@@ -41,11 +41,15 @@ def pytest_terminal_summary(terminalreporter):
         terminalreporter.write_line("!!! " + reason, red=True, bold=True)
 
 
+def skip_without_klipper() -> None:
+    # The loud explanation is printed once, in the header and the summary.
+    if stack.missing_klipper_reason():
+        pytest.skip(f"no Klipper checkout at {stack.klipper_path()}")
+
+
 @pytest.fixture(scope="session")
 def klipper_build():
-    reason = stack.missing_klipper_reason()
-    if reason:
-        pytest.skip(reason)
+    skip_without_klipper()
     return stack.build_klipper()
 
 
@@ -106,9 +110,7 @@ _BUILD = None
 
 def _session_build():
     global _BUILD
-    reason = stack.missing_klipper_reason()
-    if reason:
-        pytest.skip(reason)
+    skip_without_klipper()
     if _BUILD is None:
         _BUILD = (stack.build_klipper(), stack.klippy_venv())
     return _BUILD
