@@ -67,8 +67,11 @@ def log(msg: str) -> None:
     print(f"[flowloop stack] {msg}", file=sys.stderr, flush=True)
 
 
-def _run(cmd: List[str], cwd: Optional[Path] = None, **kw) -> str:
+def _run(cmd: List[str], cwd: Optional[Path] = None, log_file: Optional[Path] = None,
+         **kw) -> str:
     proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, **kw)
+    if log_file is not None:  # kept so tests can check the build for warnings
+        log_file.write_text(proc.stdout + proc.stderr)
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(map(str, cmd))} failed ({proc.returncode}):\n"
                            f"{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
@@ -86,6 +89,14 @@ def _locked(name: str) -> Iterator[None]:
     with open(cache_dir() / f"{name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         yield
+
+
+def _prune(candidates, keep: Path, newest: int = 2) -> None:
+    """Drop stale builds, sparing the newest few (another run may still use them)."""
+    old = sorted((p for p in candidates if p.is_dir() and p != keep),
+                 key=lambda p: p.stat().st_mtime, reverse=True)
+    for path in old[newest:]:
+        shutil.rmtree(path, ignore_errors=True)
 
 
 class KlipperBuild:
@@ -140,15 +151,13 @@ def build_klipper(source: Path = PROJECT, targets=TARGETS) -> KlipperBuild:
             _run(["make", "distclean"], cwd=tmp)
             shutil.copy(tmp / "test" / "configs" / f"{target}.config", tmp / ".config")
             _run(["make", "olddefconfig"], cwd=tmp)
-            _run(["make", f"-j{os.cpu_count() or 2}"], cwd=tmp)
+            _run(["make", f"-j{os.cpu_count() or 2}"], cwd=tmp,
+                 log_file=dict_dir / f"{target}.log")
             shutil.copy(tmp / "out" / "klipper.dict", dict_dir / f"{target}.dict")
             shutil.copy(tmp / "out" / "klipper.elf", dict_dir / f"{target}.elf")
             shutil.copy(tmp / ".config", dict_dir / f"{target}.config")
         _run(["make", "distclean"], cwd=tmp)
-        # Stale builds of older keys are dead weight: keep only this one.
-        for old in cache_dir().glob("klipper-*"):
-            if old.is_dir() and old != tmp:
-                shutil.rmtree(old, ignore_errors=True)
+        _prune(cache_dir().glob("klipper-*"), keep=tmp)
         tmp.rename(tree)
         (tree / ".flowloop-ready").write_text(key)
     return build
@@ -190,9 +199,7 @@ def _build_venv(name: str, host_install: List[str], extra: str,
         (path / "freeze-host.json").write_text(json.dumps(_freeze(venv.python)))
         _run(pip + ["-e", f"{PROJECT}{extra}"])
         (path / "freeze-flowloop.json").write_text(json.dumps(_freeze(venv.python)))
-        for old in cache_dir().glob(f"{name}-*"):
-            if old.is_dir() and old != path and not old.name.endswith(".lock"):
-                shutil.rmtree(old, ignore_errors=True)
+        _prune(cache_dir().glob(f"{name}-*"), keep=path)
         (path / ".flowloop-ready").write_text("ok")
     return venv
 
@@ -356,6 +363,8 @@ class Moonraker(Process):
             if status == 200 and (not klippy or
                                   body["result"]["klippy_state"] == "ready"):
                 return
+            if status == 401 and not klippy:
+                return  # up, but this client is not in trusted_clients
             time.sleep(0.2)
         raise RuntimeError("moonraker not ready:\n" + self.log_tail())
 

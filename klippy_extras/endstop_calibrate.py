@@ -1,0 +1,212 @@
+# Delta tower endstop calibration (ENDSTOP_CALIBRATE)
+#
+# Probes near each tower (and the centre, and by default opposite each tower)
+# through Klipper's probe helpers, then solves the three position_endstop
+# values exactly (flowloop.delta) and stages them for SAVE_CONFIG. Delta
+# geometry is only read at startup, so a second call after the restart
+# verifies the result.
+#
+# This file may be distributed under the terms of the GNU GPLv3 license.
+import logging
+
+from flowloop import delta
+from flowloop.errors import FlowloopError
+
+from . import probe
+
+TOWERS = delta.TOWERS
+METHODS = ('automatic', 'manual')
+# Parameters of ENDSTOP_CALIBRATE that the probe itself must not see.
+OWN_PARAMS = ('SAMPLES', 'RADIUS', 'TOLERANCE')
+
+
+class EndstopCalibrate:
+    def __init__(self, config):
+        self.printer = config.get_printer()
+        self.printer.load_object(config, 'flowloop')
+        self.name = config.get_name()
+        kinematics = config.getsection('printer').get('kinematics', '')
+        if kinematics.strip() != 'delta':
+            raise config.error(
+                f"[{self.name}] is for linear delta printers"
+                f" (kinematics: delta), not kinematics: {kinematics}")
+        self.radius = config.getfloat('radius', above=0.)
+        self.samples = config.getint('samples', 1, minval=1)
+        self.tolerance = config.getfloat('tolerance', 0.01, above=0.)
+        self.geometry_warning = config.getfloat(
+            'geometry_warning', delta.DEFAULT_GEOMETRY_WARNING_MM, above=0.)
+        self.opposite_points = config.getboolean('opposite_points', True)
+        has_points = config.get('points', None) is not None
+        # Written to the SAVE_CONFIG block with the endstops it staged.
+        self.calibrated_endstops = config.getfloatlist(
+            'calibrated_position_endstop', None, count=3)
+        self.probe_helper = probe.ProbePointsHelper(
+            config, self.probe_finalize,
+            default_points=self._points(delta.DEFAULT_ANGLES_DEG, self.radius))
+        self.probe_helper.minimum_points(3)
+        # Points from the config, or None to place them from RADIUS.
+        self.fixed_points = None
+        if has_points:
+            self.fixed_points = list(self.probe_helper.probe_points)
+        self.verify_mode = False
+        self.active = None
+        self.last_result = {}
+        self.gcode = self.printer.lookup_object('gcode')
+        self.gcode.register_command('ENDSTOP_CALIBRATE',
+                                    self.cmd_ENDSTOP_CALIBRATE,
+                                    desc=self.cmd_ENDSTOP_CALIBRATE_help)
+        self.printer.register_event_handler('klippy:connect',
+                                            self._handle_connect)
+
+    def _handle_connect(self):
+        self.toolhead = self.printer.lookup_object('toolhead')
+        self.configfile = self.printer.lookup_object('configfile')
+        kin = self.toolhead.get_kinematics()
+        if not hasattr(kin, 'get_calibration'):
+            raise self.printer.config_error(
+                f"[{self.name}] is for linear delta printers")
+        if self.fixed_points is None:
+            self._check_radius(self.radius, self.printer.config_error)
+        endstops = kin.get_calibration().endstops
+        self.verify_mode = (
+            self.calibrated_endstops is not None
+            and all(abs(a - b) < 1e-6
+                    for a, b in zip(endstops, self.calibrated_endstops)))
+
+    def _points(self, angles, radius):
+        points = delta.tower_probe_points(angles, radius)
+        if self.opposite_points:
+            points += delta.tower_probe_points(
+                [a + 180. for a in angles], radius, centre=False)
+        return points
+
+    def _max_radius(self):
+        kin = self.toolhead.get_kinematics()
+        status = kin.get_status(self.printer.get_reactor().monotonic())
+        return status['axis_maximum'][0]
+
+    def _check_radius(self, radius, error):
+        max_radius = self._max_radius()
+        if radius > max_radius:
+            raise error(f"[{self.name}] radius {radius:.3f} is outside the"
+                        f" printable radius {max_radius:.3f}")
+
+    def _geometry(self):
+        cal = self.toolhead.get_kinematics().get_calibration()
+        return delta.DeltaGeometry(cal.radius, tuple(cal.arms),
+                                   tuple(cal.endstops), tuple(cal.angles))
+
+    cmd_ENDSTOP_CALIBRATE_help = (
+        "Probe near each delta tower and solve the tower endstops")
+
+    def cmd_ENDSTOP_CALIBRATE(self, gcmd):
+        method = gcmd.get('METHOD', 'automatic').lower()
+        if method not in METHODS:
+            raise gcmd.error("ENDSTOP_CALIBRATE: METHOD must be automatic"
+                             f" or manual, not '{method}'")
+        samples = gcmd.get_int('SAMPLES', self.samples, minval=1)
+        tolerance = gcmd.get_float('TOLERANCE', self.tolerance, above=0.)
+        radius = gcmd.get_float('RADIUS', None, above=0.)
+        if radius is not None and self.fixed_points is not None:
+            raise gcmd.error("ENDSTOP_CALIBRATE: RADIUS cannot move the"
+                             f" points configured in [{self.name}]")
+        if self.fixed_points is not None:
+            points = self.fixed_points
+        else:
+            if radius is None:
+                radius = self.radius
+            self._check_radius(radius, gcmd.error)
+            points = self._points(self._geometry().angles_deg, radius)
+        self.active = {'samples': samples, 'tolerance': tolerance}
+        # Each point repeated SAMPLES times in a row; the median is ours.
+        self.probe_helper.update_probe_points(
+            [p for p in points for _ in range(samples)], 3)
+        params = {k: v for k, v in gcmd.get_command_parameters().items()
+                  if k.upper() not in OWN_PARAMS}
+        probe_gcmd = self.gcode.create_gcode_command(
+            gcmd.get_command(), gcmd.get_commandline(), params)
+        self.probe_helper.start_probe(probe_gcmd)
+
+    def probe_finalize(self, results):
+        active = self.active
+        rows = [(p.test_x, p.test_y, p.test_z, p.test_z - p.bed_z)
+                for p in results]
+        before = self._geometry()
+        try:
+            medians = delta.median_of_samples(rows, active['samples'])
+            solution = delta.solve_endstops(
+                before, medians[:, :3], medians[:, 3],
+                geometry_warning_mm=self.geometry_warning)
+        except FlowloopError as e:
+            raise self.gcode.error(f"ENDSTOP_CALIBRATE: {e}") from None
+        tolerance = active['tolerance']
+        check = delta.check_flatness(solution.heights_before_mm, tolerance)
+        staged = not check.within_tolerance
+        if staged:
+            self._stage(solution.position_endstop)
+        self._report(solution, check, staged)
+        self.last_result = {
+            'mode': 'verify' if self.verify_mode else 'calibrate',
+            'points': len(medians),
+            'samples': active['samples'],
+            'tolerance': tolerance,
+            'within_tolerance': check.within_tolerance,
+            'staged': staged,
+            'position_endstop_before': tuple(solution.position_endstop_before),
+            'position_endstop': tuple(solution.position_endstop),
+            'spread_before_mm': solution.spread_before_mm,
+            'mean_height_before_mm': check.mean_height_mm,
+            'spread_after_mm': solution.spread_after_mm,
+            'residual_mm': solution.residual_mm,
+            'geometry_warning': solution.geometry_warning or '',
+        }
+        logging.info("ENDSTOP_CALIBRATE heights before %s after %s",
+                     solution.heights_before_mm, solution.heights_after_mm)
+
+    def _stage(self, endstops):
+        for name, value in zip(TOWERS, endstops):
+            self.configfile.set(name, 'position_endstop', f"{value:.6f}")
+        self.configfile.set(self.name, 'calibrated_position_endstop',
+                            ", ".join(f"{v:.6f}" for v in endstops))
+
+    def _report(self, solution, check, staged):
+        mode = "verify" if self.verify_mode else "calibrate"
+        lines = [f"ENDSTOP_CALIBRATE ({mode}):"
+                 f" {len(solution.heights_before_mm)} points,"
+                 f" spread {solution.spread_before_mm:.4f} mm,"
+                 f" mean height {check.mean_height_mm:.4f} mm"]
+        for i, name in enumerate(TOWERS):
+            k = solution.tower_probe_index[i]
+            lines.append(
+                f"{name}: position_endstop"
+                f" {solution.position_endstop_before[i]:.4f} ->"
+                f" {solution.position_endstop[i]:.4f} (height near tower"
+                f" {solution.heights_before_mm[k]:.4f} ->"
+                f" {solution.heights_after_mm[k]:.4f} mm)")
+        lines.append(f"predicted spread after: {solution.spread_after_mm:.4f}"
+                     f" mm (residual {solution.residual_mm:.4f} mm)")
+        if solution.geometry_warning:
+            lines.append("WARNING: " + solution.geometry_warning)
+        if staged:
+            if self.verify_mode:
+                lines.append(f"Not yet within {check.tolerance_mm:.4f} mm:"
+                             " another round is staged.")
+            lines.append(
+                "The SAVE_CONFIG command will store these position_endstop"
+                " values and restart; run ENDSTOP_CALIBRATE again after the"
+                " restart to verify.")
+        elif self.verify_mode:
+            lines.append(f"Verified: the bed is within {check.tolerance_mm:.4f}"
+                         " mm; nothing to change.")
+        else:
+            lines.append(f"Already within {check.tolerance_mm:.4f} mm;"
+                         " nothing staged.")
+        self.gcode.respond_info("\n".join(lines))
+
+    def get_status(self, eventtime):
+        return {'verify_mode': self.verify_mode,
+                'last_result': self.last_result}
+
+
+def load_config(config):
+    return EndstopCalibrate(config)

@@ -1,0 +1,154 @@
+"""printer.cfg is read the way klippy reads it (includes, SAVE_CONFIG block)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from flowloop.errors import FlowloopError
+from flowloop.klipper_config import AUTOSAVE_HEADER, parse_config, read_config
+
+
+def with_block(regular: str, *block_lines: str) -> str:
+    return regular.rstrip("\n") + "\n" + AUTOSAVE_HEADER + "\n".join(
+        ("#*# " + line).rstrip() for line in block_lines) + "\n"
+
+
+def test_comments_and_repeated_sections_merge_like_klippy():
+    cfg = parse_config(
+        "[printer]\nkinematics: delta # trailing\nmax_velocity: 300 ; inline\n"
+        "[stepper_a]\nposition_endstop: 300\n"
+        "[printer]\nmax_velocity: 250\n#delta_radius: 99\n")
+    assert cfg.get("printer", "kinematics") == "delta"
+    assert cfg.getfloat("printer", "max_velocity") == 250.0
+    assert not cfg.has_option("printer", "delta_radius")
+    assert cfg.sections() == ["printer", "stepper_a"]
+
+
+def test_save_config_block_values_are_in_force():
+    # As SAVE_CONFIG writes it: the old value above is commented out.
+    text = with_block("[stepper_a]\n#position_endstop: 300\narm_length: 250\n",
+                      "[stepper_a]", "position_endstop = 301.25", "angle = 210.5", "",
+                      "[delta_calibrate]", "height0 = 0.0")
+    cfg = parse_config(text)
+    assert cfg.getfloat("stepper_a", "position_endstop") == 301.25
+    assert cfg.getfloat("stepper_a", "angle") == 210.5
+    assert cfg.getfloat("stepper_a", "arm_length") == 250.0
+    assert cfg.from_autosave("stepper_a", "position_endstop")
+    assert not cfg.from_autosave("stepper_a", "arm_length")
+    assert cfg.has_section("delta_calibrate")
+
+
+def test_an_option_still_set_above_the_block_wins_as_in_klippy():
+    text = with_block("[stepper_a]\nposition_endstop: 300\n",
+                      "[stepper_a]", "position_endstop = 301.25", "angle = 211")
+    cfg = parse_config(text)
+    assert cfg.getfloat("stepper_a", "position_endstop") == 300.0
+    assert cfg.getfloat("stepper_a", "angle") == 211.0
+    assert not cfg.from_autosave("stepper_a", "position_endstop")
+
+
+def test_a_hand_edited_block_is_ignored_as_in_klippy():
+    text = with_block("[stepper_a]\nposition_endstop: 300\n",
+                      "[stepper_a]", "angle = 211") + "[extra]\nkey: 1\n"
+    cfg = parse_config(text)
+    assert not cfg.has_option("stepper_a", "angle")
+    assert cfg.has_section("extra")
+
+
+def test_includes_resolve_relative_to_the_including_file_in_order(tmp_path):
+    (tmp_path / "parts").mkdir()
+    (tmp_path / "parts" / "a.cfg").write_text("[stepper_a]\narm_length: 250\n")
+    (tmp_path / "parts" / "b.cfg").write_text(
+        "[stepper_a]\narm_length: 251\n[include ../more.cfg]\n")
+    (tmp_path / "more.cfg").write_text("[stepper_b]\nangle: 331\n")
+    main = tmp_path / "printer.cfg"
+    main.write_text("[stepper_a]\narm_length: 249\nposition_endstop: 1\n"
+                    "[include parts/*.cfg]\n[stepper_a]\nposition_endstop: 2\n")
+    cfg = read_config(main)
+    assert cfg.getfloat("stepper_a", "arm_length") == 251.0
+    assert cfg.getfloat("stepper_a", "position_endstop") == 2.0
+    assert cfg.getfloat("stepper_b", "angle") == 331.0
+    assert [p.name for p in cfg.files] == ["printer.cfg", "a.cfg", "b.cfg", "more.cfg"]
+
+
+def test_a_missing_include_or_an_include_loop_is_one_line(tmp_path):
+    main = tmp_path / "printer.cfg"
+    main.write_text("[include nothere.cfg]\n")
+    with pytest.raises(FlowloopError, match="nothere.cfg does not exist"):
+        read_config(main)
+    main.write_text("[include maybe*.cfg]\n[printer]\n")  # an empty glob is fine
+    assert read_config(main).has_section("printer")
+    main.write_text("[include printer.cfg]\n")
+    with pytest.raises(FlowloopError, match="recursive include"):
+        read_config(main)
+
+
+def test_unreadable_or_broken_files_are_one_line(tmp_path):
+    with pytest.raises(FlowloopError, match="cannot read config file"):
+        read_config(tmp_path / "absent.cfg")
+    with pytest.raises(FlowloopError) as info:
+        parse_config("position_endstop: 3\n")
+    assert "\n" not in str(info.value)
+
+
+def test_numbers_are_checked_naming_section_and_option():
+    cfg = parse_config("[printer]\ndelta_radius: big\nmax_z: nan\n")
+    with pytest.raises(FlowloopError, match="'delta_radius' in section 'printer'"):
+        cfg.getfloat("printer", "delta_radius")
+    with pytest.raises(FlowloopError, match="'max_z' in section 'printer'.*finite"):
+        cfg.getfloat("printer", "max_z")
+    with pytest.raises(FlowloopError, match="'absent' in section 'printer' must be"):
+        cfg.getfloat("printer", "absent")
+    assert cfg.getfloat("printer", "absent", 7.5) == 7.5
+
+
+# --- the same answers as klippy's own reader, when a Klipper checkout exists ----
+
+
+KLIPPY = Path.home() / "klipper" / "klippy"
+
+
+def klippy_reader(text: str, tmp_path: Path):
+    sys.path.insert(0, str(KLIPPY))
+    try:
+        import configfile  # klippy's module; stdlib only
+    finally:
+        sys.path.remove(str(KLIPPY))
+
+    class Printer:
+        def lookup_object(self, name):
+            return type("Gcode", (), {"register_command": lambda *a, **k: None})()
+
+        def get_start_args(self):
+            return {"config_file": str(tmp_path / "printer.cfg")}
+
+    (tmp_path / "printer.cfg").write_text(text)
+    regular, _ = configfile.ConfigAutoSave(Printer()).load_main_config()
+    return {s: dict(regular.items(s)) for s in regular.sections()}
+
+
+options = st.sampled_from(["position_endstop", "angle", "arm_length"])
+values = st.integers(0, 400).map(str)
+entries = st.lists(st.tuples(st.sampled_from(["stepper_a", "stepper_b"]), options,
+                             values, st.booleans()), max_size=6)
+
+
+@pytest.mark.skipif(not (KLIPPY / "configfile.py").exists(), reason="no ~/klipper")
+@given(regular=entries, block=entries)
+def test_same_values_as_klippys_reader(tmp_path_factory, regular, block):
+    lines = []
+    for section, option, value, commented in regular:
+        lines += [f"[{section}]", ("#" if commented else "") + f"{option}: {value}"]
+    block_lines = []
+    for section, option, value, _ in block:
+        block_lines += [f"[{section}]", f"{option} = {value}"]
+    text = with_block("\n".join(lines) + "\n", *block_lines) if block_lines else (
+        "\n".join(lines) + "\n")
+    ours = parse_config(text)
+    theirs = klippy_reader(text, tmp_path_factory.mktemp("k"))
+    assert {s: ours.options(s) for s in ours.sections()} == theirs
