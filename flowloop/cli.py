@@ -18,6 +18,8 @@ from .errors import FlowloopError
 COMMAND_MODULES = (
     "flowloop.install",
     "flowloop.info",
+    "flowloop.diff_ab_cli",
+    "flowloop.delta_cli",
 )
 
 

@@ -200,3 +200,43 @@ def parse_config(text: str, path: Union[str, Path] = "printer.cfg") -> KlipperCo
 def read_config(path: Union[str, Path]) -> KlipperConfig:
     path = Path(path)
     return parse_config(_read_text(path), path)
+
+
+# --- which file sets an option ----------------------------------------------
+
+_SECTION_RE = re.compile(r"^\[(?P<header>[^]]+)\]")
+_OPTION_RE = re.compile(r"^(?P<option>[^:=\s][^:=]*?)\s*[:=]")
+
+
+def included_definitions(main_config: str, section: str, option: str) -> List[str]:
+    """Files other than the main config that set [section] option.
+
+    SAVE_CONFIG refuses to save an option that an included file sets, so such
+    a value must be pasted into that file by hand.
+    """
+    main = Path(main_config).resolve()
+    files = []
+    for path in read_config(main).files:
+        path = path.resolve()
+        if path != main and path not in files and _file_sets(path, section, option):
+            files.append(path)
+    return [str(f) for f in files]
+
+
+def _file_sets(path: Path, section: str, option: str) -> bool:
+    """Does this one file (its includes not followed) set the option?"""
+    current = None
+    for raw in path.read_text(errors="replace").split("\n"):
+        line = raw.split("#", 1)[0].rstrip()
+        if not line:
+            continue
+        header = _SECTION_RE.match(line)
+        if header:
+            current = header.group("header").strip()
+            continue
+        if current != section or line[0].isspace():
+            continue
+        match = _OPTION_RE.match(line)
+        if match and match.group("option").strip().lower() == option.lower():
+            return True
+    return False

@@ -1,0 +1,247 @@
+# Differential A/B rotation_distance calibration (DIFF_AB_CALIBRATE) and
+# WAIT_BED_EQUILIBRIUM.
+#
+# From caliper readings of the pylon print (flowloop ab-pylons), the core
+# (flowloop.diff_ab) computes the scale of motor A (stepper_x) and motor B
+# (stepper_y) on CoreXY, or of X and Y on a cartesian printer. Both axes are
+# validated before either stepper changes; the new rotation_distance is
+# applied at runtime and staged for SAVE_CONFIG.
+#
+# This file may be distributed under the terms of the GNU GPLv3 license.
+import logging
+import re
+
+from flowloop import diff_ab, klipper_config
+from flowloop.errors import FlowloopError
+
+MAX_DISTANCES = 9
+AXIS_STEPPER_RE = {'a': re.compile(r'^stepper_x\d*$'),
+                   'b': re.compile(r'^stepper_y\d*$')}
+HISTORY_LENGTH = 10
+SAMPLE_PERIOD_S = 1.
+
+
+class DiffABCalibrate:
+    def __init__(self, config):
+        self.printer = config.get_printer()
+        self.printer.load_object(config, 'flowloop')
+        self.name = config.get_name()
+        self.kinematics = config.getsection('printer').get(
+            'kinematics', '').strip()
+        self.d1 = config.getfloat('d1', 10., above=0.)
+        self.d2 = config.getfloat('d2', 150., above=self.d1)
+        self.max_scale_change = config.getfloat(
+            'max_scale_change', 100. * diff_ab.MAX_SCALE_CHANGE,
+            above=0., maxval=20.) / 100.
+        try:
+            self.budget = diff_ab.ErrorBudget(
+                caliper_accuracy_mm=config.getfloat('caliper_accuracy', 0.02,
+                                                    minval=0.),
+                caliper_range_mm=config.getfloat('caliper_range', 150.,
+                                                 above=0.),
+                reading_error_mm=config.getfloat('reading_error', 0.02,
+                                                 minval=0.))
+        except FlowloopError as e:
+            raise config.error(f"[{self.name}]: {e}") from None
+        self.bed_heater_name = config.get('bed_heater', 'heater_bed')
+        self.tolerance = config.getfloat('equilibrium_tolerance', 0.5,
+                                         above=0.)
+        self.window = config.getfloat('equilibrium_window', 120., above=1.)
+        self.timeout = config.getfloat('equilibrium_timeout', 1800., above=0.)
+        self.band = config.getfloat('equilibrium_band', 2., above=0.)
+        self.report_interval = config.getfloat('report_interval', 10.,
+                                               above=0.)
+        self.steppers = {'a': [], 'b': []}
+        self.history = []
+        self.last_result = None
+        self.bed_state = None
+        self.toolhead = self.configfile = None
+        self.gcode = self.printer.lookup_object('gcode')
+        self.gcode.register_command('DIFF_AB_CALIBRATE',
+                                    self.cmd_DIFF_AB_CALIBRATE,
+                                    desc=self.cmd_DIFF_AB_CALIBRATE_help)
+        self.gcode.register_command('WAIT_BED_EQUILIBRIUM',
+                                    self.cmd_WAIT_BED_EQUILIBRIUM,
+                                    desc=self.cmd_WAIT_BED_EQUILIBRIUM_help)
+        self.printer.register_event_handler('klippy:connect',
+                                            self._handle_connect)
+
+    def _handle_connect(self):
+        self.toolhead = self.printer.lookup_object('toolhead')
+        self.configfile = self.printer.lookup_object('configfile')
+        for stepper in self.toolhead.get_kinematics().get_steppers():
+            for axis, pattern in AXIS_STEPPER_RE.items():
+                if pattern.match(stepper.get_name()):
+                    self.steppers[axis].append(stepper)
+
+    # --- DIFF_AB_CALIBRATE ------------------------------------------------
+
+    def _reading_sets(self, gcmd, axis):
+        nominals, readings = [], []
+        for k in range(1, MAX_DISTANCES + 1):
+            name = f"{axis.upper()}{k}"
+            values = gcmd.get(name, None)
+            default = {1: self.d1, 2: self.d2}.get(k)
+            nominal = gcmd.get_float(f"D{k}", default, above=0.)
+            if values is None:
+                if k <= 2:
+                    raise gcmd.error(
+                        f"DIFF_AB_CALIBRATE needs {name}=<readings>")
+                break
+            if nominal is None:
+                raise gcmd.error(f"{name} needs D{k}=<nominal distance>")
+            nominals.append(nominal)
+            readings.append(values)
+        return diff_ab.reading_sets(nominals, readings, axis)
+
+    def _rotation_distance(self, axis):
+        steppers = self.steppers[axis]
+        if not steppers:
+            raise self.printer.command_error(
+                f"no {diff_ab.AXIS_STEPPERS[axis]} stepper found")
+        return steppers[0].get_rotation_distance()[0]
+
+    def _plan(self, gcmd):
+        """Everything decided and checked; nothing changed yet."""
+        force = gcmd.get_int('FORCE', 0, minval=0, maxval=1)
+        try:
+            kin = diff_ab.check_kinematics(self.kinematics)
+        except FlowloopError as e:
+            raise gcmd.error(f"DIFF_AB_CALIBRATE: {e}") from None
+        try:
+            calibration = diff_ab.calibrate(
+                kin, self._rotation_distance('a'), self._rotation_distance('b'),
+                self._reading_sets(gcmd, 'a'), self._reading_sets(gcmd, 'b'),
+                budget=self.budget, max_scale_change=self.max_scale_change,
+                force=bool(force), force_hint="FORCE=1")
+        except FlowloopError as e:
+            raise gcmd.error(f"DIFF_AB_CALIBRATE: {e}") from None
+        changes = []
+        for result in calibration.axes():
+            for stepper in self.steppers[result.axis]:
+                old = stepper.get_rotation_distance()[0]
+                changes.append((stepper, old, old * result.fit.scale))
+        config_file = self.printer.get_start_args().get('config_file')
+        included = {}
+        for stepper, _old, _new in changes:
+            try:
+                included[stepper.get_name()] = klipper_config.included_definitions(
+                    config_file, stepper.get_name(), 'rotation_distance')
+            except (FlowloopError, OSError) as e:
+                logging.warning("diff_ab_calibrate: cannot read %s: %s",
+                                config_file, e)
+                included[stepper.get_name()] = []
+        return calibration, changes, included
+
+    def _apply(self, changes, included):
+        self.toolhead.flush_step_generation()
+        for stepper, _old, new in changes:
+            stepper.set_rotation_distance(new)
+        # The axes' positions no longer match the new scale: home again.
+        self.toolhead.get_kinematics().clear_homing_state('xy')
+        for stepper, _old, new in changes:
+            if not included[stepper.get_name()]:
+                self.configfile.set(stepper.get_name(), 'rotation_distance',
+                                    f"{new:.6f}")
+
+    cmd_DIFF_AB_CALIBRATE_help = (
+        "Set A/B (X/Y) rotation_distance from pylon caliper readings:"
+        " A1=.. A2=.. B1=.. B2=.. [D1=10 D2=150] [FORCE=1]")
+
+    def cmd_DIFF_AB_CALIBRATE(self, gcmd):
+        calibration, changes, included = self._plan(gcmd)
+        self._apply(changes, included)
+        self.history = diff_ab.append_history(
+            self.history, calibration)[-HISTORY_LENGTH:]
+        self.last_result = calibration.as_dict()
+        lines = calibration.report_lines()
+        for stepper, old, new in changes:
+            lines.append(f"{stepper.get_name()}: rotation_distance"
+                         f" {old:.6f} -> {new:.6f} (applied now)")
+        pasted = [(s, new) for s, _old, new in changes
+                  if included[s.get_name()]]
+        if pasted:
+            files = sorted({f for s, _new in pasted
+                            for f in included[s.get_name()]})
+            lines.append(f"rotation_distance is set in {', '.join(files)},"
+                         " which SAVE_CONFIG cannot change; paste there:")
+            for stepper, new in pasted:
+                lines.append(f"  [{stepper.get_name()}]")
+                lines.append(f"  rotation_distance: {new:.6f}")
+        if len(pasted) < len(changes):
+            lines.append("Run SAVE_CONFIG to keep the new values.")
+        lines.append("X and Y are no longer homed: run G28 before moving.")
+        gcmd.respond_info("\n".join(lines))
+
+    # --- WAIT_BED_EQUILIBRIUM -----------------------------------------------
+
+    cmd_WAIT_BED_EQUILIBRIUM_help = (
+        "Wait until the bed heater's power stops falling"
+        " [TOLERANCE=%/min] [TIMEOUT=s]")
+
+    def cmd_WAIT_BED_EQUILIBRIUM(self, gcmd):
+        tolerance = gcmd.get_float('TOLERANCE', self.tolerance, above=0.)
+        timeout = gcmd.get_float('TIMEOUT', self.timeout, above=0.)
+        heater = self.printer.lookup_object(self.bed_heater_name, None)
+        if heater is None or not hasattr(heater, 'get_status'):
+            self.bed_state = 'no_heater'
+            gcmd.respond_info(f"No heater '{self.bed_heater_name}':"
+                              " an unheated bed needs no wait.")
+            return
+        try:
+            detector = diff_ab.BedEquilibrium(tolerance, self.window, self.band)
+        except FlowloopError as e:
+            raise gcmd.error(str(e)) from None
+        reactor = self.printer.get_reactor()
+        start = eventtime = reactor.monotonic()
+        next_report = start
+        while not self.printer.is_shutdown():
+            status = heater.get_status(eventtime)
+            state = detector.add(eventtime - start, status['power'],
+                                 status['temperature'], status['target'])
+            self.bed_state = state
+            if state == 'off':
+                gcmd.respond_info("Bed heater is off: nothing to wait for.")
+                return
+            if state == 'equilibrium':
+                gcmd.respond_info("Bed at equilibrium: "
+                                  + self._progress(status, detector))
+                return
+            if eventtime - start >= timeout:
+                self.bed_state = 'timeout'
+                gcmd.respond_info(
+                    f"!! Bed not at equilibrium after {timeout:.0f} s"
+                    f" ({self._progress(status, detector)}); continuing.")
+                return
+            if eventtime >= next_report:
+                gcmd.respond_info(f"Waiting for bed equilibrium ({state}): "
+                                  + self._progress(status, detector))
+                next_report = eventtime + self.report_interval
+            self.toolhead.get_last_move_time()
+            eventtime = reactor.pause(eventtime + SAMPLE_PERIOD_S)
+
+    def _progress(self, status, detector):
+        slope = detector.slope_pct_per_min()
+        trend = ("power trend n/a" if slope is None
+                 else f"power {slope:+.2f} %/min"
+                      f" (limit -{detector.tolerance_pct_per_min:.2f})")
+        return (f"{status['temperature']:.1f}/{status['target']:.1f} C,"
+                f" power {100. * status['power']:.1f} %, {trend},"
+                f" {detector.covered_s():.0f}/{detector.window_s:.0f} s"
+                " at temperature")
+
+    def get_status(self, eventtime=None):
+        rd = {}
+        for axis in ('a', 'b'):
+            for stepper in self.steppers[axis]:
+                rd[stepper.get_name()] = stepper.get_rotation_distance()[0]
+        return {'kinematics': self.kinematics,
+                'rotation_distance': rd,
+                'last_result': self.last_result,
+                'iterations': len(self.history),
+                'history': list(self.history),
+                'bed_state': self.bed_state}
+
+
+def load_config(config):
+    return DiffABCalibrate(config)
