@@ -19,6 +19,7 @@ COMMAND_MODULES = (
     "flowloop.install",
     "flowloop.info",
     "flowloop.diff_ab_cli",
+    "flowloop.profile_cli",
     "flowloop.delta_cli",
 )
 

@@ -1,12 +1,16 @@
-# flowloop's shared klippy object: what is loaded and what the firmware has.
+# flowloop's shared klippy object: what is loaded, what the firmware has,
+# and the active material profile of each extruder.
 #
 # Loaded by every flowloop section (printer.load_object(config, 'flowloop')),
 # or on its own with a [flowloop] section. Moonraker's flowloop component
-# reads it (printer.objects.query flowloop) for /server/flowloop/info.
+# reads it (printer.objects.query flowloop) for /server/flowloop/info and
+# sends the active profiles through the flowloop/set_active_profile endpoint.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import flowloop
 from flowloop import ems22
+from flowloop import profile as fl_profile
+from flowloop.errors import FlowloopError
 
 SECTIONS = ('flow_sensor', 'flowrate_limiter', 'autotemp',
             'diff_ab_calibrate', 'endstop_calibrate')
@@ -16,13 +20,68 @@ class FlowloopHost:
     def __init__(self, config):
         self.printer = config.get_printer()
         self.sensor_firmware = {}
+        # extruder name -> (Profile, working point); status is rebuilt on change
+        self.active_profiles = {}
+        self.profile_status = {}
         self.printer.register_event_handler('klippy:connect',
                                             self._handle_connect)
+        webhooks = self.printer.lookup_object('webhooks')
+        webhooks.register_endpoint('flowloop/set_active_profile',
+                                   self._handle_set_active_profile)
 
     def _handle_connect(self):
         for name, mcu in self.printer.lookup_objects('mcu'):
             self.sensor_firmware[name] = mcu.check_valid_response(
                 ems22.QUERY_CMD)
+
+    def _handle_set_active_profile(self, web_request):
+        extruder = web_request.get_str('extruder', 'extruder')
+        heater = self._extruder_heater(extruder)
+        if heater is None:
+            raise web_request.error(f"flowloop: no extruder named {extruder!r}")
+        data = web_request.get('profile', None)
+        if data is None:
+            self.active_profiles.pop(extruder, None)
+            self._update_status()
+            self.printer.send_event('flowloop:profile_activated', extruder,
+                                    None, None)
+            web_request.send({'extruder': extruder, 'name': None})
+            return
+        try:
+            wp = fl_profile.check_working_point(web_request.get(
+                'working_point', fl_profile.DEFAULT_WORKING_POINT))
+            profile = fl_profile.profile_from_dict(data)
+        except FlowloopError as e:
+            raise web_request.error(f"flowloop: {e}") from None
+        self.active_profiles[extruder] = (profile, wp)
+        self._update_status()
+        self.printer.send_event('flowloop:profile_activated', extruder,
+                                profile, wp)
+        web_request.send({'extruder': extruder, 'name': profile.name})
+
+    def _extruder_heater(self, name):
+        extruder = self.printer.lookup_object(name, None)
+        if extruder is None or not hasattr(extruder, 'get_heater') \
+                or not name.startswith('extruder'):
+            return None
+        return extruder.get_heater()
+
+    def _update_status(self):
+        status = {}
+        for extruder, (profile, wp) in sorted(self.active_profiles.items()):
+            entry = fl_profile.active_status(profile, wp)
+            # Safety: whatever the profile says, never above the heater's limit.
+            heater_max = getattr(self._extruder_heater(extruder), 'max_temp',
+                                 None)
+            if heater_max is not None:
+                entry['heater_max_temp_c'] = heater_max
+                entry['max_temp_c'] = min(entry['max_temp_c'], heater_max)
+            status[extruder] = entry
+        self.profile_status = status
+
+    def get_active_profile(self, extruder='extruder'):
+        """(Profile, working point) active for an extruder, or None."""
+        return self.active_profiles.get(extruder)
 
     def loaded_sections(self):
         return sorted(name for name, obj in self.printer.lookup_objects()
@@ -31,7 +90,8 @@ class FlowloopHost:
     def get_status(self, eventtime=None):
         return {'version': flowloop.__version__,
                 'sections': self.loaded_sections(),
-                'sensor_firmware': dict(self.sensor_firmware)}
+                'sensor_firmware': dict(self.sensor_firmware),
+                'profiles': self.profile_status}
 
 
 def load_config(config):

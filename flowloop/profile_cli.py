@@ -1,0 +1,192 @@
+"""`flowloop profile show|plot|validate|import|export`: material profiles at a desk."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+from . import ddprint, plot
+from .errors import FlowloopError
+from .profile import (
+    DEFAULT_WORKING_POINT,
+    Profile,
+    check_working_point,
+    decode_profile,
+    encode_profile,
+    flow_at,
+    temp_for_flow,
+)
+
+
+def safe_file_stem(name: str) -> str:
+    """A file name for a free-text profile name: no path, no hidden file."""
+    stem = re.sub(r"[^A-Za-z0-9_-]+", "_", name).strip("_")
+    return stem or "profile"
+
+
+def load(path: Path) -> Profile:
+    """A flowloop profile file; a ddPrint file gets a hint to import it."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise FlowloopError(f"{path}: cannot read: {e.strerror}") from None
+    try:
+        return decode_profile(data)
+    except FlowloopError as e:
+        if b"properties_" in data:
+            raise FlowloopError(f"{path}: a ddPrint file, not a flowloop profile: "
+                                f"run 'flowloop profile import {path}'") from None
+        raise FlowloopError(f"{path}: {e}") from None
+
+
+def _wp(text: str) -> float:
+    try:
+        return check_working_point(float(text))
+    except (ValueError, FlowloopError) as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def describe(profile: Profile, wp: float) -> str:
+    ident, lines, b = profile.identity, profile.lines, profile.bounds
+    prov = profile.provenance
+    out = [
+        f"{ident.name}",
+        f"  printer {ident.printer or '-'}, nozzle {ident.nozzle_diameter_mm:g} mm, "
+        f"filament {ident.filament_name or '-'} ({ident.filament_type or '-'}, "
+        f"{ident.filament_vendor or 'vendor -'}, {ident.filament_diameter_mm:g} mm)"
+        + (f", Spoolman filament {ident.spoolman_filament_id}"
+           if ident.spoolman_filament_id is not None else ""),
+        f"  bounds {b.min_temp_c:g} / {b.recommended_temp_c:g} / {b.max_temp_c:g} degC"
+        f" (min / recommended / max)",
+    ]
+    for name, line in (("into air  ", lines.into_air),
+                       ("real print", lines.real_print)):
+        out.append(f"  {name} {line.slope_mm3_s_per_c:g} mm^3/s per degC through "
+                   f"({line.temp_c:g} degC, {line.flow_mm3_s:g} mm^3/s)")
+    out.append(f"  measured by {prov.method}"
+               + (f" at {prov.measured_at}" if prov.measured_at else "")
+               + (f" from {prov.source}" if prov.source else "")
+               + f", {len(profile.points)} raw point(s)")
+    out.append(f"  at working point {wp:g}:")
+    b = profile.bounds
+    step = 10.0
+    temp = b.min_temp_c
+    while temp <= b.max_temp_c + 1e-9:
+        out.append(f"    {temp:6.1f} degC -> {flow_at(profile, temp, wp):6.2f} mm^3/s")
+        temp += step
+    for flow in (5.0, 10.0, 15.0, 20.0):
+        temp = temp_for_flow(profile, flow, wp)
+        clamped = temp in (b.min_temp_c, b.max_temp_c)
+        out.append(f"    {flow:4.1f} mm^3/s needs {temp:.1f} degC"
+                   + (" (clamped to the bounds)" if clamped else ""))
+    return "\n".join(out)
+
+
+def cmd_show(args) -> int:
+    profile = load(args.file)
+    if args.json:
+        sys.stdout.write(encode_profile(profile).decode())
+    else:
+        print(describe(profile, args.wp))
+    return 0
+
+
+def cmd_validate(args) -> int:
+    bad = 0
+    for path in args.files:
+        try:
+            profile = load(path)
+        except FlowloopError as e:
+            print(str(e), file=sys.stderr)
+            bad += 1
+            continue
+        print(f"{path}: ok ({profile.identity.name})")
+    return 1 if bad else 0
+
+
+def cmd_plot(args) -> int:
+    profile = load(args.file)
+    out: Path = args.output or Path(safe_file_stem(profile.identity.name) + ".svg")
+    if out.suffix.lower() == ".png":
+        plot.png(profile, out, args.wp)
+    elif out.suffix.lower() == ".svg":
+        out.write_text(plot.svg(profile, args.wp), encoding="utf-8")
+    else:
+        raise FlowloopError(f"{out}: the plot file must end in .svg or .png")
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_import(args) -> int:
+    out_dir: Path = args.output_dir
+    if not out_dir.is_dir():
+        raise FlowloopError(f"{out_dir}: no such directory")
+    profiles, problems = ddprint.import_paths(args.files, args.nozzle, args.base,
+                                              args.printer)
+    for profile in profiles:
+        path = out_dir / (safe_file_stem(profile.identity.name) + ".json")
+        path.write_bytes(encode_profile(profile))
+        print(f"wrote {path} ({json.dumps(profile.identity.name)}, nozzle "
+              f"{profile.identity.nozzle_diameter_mm:g} mm)")
+    for problem in problems:
+        print(f"flowloop profile import: skipped {problem}", file=sys.stderr)
+    return 1 if problems else 0
+
+
+def cmd_export(args) -> int:
+    profile = load(args.file)
+    text = ddprint.export_text(profile)
+    if args.output is None:
+        sys.stdout.write(text)
+    else:
+        args.output.write_text(text, encoding="utf-8")
+        print(f"wrote {args.output}")
+    return 0
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "profile", help="material profiles: show, plot, validate, import, export",
+        description="Material profiles (flow the hotend melts at each temperature).")
+    sub = parser.add_subparsers(dest="profile_command", metavar="ACTION",
+                                required=True)
+
+    p = sub.add_parser("show", help="print a profile and its flow table")
+    p.add_argument("file", type=Path)
+    p.add_argument("--wp", type=_wp, default=DEFAULT_WORKING_POINT,
+                   help="working point 0..1 (0 real print, 1 into air; default 0.5)")
+    p.add_argument("--json", action="store_true", help="print the profile JSON")
+    p.set_defaults(func=cmd_show)
+
+    p = sub.add_parser("validate", help="check profile files, one line each")
+    p.add_argument("files", type=Path, nargs="+")
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("plot", help="plot a profile as SVG (PNG with matplotlib)")
+    p.add_argument("file", type=Path)
+    p.add_argument("-o", "--output", type=Path,
+                   help="output .svg or .png (default: NAME.svg here)")
+    p.add_argument("--wp", type=_wp, default=DEFAULT_WORKING_POINT,
+                   help="working point 0..1 (default 0.5)")
+    p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser("import", help="ddPrint material files -> flowloop profiles")
+    p.add_argument("files", type=Path, nargs="+")
+    p.add_argument("-o", "--output-dir", type=Path, default=Path("."),
+                   help="where to write the profiles (default: here)")
+    p.add_argument("--nozzle", type=float, help="only this nozzle diameter (mm)")
+    p.add_argument("--base", type=Path,
+                   help="the generic ddPrint file a printer-specific file overrides "
+                        "(default: ../<type>.json, e.g. pla.json for herz-pla-red)")
+    p.add_argument("--printer", help="printer name (default: the file's folder for "
+                                     "printer-specific files)")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("export", help="a flowloop profile -> a ddPrint material file")
+    p.add_argument("file", type=Path)
+    p.add_argument("-o", "--output", type=Path, help="output file (default: stdout)")
+    p.set_defaults(func=cmd_export)
+

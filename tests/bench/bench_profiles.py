@@ -1,0 +1,111 @@
+"""GET /server/flowloop/profile against Moonraker's own GET /server/database/item.
+
+Both read the same stored record (the profile record in the flowloop
+namespace, which the database API may read), so the value is the same size.
+Same Moonraker, same run, loopback, keep-alive connections; the two paths are
+interleaved round by round so drift hits both. Figures are ratios against the
+database endpoint (goal: <= 1.2 for latency and for time per request under
+concurrent load).
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import statistics
+import sys
+import threading
+import time
+from pathlib import Path
+
+from devtools import stack
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
+from test_profile import make  # noqa: E402
+
+ROUNDS = 6
+PER_ROUND = 150
+CLIENTS = 4
+LOAD_SECONDS = 1.5
+
+
+def timed_gets(port: int, path: str, count: int) -> list:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    times = []
+    try:
+        for _ in range(count):
+            start = time.perf_counter()
+            conn.request("GET", path)
+            resp = conn.getresponse()
+            body = resp.read()
+            times.append(time.perf_counter() - start)
+            assert resp.status == 200, body[:200]
+    finally:
+        conn.close()
+    return times
+
+
+def p95_ms(times: list) -> float:
+    return sorted(times)[int(len(times) * 0.95)] * 1e3
+
+
+def throughput(port: int, path: str) -> float:
+    """Requests per second with CLIENTS keep-alive clients for LOAD_SECONDS."""
+    counts = [0] * CLIENTS
+    stop = time.monotonic() + LOAD_SECONDS
+
+    def client(i):
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        while time.monotonic() < stop:
+            conn.request("GET", path)
+            resp = conn.getresponse()
+            resp.read()
+            assert resp.status == 200
+            counts[i] += 1
+        conn.close()
+    threads = [threading.Thread(target=client, args=(i,)) for i in range(CLIENTS)]
+    start = time.monotonic()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return sum(counts) / (time.monotonic() - start)
+
+
+def test_profile_get_latency_and_throughput_vs_database_item(moonraker_venv, bench):
+    with stack.printer_stack(with_klippy=False) as ps:
+        mr = ps.moonraker
+        name = "bench pla 0.8"
+        status, body = mr.request("POST", "/server/flowloop/profile",
+                                  {"profile": make(name=name, points=[
+                                      {"kind": "into_air", "temp_c": 200.0 + i,
+                                       "flow_mm3_s": 10.0 + i / 10, "grip": 0.9}
+                                      for i in range(20)])})
+        assert status == 200, body
+        ours = "/server/flowloop/profile?name=bench%20pla%200.8"
+        key = "profile:" + name.encode().hex()
+        theirs = f"/server/database/item?namespace=flowloop&key={key}"
+        a = mr.request("GET", ours)[1]["result"]["profile"]
+        b = mr.request("GET", theirs)[1]["result"]["value"]
+        assert a == b  # the same value through both endpoints
+        bench.figure("profile value size", len(json.dumps(a)), " bytes")
+        timed_gets(mr.port, ours, 50)  # warm up both
+        timed_gets(mr.port, theirs, 50)
+        lat_ours, lat_theirs = [], []
+        for r in range(ROUNDS):
+            order = [(ours, lat_ours), (theirs, lat_theirs)]
+            for path, sink in (order if r % 2 == 0 else order[::-1]):
+                sink += timed_gets(mr.port, path, PER_ROUND)
+        med_ours = statistics.median(lat_ours) * 1e3
+        med_theirs = statistics.median(lat_theirs) * 1e3
+        bench.ratio("GET profile median latency", med_ours, med_theirs, " ms",
+                    goal="<= 1.2x")
+        bench.ratio("GET profile p95 latency", p95_ms(lat_ours), p95_ms(lat_theirs),
+                    " ms", goal="<= 1.2x")
+        rps_theirs = throughput(mr.port, theirs)
+        rps_ours = throughput(mr.port, ours)
+        bench.figure(f"GET profile throughput ({CLIENTS} clients)", rps_ours, " req/s")
+        bench.figure(f"GET database item throughput ({CLIENTS} clients)", rps_theirs,
+                     " req/s")
+        bench.ratio("GET profile time per request under load", 1e3 / rps_ours,
+                    1e3 / rps_theirs, " ms", goal="<= 1.2x")

@@ -1,0 +1,445 @@
+"""Material profiles served by the real Moonraker (no klippy): HTTP, JSON-RPC,
+names, errors, notifications, plots, persistence, concurrency, authorization,
+the Spoolman link."""
+
+from __future__ import annotations
+
+import asyncio
+import http.server
+import json
+import re
+import shutil
+import threading
+import time
+import xml.etree.ElementTree as ET
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from urllib.parse import quote
+
+import pytest
+
+from devtools import stack
+from tests.samples import make
+
+tornado_websocket = pytest.importorskip("tornado.websocket")
+
+
+class Server:
+    """One Moonraker on a fixed port and data dir, so it can be restarted."""
+
+    def __init__(self, venv, data_dir: Path, **kw):
+        self.venv, self.data_dir, self.kw = venv, data_dir, kw
+        self.port = stack.free_port()
+        self.mr = None
+        self.start()
+
+    def start(self):
+        self.mr = stack.Moonraker(self.venv, self.data_dir, port=self.port, **self.kw)
+        try:
+            self.mr.wait_ready()
+        except Exception:
+            self.mr.stop()
+            raise
+
+    def stop(self):
+        self.mr.stop()
+
+    def restart(self):
+        self.stop()
+        self.start()
+
+    def request(self, method, path, body=None):
+        return self.mr.request(method, path, body)
+
+    def ws_url(self):
+        return f"ws://127.0.0.1:{self.port}/websocket"
+
+
+@pytest.fixture(scope="module")
+def server(moonraker_venv):
+    data_dir = stack.short_tempdir("fl-prof-")
+    srv = Server(moonraker_venv, data_dir)
+    yield srv
+    srv.stop()
+    shutil.rmtree(data_dir, ignore_errors=True)
+
+
+def store(srv, **kw):
+    status, body = srv.request("POST", "/server/flowloop/profile",
+                               {"profile": make(**kw)})
+    assert status == 200, body
+    return body["result"]
+
+
+def listed_names(srv):
+    body = srv.request("GET", "/server/flowloop/profiles")[1]
+    return {p["name"] for p in body["result"]["profiles"]}
+
+
+def get(srv, name):
+    return srv.request("GET", "/server/flowloop/profile?name=" + quote(name, safe=""))
+
+
+class Rpc:
+    """A JSON-RPC websocket client that also collects notifications."""
+
+    def __init__(self, url):
+        self.url, self.next_id, self.notifications = url, 0, []
+
+    async def __aenter__(self):
+        self.ws = await tornado_websocket.websocket_connect(self.url)
+        return self
+
+    async def __aexit__(self, *exc):
+        self.ws.close()
+
+    async def _read(self, timeout):
+        msg = await asyncio.wait_for(self.ws.read_message(), timeout)
+        assert msg is not None, "websocket closed"
+        return json.loads(msg)
+
+    async def call(self, method, timeout=10.0, **params):
+        self.next_id += 1
+        await self.ws.write_message(json.dumps(
+            {"jsonrpc": "2.0", "method": method, "params": params, "id": self.next_id}))
+        while True:
+            msg = await self._read(timeout)
+            if msg.get("id") == self.next_id:
+                return msg
+            self.notifications.append(msg)
+
+    async def notification(self, method, timeout=10.0, where=lambda params: True):
+        deadline = time.monotonic() + timeout
+        while True:
+            for msg in self.notifications:
+                if msg.get("method") == method and where(msg.get("params")):
+                    self.notifications.remove(msg)
+                    return msg
+            msg = await self._read(max(0.01, deadline - time.monotonic()))
+            self.notifications.append(msg)
+
+
+def rpc(srv, coro_fn):
+    async def run():
+        async with Rpc(srv.ws_url()) as client:
+            return await coro_fn(client)
+    return asyncio.run(run())
+
+
+# --- CRUD over HTTP ---------------------------------------------------------
+
+
+def test_crud_over_http(server):
+    assert store(server, name="crud-http") == {"name": "crud-http", "action": "created"}
+    status, body = get(server, "crud-http")
+    assert status == 200
+    assert body["result"]["profile"]["lines"]["into_air"]["temp_c"] == 171.6312
+    assert store(server, name="crud-http",
+                 bounds=(195.0, 215.0, 255.0))["action"] == "updated"
+    assert get(server, "crud-http")[1]["result"]["profile"]["bounds"][
+        "max_temp_c"] == 255.0
+    assert "crud-http" in listed_names(server)
+    status, body = server.request("DELETE", "/server/flowloop/profile?name=crud-http")
+    assert status == 200 and body["result"]["action"] == "deleted"
+    assert get(server, "crud-http")[0] == 404
+
+
+def test_crud_over_json_rpc(server):
+    async def steps(client):
+        created = await client.call("server.flowloop.post_profile",
+                                    profile=make(name="crud-rpc"))
+        assert created["result"] == {"name": "crud-rpc", "action": "created"}
+        got = await client.call("server.flowloop.get_profile", name="crud-rpc")
+        assert got["result"]["profile"]["identity"]["name"] == "crud-rpc"
+        listed = await client.call("server.flowloop.profiles")
+        assert "crud-rpc" in [p["name"] for p in listed["result"]["profiles"]]
+        plot = await client.call("server.flowloop.profile.plot", name="crud-rpc")
+        ET.fromstring(plot["result"].encode())
+        act = await client.call("server.flowloop.profile.activate", name="crud-rpc",
+                                extruder="extruder1", working_point=0.7)
+        assert act["result"]["sent_to_klippy"] is False  # no klippy here
+        deleted = await client.call("server.flowloop.delete_profile", name="crud-rpc")
+        assert deleted["result"]["deactivated"] == ["extruder1"]
+        missing = await client.call("server.flowloop.get_profile", name="crud-rpc")
+        # Moonraker's JSON-RPC reports a 404 as -32601
+        assert missing["error"]["code"] == -32601
+        assert missing["error"]["message"] == 'no profile named "crud-rpc"'
+        bad = await client.call("server.flowloop.post_profile",
+                                profile=make(name="x", bounds=(190, 210, 900)))
+        assert bad["error"]["code"] == 400
+        assert "bounds.max_temp_c must be in 0..500" in bad["error"]["message"]
+    rpc(server, steps)
+
+
+# --- errors -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("body, message", [
+    ({"profile": make(name="bad", air=(-0.1, 171.6, 7.5))},
+     "lines.into_air.slope_mm3_s_per_c must be > 0"),
+    ({"profile": dict(make(name="bad"), colour="red")}, "unknown field `colour`"),
+    ({"profile": make(name="bad", real=(0.3, 210.0, 10.1))}, "cross at"),
+    ({"profile": "{not json"}, "the profile is not valid JSON"),
+    ({"profile": [1, 2]}, "must be a JSON object"),
+    ({}, "the profile is missing (argument 'profile')"),
+])
+def test_bad_writes_answer_400_with_the_reason_and_change_nothing(server, body,
+                                                                  message):
+    before = server.request("GET", "/server/flowloop/profiles")[1]
+    status, answer = server.request("POST", "/server/flowloop/profile", body)
+    assert status == 400
+    assert answer["error"]["code"] == 400
+    assert message in answer["error"]["message"]
+    assert server.request("GET", "/server/flowloop/profiles")[1] == before
+
+
+def test_unknown_names_answer_404(server):
+    for method, path in (("GET", "/server/flowloop/profile?name=nope"),
+                         ("DELETE", "/server/flowloop/profile?name=nope"),
+                         ("GET", "/server/flowloop/profile/plot?name=nope")):
+        status, body = server.request(method, path)
+        assert status == 404, (method, path)
+        assert body["error"]["message"] == 'no profile named "nope"'
+    status, body = server.request("POST", "/server/flowloop/profile/activate",
+                                  {"name": "nope"})
+    assert status == 404
+
+
+def test_bad_activation_arguments_answer_400(server):
+    store(server, name="act-args")
+    for args, message in (({"name": "act-args", "working_point": 1.5},
+                           "working point must be in 0..1"),
+                          ({"name": "act-args", "working_point": "x"},
+                           "could not convert"),
+                          ({"name": "act-args", "extruder": "heater_bed"},
+                           "is not an extruder name"),
+                          ({}, "the profile name is missing")):
+        status, body = server.request("POST", "/server/flowloop/profile/activate",
+                                      args)
+        assert status == 400 and message in body["error"]["message"], body
+
+
+# --- names ------------------------------------------------------------------
+
+ODD_NAMES = ["a.b.c", "x/y", "..", "../../etc/passwd", "semi;colon M112",
+             'quote"s', "it's", "üñï 0.4 mm", "{printer}", "%2e%2e", "a" * 128]
+
+
+def test_odd_names_round_trip_over_http_and_rpc_and_never_become_key_paths(server):
+    for name in ODD_NAMES:
+        assert store(server, name=name)["name"] == name
+        status, body = get(server, name)
+        assert status == 200, name
+        assert body["result"]["name"] == name
+        assert body["result"]["profile"]["identity"]["name"] == name
+
+    async def over_rpc(client):
+        for name in ODD_NAMES:
+            got = await client.call("server.flowloop.get_profile", name=name)
+            assert got["result"]["name"] == name
+    rpc(server, over_rpc)
+    assert set(ODD_NAMES) <= listed_names(server)
+    status, body = server.request("GET", "/server/database/item?namespace=flowloop")
+    assert status == 200
+    keys = set(body["result"]["value"])
+    assert all(re.fullmatch(r"profile:[0-9a-f]+|active", key) for key in keys), keys
+    for name in ODD_NAMES:
+        assert server.request("DELETE", "/server/flowloop/profile?name="
+                              + quote(name, safe=""))[0] == 200
+
+
+@pytest.mark.parametrize("name", ["new\nline", "tab\there", "nul\x00", "", "   ",
+                                  "a" * 129])
+def test_names_that_cannot_be_one_line_are_refused(server, name):
+    status, body = server.request("POST", "/server/flowloop/profile",
+                                  {"profile": make(name=name)})
+    assert status == 400
+    assert "profile name" in body["error"]["message"]
+    assert "\n" not in body["error"]["message"]
+    # Over HTTP tornado already drops NUL and similar from query arguments.
+    status, body = get(server, name)
+    assert status in (400, 404)
+    assert name not in listed_names(server)
+
+
+def test_database_api_cannot_write_around_validation(server):
+    status, body = server.request("POST", "/server/database/item",
+                                  {"namespace": "flowloop", "key": "profile:00",
+                                   "value": {"junk": True}})
+    assert status == 403
+
+
+# --- notifications, plot -----------------------------------------------------
+
+
+def test_every_change_is_notified(server):
+    async def steps(client):
+        await client.call("server.connection.identify", client_name="flowloop-test",
+                          version="1", type="other", url="http://x")
+        # written over HTTP by another client: the websocket client hears it
+        status, _ = await asyncio.get_running_loop().run_in_executor(
+            None, lambda: server.request("POST", "/server/flowloop/profile",
+                                         {"profile": make(name="notified")}))
+        assert status == 200
+        msg = await client.notification("notify_flowloop_profile_changed",
+                                        where=lambda p: p[0]["name"] == "notified")
+        assert msg["params"][0]["action"] == "created"
+        assert msg["params"][0]["profile"]["printer"] == "UM2-1"
+        await client.call("server.flowloop.profile.activate", name="notified")
+        msg = await client.notification("notify_flowloop_profile_changed",
+                                        where=lambda p: p[0]["action"] == "activated")
+        assert msg["params"][0]["extruder"] == "extruder"
+        await client.call("server.flowloop.delete_profile", name="notified")
+        msg = await client.notification("notify_flowloop_profile_changed",
+                                        where=lambda p: p[0]["action"] == "deleted")
+        assert msg["params"][0] == {"action": "deleted", "name": "notified",
+                                    "deactivated": ["extruder"]}
+    rpc(server, steps)
+
+
+def test_plot_is_valid_svg_of_the_stored_profile(server):
+    store(server, name='plot <&"> me', points=[
+        {"kind": "into_air", "temp_c": 220.0, "flow_mm3_s": 14.0, "grip": 0.9}])
+    status, text = server.request(
+        "GET", "/server/flowloop/profile/plot?working_point=0.3&name="
+        + quote('plot <&"> me', safe=""))
+    assert status == 200
+    root = ET.fromstring(text.encode())
+    assert root.tag == "{http://www.w3.org/2000/svg}svg"
+    assert root.get("data-profile") == 'plot <&"> me'
+    ids = {e.get("id") for e in root.iter()}
+    assert {"into_air", "real_print", "working_line", "points"} <= ids
+    assert "working point 0.3" in text
+
+
+# --- persistence and concurrency ---------------------------------------------
+
+
+def test_concurrent_writes_all_land_and_survive_a_restart(server):
+    names = [f"concurrent-{i:02d}" for i in range(24)]
+
+    def write(name):
+        return server.request("POST", "/server/flowloop/profile",
+                              {"profile": make(name=name)})[0]
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        assert list(pool.map(write, names)) == [200] * len(names)
+    status, body = server.request("POST", "/server/flowloop/profile/activate",
+                                  {"name": names[3], "extruder": "extruder",
+                                   "working_point": 0.25})
+    assert status == 200
+    server.restart()
+    listed = server.request("GET", "/server/flowloop/profiles")[1]["result"]
+    assert set(names) <= {p["name"] for p in listed["profiles"]}
+    assert listed["active"]["extruder"] == {"name": names[3], "working_point": 0.25}
+    assert get(server, names[7])[1]["result"]["profile"]["lines"]["real_print"][
+        "flow_mm3_s"] == 10.1356
+
+
+# --- authorization ------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def untrusting_server(moonraker_venv):
+    data_dir = stack.short_tempdir("fl-auth-")
+    srv = Server(moonraker_venv, data_dir, trusted="10.99.0.0/16")
+    yield srv
+    srv.stop()
+    shutil.rmtree(data_dir, ignore_errors=True)
+
+
+@pytest.mark.parametrize("method, path, body", [
+    ("GET", "/server/flowloop/profiles", None),
+    ("GET", "/server/flowloop/profile?name=x", None),
+    ("POST", "/server/flowloop/profile", {"profile": make(name="intruder")}),
+    ("DELETE", "/server/flowloop/profile?name=x", None),
+    ("POST", "/server/flowloop/profile/activate", {"name": "x"}),
+    ("GET", "/server/flowloop/profile/plot?name=x", None),
+    ("GET", "/server/flowloop/info", None),
+])
+def test_an_untrusted_client_is_refused(untrusting_server, method, path, body):
+    status, _ = untrusting_server.request(method, path, body)
+    assert status == 401
+
+
+def test_an_untrusted_websocket_client_is_refused(untrusting_server):
+    async def steps(client):
+        answer = await client.call("server.flowloop.post_profile",
+                                   profile=make(name="intruder"))
+        # Moonraker's JSON-RPC reports a 401 as -32602
+        assert answer["error"]["code"] == -32602
+        assert "Unauthorized" in answer["error"]["message"]
+    rpc(untrusting_server, steps)
+
+
+# --- Spoolman link --------------------------------------------------------------
+
+
+class FakeSpoolman(http.server.BaseHTTPRequestHandler):
+    """Answers GET /api/v1/spool/<id> with the spool's filament id."""
+
+    spools = {7: 3, 8: 99}
+
+    def do_GET(self):
+        m = re.fullmatch(r"/api/v1/spool/(\d+)", self.path)
+        if m and int(m.group(1)) in self.spools:
+            spool_id = int(m.group(1))
+            body = json.dumps({"id": spool_id, "filament": {
+                "id": self.spools[spool_id], "name": "PLA red"}}).encode()
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+        else:
+            self.send_error(404)
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture(scope="module")
+def spoolman_server(moonraker_venv):
+    fake = http.server.ThreadingHTTPServer(("127.0.0.1", 0), FakeSpoolman)
+    thread = threading.Thread(target=fake.serve_forever, daemon=True)
+    thread.start()
+    data_dir = stack.short_tempdir("fl-spool-")
+    conf = (f"spoolman_link: True\n\n[spoolman]\n"
+            f"server: http://127.0.0.1:{fake.server_address[1]}\n")
+    try:
+        srv = Server(moonraker_venv, data_dir, extra_conf=conf)
+        yield srv
+        srv.stop()
+    finally:
+        fake.shutdown()
+        shutil.rmtree(data_dir, ignore_errors=True)
+
+
+def wait_for(fn, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = fn()
+        if value:
+            return value
+        time.sleep(0.1)
+    return fn()
+
+
+def test_active_spool_activates_the_profile_of_its_filament(spoolman_server):
+    store(spoolman_server, name="other pla")
+    data = make(name="spool pla")
+    data["identity"]["spoolman_filament_id"] = 3
+    assert spoolman_server.request("POST", "/server/flowloop/profile",
+                                   {"profile": data})[0] == 200
+
+    def active():
+        result = spoolman_server.request("GET", "/server/flowloop/profiles")[1]
+        return result["result"]["active"].get("extruder")
+    assert active() is None
+    status, _ = spoolman_server.request("POST", "/server/spoolman/spool_id",
+                                        {"spool_id": 7})
+    assert status == 200
+    assert wait_for(active) == {"name": "spool pla", "working_point": 0.5}
+    # a spool whose filament has no profile leaves the active one alone
+    spoolman_server.request("POST", "/server/spoolman/spool_id", {"spool_id": 8})
+    time.sleep(1.0)
+    assert active() == {"name": "spool pla", "working_point": 0.5}

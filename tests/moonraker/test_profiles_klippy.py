@@ -1,0 +1,166 @@
+"""Material profiles between the real Moonraker and a real batch-mode klippy:
+activation reaches klippy's [flowloop] object (through its webhooks endpoint,
+not G-code) and a klippy macro hands a profile over with flowloop_store_profile."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from urllib.parse import quote
+
+import pytest
+
+from devtools import stack
+from tests.samples import make
+
+MACRO_PROFILE = make(name="from-klippy", bounds=(200.0, 215.0, 250.0))
+
+PRINTER_CFG = """\
+[include {project}/config/printer.cfg]
+
+# What a measurement command will do: hand a profile over to Moonraker.
+[gcode_macro FLOWLOOP_TEST_STORE]
+variable_profile: {profile!r}
+gcode:
+  {{action_call_remote_method("flowloop_store_profile", profile=profile,
+                              activate_extruder="extruder", working_point=0.8)}}
+"""
+
+
+@pytest.fixture(scope="module")
+def printer(klipper_build, klippy_venv, moonraker_venv):
+    cfg_dir = stack.short_tempdir("fl-pcfg-")
+    cfg = cfg_dir / "profiles_printer.cfg"
+    cfg.write_text(PRINTER_CFG.format(project=stack.PROJECT, profile=MACRO_PROFILE))
+    try:
+        with stack.printer_stack(printer_cfg=cfg) as ps:
+            yield ps
+    finally:
+        shutil.rmtree(cfg_dir, ignore_errors=True)
+
+
+def request(ps, method, path, body=None):
+    return ps.moonraker.request(method, path, body)
+
+
+def store(ps, **kw):
+    status, body = request(ps, "POST", "/server/flowloop/profile",
+                           {"profile": make(**kw)})
+    assert status == 200, body
+
+
+def activate(ps, name, **kw):
+    return request(ps, "POST", "/server/flowloop/profile/activate",
+                   {"name": name, **kw})
+
+
+def klippy_profiles(ps):
+    return ps.query("flowloop").get("profiles", {})
+
+
+def wait_for(fn, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = fn()
+        if value:
+            return value
+        time.sleep(0.2)
+    return fn()
+
+
+def test_activation_reaches_klippy_and_shows_in_get_status(printer):
+    store(printer, name="hot pla", bounds=(190.0, 210.0, 280.0))
+    status, body = activate(printer, "hot pla", working_point=0.3)
+    assert status == 200, body
+    assert body["result"]["sent_to_klippy"] is True
+    shown = klippy_profiles(printer)["extruder"]
+    assert shown["name"] == "hot pla" and shown["working_point"] == 0.3
+    assert shown["into_air"] == {"slope_mm3_s_per_c": 0.146, "temp_c": 171.6312,
+                                 "flow_mm3_s": 7.5789}
+    assert shown["real_print"]["temp_c"] == 210.0
+    # C = C2 + 0.3 (C1 - C2) = -20.5244 + 0.3 * 3.0451448
+    assert shown["working_line"]["intercept_mm3_s"] == pytest.approx(-19.61085656)
+    # the profile allows 280 degC, config/printer.cfg's heater only 260
+    assert shown["heater_max_temp_c"] == 260.0 and shown["max_temp_c"] == 260.0
+    assert printer.query("webhooks")["state"] == "ready"
+
+
+def test_klippy_refuses_an_extruder_it_does_not_have(printer):
+    store(printer, name="second nozzle")
+    status, body = activate(printer, "second nozzle", extruder="extruder1")
+    assert status == 400
+    assert "no extruder named 'extruder1'" in body["error"]["message"]
+    active = request(printer, "GET", "/server/flowloop/profiles")[1]["result"]["active"]
+    assert "extruder1" not in active
+
+
+def test_storing_the_active_profile_again_updates_klippy(printer):
+    store(printer, name="hot pla", bounds=(195.0, 215.0, 240.0))
+    assert wait_for(lambda: klippy_profiles(printer)["extruder"]["min_temp_c"]
+                    == 195.0)
+    assert klippy_profiles(printer)["extruder"]["max_temp_c"] == 240.0
+
+
+def test_names_with_gcode_characters_never_reach_gcode(printer):
+    name = 'inject"; M112 ; {action_emergency_stop()}'
+    store(printer, name=name)
+    status, body = activate(printer, name)
+    assert status == 200, body
+    assert klippy_profiles(printer)["extruder"]["name"] == name
+    assert printer.query("webhooks")["state"] == "ready"
+
+
+def test_active_profile_is_sent_again_when_klippy_comes_back(printer):
+    store(printer, name="after restart")
+    assert activate(printer, "after restart", working_point=0.6)[0] == 200
+
+    def resent():
+        return printer.moonraker.log_path.read_text().count(
+            "active profile for extruder sent to klippy")
+    before = resent()
+    request(printer, "POST", "/printer/restart")
+    # klippy forgets on restart; Moonraker sends the stored activation on ready
+    assert wait_for(lambda: resent() > before, timeout=60)
+    assert wait_for(lambda: klippy_profiles_or_none(printer) == "after restart")
+    assert klippy_profiles(printer)["extruder"]["working_point"] == 0.6
+
+
+def klippy_profiles_or_none(ps):
+    try:
+        return klippy_profiles(ps).get("extruder", {}).get("name")
+    except (RuntimeError, OSError, KeyError):
+        return None  # klippy is restarting
+
+
+def test_deleting_the_active_profile_clears_it_in_klippy(printer):
+    store(printer, name="short lived")
+    assert activate(printer, "short lived")[0] == 200
+    status, body = request(printer, "DELETE",
+                           "/server/flowloop/profile?name=short%20lived")
+    assert status == 200 and body["result"]["deactivated"] == ["extruder"]
+    assert "extruder" not in klippy_profiles(printer)
+
+
+def test_a_klippy_macro_stores_a_profile_with_flowloop_store_profile(printer):
+    def run_macro():
+        try:
+            printer.gcode("FLOWLOOP_TEST_STORE")
+        except RuntimeError as e:  # Moonraker registers remote methods on ready
+            if "not registered" in str(e):
+                return False
+            raise
+        return True
+    assert wait_for(run_macro, timeout=15)
+
+    def stored():
+        status, body = request(printer, "GET",
+                               "/server/flowloop/profile?name=" + quote("from-klippy"))
+        return body["result"]["profile"] if status == 200 else None
+    profile = wait_for(stored)
+    assert profile == request(printer, "GET", "/server/flowloop/profile?name="
+                              "from-klippy")[1]["result"]["profile"]
+    assert profile["bounds"]["max_temp_c"] == 250.0
+    assert profile["lines"]["real_print"]["flow_mm3_s"] == 10.1356
+    assert wait_for(lambda: klippy_profiles(printer).get("extruder", {}).get(
+        "name") == "from-klippy")
+    assert klippy_profiles(printer)["extruder"]["working_point"] == 0.8

@@ -1,0 +1,34 @@
+"""Shared test data: sample profiles and the paths of ../shared/data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = SHARED / "ddprint-profiles"
+MAT = DATA / "mat-profiles"
+
+needs_data = pytest.mark.skipif(
+    not MAT.is_dir(), reason=f"the shared ddPrint profiles are not at {DATA} "
+                             f"(../shared/data beside the repo)")
+
+
+def make(air=(0.146, 171.6312, 7.5789), real=(0.146, 210.0, 10.1356),
+         bounds=(190.0, 210.0, 260.0), name="herz-pla-red_80", **extra):
+    """The UM2-1 herz-pla-red 0.8 mm numbers (ddPrint file), as a dict."""
+    data = {
+        "identity": {"name": name, "printer": "UM2-1", "nozzle_diameter_mm": 0.8,
+                     "filament_name": "herz-pla-red", "filament_type": "PLA"},
+        "lines": {
+            "into_air": dict(zip(("slope_mm3_s_per_c", "temp_c", "flow_mm3_s"), air)),
+            "real_print": dict(zip(("slope_mm3_s_per_c", "temp_c", "flow_mm3_s"),
+                                   real)),
+        },
+        "bounds": dict(zip(("min_temp_c", "recommended_temp_c", "max_temp_c"),
+                           bounds)),
+        "provenance": {"method": "manual"},
+    }
+    data.update(extra)
+    return data

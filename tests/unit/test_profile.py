@@ -1,0 +1,267 @@
+"""Material profile schema, validation and the functions over the two lines."""
+
+from __future__ import annotations
+
+import math
+
+import msgspec
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from flowloop import profile as P
+from flowloop.errors import FlowloopError
+from tests.samples import make
+
+
+@pytest.fixture
+def herz():
+    return P.profile_from_dict(make())
+
+
+# --- hand-computed from the ddPrint file (ddprint-profile-format.md formulas):
+# C1 = 7.5789 - 0.146*171.6312 = -17.4792552 (into air)
+# C2 = 10.1356 - 0.146*210    = -20.5244    (real print)
+# WP 0.5: C = -19.0018276; 12 mm^3/s needs (12 + 19.0018276)/0.146 degC
+
+
+@pytest.mark.parametrize("wp, temp", [(0.0, 222.76986301369865),
+                                      (0.5, 212.34128493150686),
+                                      (1.0, 201.91270684931507)])
+def test_temperature_for_12_mm3_s_on_herz_pla_red(herz, wp, temp):
+    assert P.temp_for_flow(herz, 12.0, wp) == pytest.approx(temp, abs=1e-9)
+
+
+def test_flow_at_230_degc_at_the_default_working_point(herz):
+    assert P.flow_at(herz, 230.0) == pytest.approx(14.5781724, abs=1e-9)
+
+
+def test_working_point_zero_is_the_real_print_line_and_one_is_into_air(herz):
+    assert P.flow_at(herz, 210.0, 0.0) == pytest.approx(10.1356, abs=1e-12)
+    assert P.flow_at(herz, 171.6312 + 30, 1.0) == pytest.approx(7.5789 + 0.146 * 30)
+
+
+def test_kaisertech_pla_white_working_point_line():
+    kaiser = P.profile_from_dict(make(air=(0.1691, 170.125, 8.0267),
+                                      real=(0.1691, 224.7, 12.8127)))
+    # C = (8.0267 - 0.1691*170.125 + 12.8127 - 0.1691*224.7) / 2 = -22.96275375
+    assert P.temp_for_flow(kaiser, 12.0) == pytest.approx(206.75785777646365)
+    assert P.flow_at(kaiser, 230.0) == pytest.approx(15.93024625)
+
+
+def test_temperature_is_clamped_to_the_bounds(herz):
+    assert P.temp_for_flow(herz, 30.0) == 260.0  # the line says 335.6 degC
+    assert P.temp_for_flow(herz, 1.0) == 190.0  # the line says 137.0 degC
+    assert P.temp_for_flow(herz, 0.0) == 190.0
+
+
+def test_max_flow_at_a_measured_temperature_is_capped_at_max_temp(herz):
+    at_max = 0.146 * 260 - 19.0018276
+    assert P.max_flow_at(herz, 260.0) == pytest.approx(at_max)
+    assert P.max_flow_at(herz, 300.0) == pytest.approx(at_max)
+    assert P.max_flow_at(herz, 200.0, 0.0) == pytest.approx(0.146 * 200 - 20.5244)
+    assert P.max_flow_at(herz, 100.0) == 0.0  # below the line's zero
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.5, math.nan, "0.5", True])
+def test_working_point_outside_0_1_is_refused(herz, bad):
+    with pytest.raises(FlowloopError, match="working point"):
+        P.flow_at(herz, 200.0, bad)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_non_finite_inputs_are_refused(herz, bad):
+    with pytest.raises(FlowloopError, match="finite"):
+        P.temp_for_flow(herz, bad)
+    with pytest.raises(FlowloopError, match="finite"):
+        P.max_flow_at(herz, bad)
+
+
+def test_negative_flow_is_refused(herz):
+    with pytest.raises(FlowloopError, match=">= 0"):
+        P.temp_for_flow(herz, -1.0)
+
+
+def test_round_trip_through_json_keeps_every_field(herz):
+    full = P.profile_from_dict(make(
+        points=[{"kind": "into_air", "temp_c": 210.0, "flow_mm3_s": 9.0,
+                 "grip": 0.9, "heater_pwm": 120.0}],
+        ddprint={"top": {"bedTemp": 65, "kAdvance": 0.2}, "nozzle": {"slippage": 0.1}}))
+    again = P.decode_profile(P.encode_profile(full))
+    assert again == full
+    assert P.profile_from_dict(P.profile_to_dict(full)) == full
+    assert again.ddprint.top["bedTemp"] == 65 and isinstance(
+        again.ddprint.top["bedTemp"], int)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d.update(colour="red"), "unknown field `colour`"),
+    (lambda d: d["identity"].update(nozel=0.4), "unknown field `nozel`"),
+    (lambda d: d["lines"]["into_air"].update(slope_mm3_s_per_c=0.0),
+     "lines.into_air.slope_mm3_s_per_c must be > 0"),
+    (lambda d: d["lines"]["real_print"].update(slope_mm3_s_per_c=-0.1),
+     "lines.real_print.slope_mm3_s_per_c must be > 0"),
+    (lambda d: d["lines"]["into_air"].update(flow_mm3_s=math.nan),
+     "lines.into_air.flow_mm3_s must be a finite number"),
+    (lambda d: d["bounds"].update(max_temp_c=math.inf), "bounds.max_temp_c must be"),
+    (lambda d: d["bounds"].update(max_temp_c=520.0), "must be in 0..500"),
+    (lambda d: d["lines"]["into_air"].update(temp_c=-5.0), "must be in 0..500"),
+    (lambda d: d["bounds"].update(min_temp_c=270.0), "min_temp_c (270) must be below"),
+    (lambda d: d["bounds"].update(recommended_temp_c=180.0), "recommended_temp_c"),
+    (lambda d: d["lines"]["real_print"].update(slope_mm3_s_per_c=0.3),
+     "cross at 229.8 degC"),
+    (lambda d: d["lines"]["real_print"].update(temp_c=150.0),
+     "real-print line lies above the into-air line"),
+    (lambda d: d["identity"].update(name=""), "profile name is empty"),
+    (lambda d: d["identity"].update(name="a\nb"), "control character"),
+    (lambda d: d["identity"].update(printer="x\x00"), "identity.printer contains"),
+    (lambda d: d.update(schema_version=2), "schema_version 2 is not supported"),
+    (lambda d: d["provenance"].update(method="guess"), "Invalid enum value 'guess'"),
+    (lambda d: d["identity"].update(spoolman_filament_id=0), "spoolman_filament_id"),
+    (lambda d: d.update(points=[{"kind": "into_air", "temp_c": 200, "flow_mm3_s": 5,
+                                 "grip": 3}]), "points[0].grip must be in 0..2"),
+    (lambda d: d["lines"].update(into_air_power={
+        "slope_mm3_s_per_pwm": 0.1, "pwm": 300, "flow_mm3_s": 5}),
+     "lines.into_air_power.pwm must be in 0..255"),
+])
+def test_bad_profiles_are_refused_with_one_clear_line(change, message):
+    data = make()
+    change(data)
+    with pytest.raises(FlowloopError) as err:
+        P.profile_from_dict(data)
+    assert message in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_decode_reports_json_errors_in_one_line():
+    with pytest.raises(FlowloopError, match="not a JSON profile"):
+        P.decode_profile(b'{"identity": ')
+    with pytest.raises(FlowloopError, match="must be a JSON object"):
+        P.profile_from_dict([1, 2])
+
+
+def test_direct_construction_is_validated_too(herz):
+    with pytest.raises(FlowloopError, match="into_air.slope_mm3_s_per_c must be > 0"):
+        P.Profile(identity=herz.identity, bounds=herz.bounds,
+                  provenance=herz.provenance,
+                  lines=P.Lines(into_air=P.FlowLine(slope_mm3_s_per_c=-1.0,
+                                                    temp_c=200.0, flow_mm3_s=5.0),
+                                real_print=herz.lines.real_print))
+
+
+def test_lines_touching_at_a_bound_are_not_crossing():
+    # into air - real print = 26 - 0.1*T: 7 at 190 degC, 0 at max_temp 260 degC
+    air = (0.1, 200.0, 10.0)
+    real = (0.2, 200.0, 4.0)
+    p = P.profile_from_dict(make(air=air, real=real))
+    assert P.flow_at(p, 260.0, 0.0) == pytest.approx(P.flow_at(p, 260.0, 1.0))
+
+
+def test_active_status_is_small_and_json_able(herz):
+    status = P.active_status(herz, 0.25)
+    assert msgspec.json.decode(msgspec.json.encode(status)) == status
+    assert status["name"] == "herz-pla-red_80" and status["working_point"] == 0.25
+    line = P.Line(**status["working_line"])
+    assert line.flow_mm3_s(230.0) == pytest.approx(P.flow_at(herz, 230.0, 0.25))
+
+
+def test_summary_lists_the_identity_fields(herz):
+    s = P.summary(herz)
+    assert s["name"] == "herz-pla-red_80" and s["printer"] == "UM2-1"
+    assert s["nozzle_diameter_mm"] == 0.8 and s["method"] == "manual"
+
+
+# --- hypothesis: validators and the line functions --------------------------
+
+temps = st.floats(min_value=0.0, max_value=500.0)
+slopes = st.floats(min_value=1e-3, max_value=0.5)
+flows = st.floats(min_value=0.0, max_value=50.0)
+
+
+@st.composite
+def valid_profiles(draw):
+    lo = draw(st.floats(min_value=0.0, max_value=400.0))
+    hi = draw(st.floats(min_value=lo + 1.0, max_value=500.0))
+    rec = draw(st.floats(min_value=lo, max_value=hi))
+    slope = draw(slopes)
+    t_real = draw(temps)
+    f_real = draw(flows)
+    gap = draw(st.floats(min_value=0.0, max_value=20.0))
+    # into-air: same slope, intercept gap >= 0 above the real-print line
+    t_air = draw(temps)
+    f_air = f_real + slope * (t_air - t_real) + gap
+    if f_air < 0:
+        t_air = t_real
+        f_air = f_real + gap
+    return P.profile_from_dict(make(air=(slope, t_air, f_air),
+                                    real=(slope, t_real, f_real),
+                                    bounds=(lo, rec, hi)))
+
+
+@settings(max_examples=150, deadline=None)
+@given(valid_profiles(), st.floats(min_value=0, max_value=1), flows)
+def test_temperature_for_flow_stays_in_bounds_and_inverts_flow_at(p, wp, flow):
+    temp = P.temp_for_flow(p, flow, wp)
+    assert p.bounds.min_temp_c <= temp <= p.bounds.max_temp_c
+    if p.bounds.min_temp_c < temp < p.bounds.max_temp_c:
+        assert P.flow_at(p, temp, wp) == pytest.approx(flow, abs=1e-6, rel=1e-9)
+
+
+@settings(max_examples=150, deadline=None)
+@given(valid_profiles(), st.floats(min_value=0, max_value=1), temps)
+def test_working_line_lies_between_the_two_lines(p, wp, temp):
+    real, air = P.flow_at(p, temp, 0.0), P.flow_at(p, temp, 1.0)
+    assert real - 1e-6 <= P.flow_at(p, temp, wp) <= air + 1e-6
+
+
+@settings(max_examples=150, deadline=None)
+@given(valid_profiles())
+def test_valid_profiles_round_trip(p):
+    assert P.decode_profile(P.encode_profile(p)) == p
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=True)
+    | st.text(max_size=8),
+    lambda inner: st.lists(inner, max_size=3)
+    | st.dictionaries(st.text(max_size=8), inner, max_size=3),
+    max_leaves=10)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(["identity", "lines", "bounds", "provenance", "points",
+                        "ddprint", "schema_version"]), json_values)
+def test_any_junk_in_a_field_is_refused_with_one_line_or_accepted(field, junk):
+    data = make()
+    data[field] = junk
+    try:
+        P.profile_from_dict(data)
+    except FlowloopError as e:
+        assert "\n" not in str(e) and str(e)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(max_size=40))
+def test_names_round_trip_or_are_refused(name):
+    try:
+        p = P.profile_from_dict(make(name=name))
+    except FlowloopError as e:
+        assert "profile name" in str(e)
+        assert not name.strip() or any(ord(c) < 32 or 0x7f <= ord(c) <= 0x9f
+                                       or c in "\u2028\u2029" or
+                                       0xd800 <= ord(c) <= 0xdfff for c in name)
+        return
+    assert P.decode_profile(P.encode_profile(p)).identity.name == name
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(allow_nan=True, allow_infinity=True))
+def test_slopes_must_be_positive_finite(slope):
+    data = make(air=(slope, 171.6312, 7.5789), real=(slope, 210.0, 10.1356))
+    ok = math.isfinite(slope) and 0 < slope <= P.MAX_SLOPE_MM3_S_PER_C
+    try:
+        P.profile_from_dict(data)
+    except FlowloopError as e:
+        assert not ok or "cross" in str(e) or "above" in str(e), str(e)
+        return
+    assert ok

@@ -1,0 +1,187 @@
+"""ddPrint material files: import of every shared file, export, round trips."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from flowloop import ddprint
+from flowloop import profile as P
+from flowloop.errors import FlowloopError
+from tests.samples import MAT, needs_data
+
+UM2 = sorted((MAT / "UM2-1").glob("*.json")) if MAT.is_dir() else []
+
+@needs_data
+def test_the_four_um2_profiles_are_there():
+    assert [p.name for p in UM2] == ["herz-pla-red.json", "herz_petg_white.json",
+                                     "kaisertech_pla_white.json",
+                                     "noname_pla_blue.json"]
+
+
+# What each shared file holds: (file, imported names, problems that must be named)
+EXPECTED = {
+    "UM2-1/herz-pla-red.json": (["herz-pla-red_80"], []),
+    "UM2-1/herz_petg_white.json": (["herz_petg_white_40"], []),
+    "UM2-1/kaisertech_pla_white.json": (["kaisertech_pla_white_80"], []),
+    "UM2-1/noname_pla_blue.json": (["noname_pla_blue_80"], []),
+    "pla.json": (["pla_40", "pla_80"], []),
+    "petg.json": (["petg_80"], ["properties_40: the real-print line lies above"]),
+    "nylon.json": (["nylon_80"], ["properties_40: no real-print point"]),
+    "tpu_tpe.json": (["tpu_tpe_80"], ["properties_40: no real-print point"]),
+}
+
+
+@needs_data
+@pytest.mark.parametrize("rel", sorted(EXPECTED))
+def test_every_shared_file_imports_or_names_its_problem(rel):
+    names, problems = EXPECTED[rel]
+    result = ddprint.import_file(MAT / rel)
+    assert [p.identity.name for p in result.profiles] == names
+    assert len(result.problems) == len(problems)
+    for got, want in zip(result.problems, problems):
+        assert want in got and Path(rel).name in got
+
+
+@needs_data
+def test_a_file_without_measured_lines_is_refused_with_the_reason():
+    with pytest.raises(FlowloopError, match=r"abs.json: no properties_NN"):
+        ddprint.import_file(MAT / "abs.json")
+
+
+@needs_data
+def test_all_shared_files_are_covered():
+    found = {str(p.relative_to(MAT)) for p in MAT.rglob("*.json")}
+    assert found == set(EXPECTED) | {"abs.json"}
+
+
+@needs_data
+def test_herz_pla_red_maps_to_the_schema_with_its_generic_base():
+    (p,) = ddprint.import_file(MAT / "UM2-1/herz-pla-red.json").profiles
+    assert p.identity.printer == "UM2-1" and p.identity.nozzle_diameter_mm == 0.8
+    assert p.identity.filament_type == "PLA" and p.identity.filament_diameter_mm == 1.75
+    assert p.lines.into_air == P.FlowLine(slope_mm3_s_per_c=0.146, temp_c=171.6312,
+                                          flow_mm3_s=7.5789)
+    assert p.lines.real_print == P.FlowLine(slope_mm3_s_per_c=0.146, temp_c=210.0,
+                                            flow_mm3_s=10.1356)
+    assert p.lines.into_air_power == P.PowerLine(slope_mm3_s_per_pwm=0.1472,
+                                                 pwm=90.0, flow_mm3_s=7.5789)
+    assert p.lines.real_print_power.pwm == 132.4
+    assert (p.bounds.min_temp_c, p.bounds.recommended_temp_c,
+            p.bounds.max_temp_c) == (190, 210, 260)  # from pla.json
+    assert p.ddprint.nozzle == {"version": 5, "slippage": 0.1}
+    assert p.ddprint.top["bedTemp"] == 65
+    assert p.provenance.method == "ddprint_import"
+    assert "UM2-1/herz-pla-red.json + pla.json" == p.provenance.source
+
+
+@needs_data
+@pytest.mark.parametrize("path", UM2, ids=lambda p: p.name)
+def test_um2_profiles_round_trip_with_every_number_kept(path):
+    original = ddprint.read_file(path)
+    base = ddprint.read_file(ddprint.find_generic_base(path))
+    (profile,) = ddprint.import_file(path).profiles
+    exported = ddprint.parse_text(ddprint.export_text(profile))
+    got = ddprint.flatten_numbers(exported)
+    want = ddprint.flatten_numbers(original)
+    # the printer file's own numbers, and the generic ones it did not replace
+    want.update({k: v for k, v in ddprint.flatten_numbers(base).items()
+                 if k.split(".")[0] not in original
+                 and not k.startswith("properties_")})
+    assert {k: got.get(k) for k in want} == want
+    # ...and the exported file imports to the same profile
+    ident = profile.identity
+    again = ddprint.to_profile(exported, ident.nozzle_diameter_mm, name=ident.name,
+                               printer=ident.printer, filament_name=ident.filament_name,
+                               filament_type=ident.filament_type,
+                               source=profile.provenance.source)
+    assert again == profile
+
+
+def test_comments_and_comment_strings_are_dropped():
+    text = """{
+      # a comment line
+      "version": 5,
+      "material_diameter": 1.75,
+      "hotendBaseTemp": 190, "hotendGoodTemp": 210, "hotendMaxTemp": 260,
+      "properties_40": {
+        "# measure 1:",
+        "Ktemp": 0.1, "P0temp": 205.0, "FR0pwm": 2.5,
+          "# measure 2",
+        "P0tempPrint": 215.0, "FR0pwmPrint": 2
+      }
+    }"""
+    data = ddprint.parse_text(text)
+    assert data["properties_40"] == {"Ktemp": 0.1, "P0temp": 205.0, "FR0pwm": 2.5,
+                                     "P0tempPrint": 215.0, "FR0pwmPrint": 2}
+    p = ddprint.to_profile(data, 0.4, name="x")
+    assert p.lines.into_air_power is None  # no Kpwm: no power lines
+
+
+def test_a_broken_file_names_the_line():
+    with pytest.raises(FlowloopError, match=r"bad.json: not a ddPrint file: line 3"):
+        ddprint.parse_text('{\n "a": 1,\n "b" 2\n}', "bad.json")
+
+
+def test_a_printer_file_without_a_base_asks_for_one(tmp_path):
+    lone = tmp_path / "printer" / "mystery.json"
+    lone.parent.mkdir()
+    lone.write_text('{"properties_40": {"Ktemp": 0.1}}')
+    with pytest.raises(FlowloopError, match="--base FILE"):
+        ddprint.import_file(lone)
+
+
+@needs_data
+def test_nozzle_filter_and_missing_nozzle():
+    assert [p.identity.name for p in
+            ddprint.import_file(MAT / "pla.json", nozzle_mm=0.4).profiles] == ["pla_40"]
+    with pytest.raises(FlowloopError, match=r"no profile for nozzle 0.6 mm \(has 0.4"):
+        ddprint.import_file(MAT / "pla.json", nozzle_mm=0.6)
+
+
+@needs_data
+def test_an_explicit_base_and_printer_are_used():
+    (p,) = ddprint.import_file(MAT / "UM2-1/herz_petg_white.json",
+                               base=MAT / "petg.json", printer="my UM2").profiles
+    assert p.identity.printer == "my UM2"
+    assert p.bounds.min_temp_c == 210 and p.bounds.recommended_temp_c == 230
+
+
+def test_export_of_a_flowloop_profile_without_ddprint_extras():
+    p = P.profile_from_dict({
+        "identity": {"name": 'odd "name"; ../x', "nozzle_diameter_mm": 0.6},
+        "lines": {"into_air": {"slope_mm3_s_per_c": 0.2, "temp_c": 200,
+                               "flow_mm3_s": 10},
+                  "real_print": {"slope_mm3_s_per_c": 0.2, "temp_c": 220,
+                                 "flow_mm3_s": 9}},
+        "bounds": {"min_temp_c": 190, "recommended_temp_c": 210, "max_temp_c": 250},
+        "provenance": {"method": "into_air"}})
+    text = ddprint.export_text(p)
+    data = ddprint.parse_text(text)
+    assert data["properties_60"]["Ktemp"] == 0.2 and data["hotendMaxTemp"] == 250
+    assert json.dumps(p.identity.name) in text.splitlines()[1]
+    assert ddprint.to_profile(data, 0.6, name="y").lines == p.lines
+
+
+ddprint_numbers = st.floats(min_value=0.01, max_value=400, allow_nan=False)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(min_value=0.01, max_value=0.5),
+       st.floats(min_value=150, max_value=250),
+       st.floats(min_value=0.5, max_value=30), st.floats(min_value=0, max_value=10),
+       st.dictionaries(st.sampled_from(["bedTemp", "kAdvance", "keepBedtemp"]),
+                       ddprint_numbers))
+def test_export_then_import_keeps_every_number(ktemp, p0temp, fr0, gap, extras):
+    data = {"version": 5, "material_diameter": 1.75, "hotendBaseTemp": 150,
+            "hotendGoodTemp": 200, "hotendMaxTemp": 260, **extras,
+            "properties_40": {"version": 5, "slippage": 0.1, "Ktemp": ktemp,
+                              "P0temp": p0temp, "FR0pwm": fr0,
+                              "P0tempPrint": p0temp + gap, "FR0pwmPrint": fr0}}
+    p = ddprint.to_profile(data, 0.4, name="h")
+    again = ddprint.parse_text(ddprint.export_text(p))
+    assert ddprint.flatten_numbers(again) == ddprint.flatten_numbers(data)

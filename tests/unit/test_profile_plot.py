@@ -1,0 +1,106 @@
+"""Profile plots: valid SVG showing both lines, the WP line and the points."""
+
+from __future__ import annotations
+
+import importlib.util
+import xml.etree.ElementTree as ET
+
+import pytest
+
+from flowloop import plot
+from flowloop import profile as P
+from flowloop.errors import FlowloopError
+from tests.samples import make
+
+SVG = "{http://www.w3.org/2000/svg}"
+
+
+def parse(text: str):
+    return ET.fromstring(text.encode())
+
+
+def coords(root, element_id):
+    (el,) = [e for e in root.iter() if e.get("id") == element_id]
+    return [tuple(map(float, pair.split(","))) for pair in el.get("points").split()]
+
+
+@pytest.fixture
+def measured():
+    return P.profile_from_dict(make(
+        name='<PLA & "friends">',
+        points=[{"kind": "into_air", "temp_c": 200.0, "flow_mm3_s": 12.0, "grip": 0.9},
+                {"kind": "into_air", "temp_c": 240.0, "flow_mm3_s": 18.0, "grip": 0.9},
+                {"kind": "real_print", "temp_c": 210.0, "flow_mm3_s": 10.1,
+                 "grip": 0.88}],
+        lines={"into_air": {"slope_mm3_s_per_c": 0.146, "temp_c": 171.6312,
+                            "flow_mm3_s": 7.5789},
+               "real_print": {"slope_mm3_s_per_c": 0.146, "temp_c": 210.0,
+                              "flow_mm3_s": 10.1356},
+               "into_air_power": {"slope_mm3_s_per_pwm": 0.1472, "pwm": 90.0,
+                                  "flow_mm3_s": 7.5789}}))
+
+
+def test_svg_parses_and_escapes_the_name(measured):
+    root = parse(plot.svg(measured))
+    assert root.tag == SVG + "svg"
+    assert root.get("data-profile") == '<PLA & "friends">'
+    assert '<PLA & "friends">' in root.find(SVG + "title").text
+
+
+def test_working_line_lies_between_the_two_lines(measured):
+    root = parse(plot.svg(measured, 0.25))
+    air, real, wp = (coords(root, i) for i in ("into_air", "real_print",
+                                               "working_line"))
+    for a, r, w in zip(air, real, wp):
+        assert a[0] == r[0] == w[0]
+        # SVG y grows downwards: into air is higher (smaller y) than real print
+        assert a[1] < w[1] < r[1]
+        assert w[1] == pytest.approx(r[1] + 0.25 * (a[1] - r[1]), abs=0.02)
+
+
+def test_measured_points_and_anchors_are_drawn(measured):
+    root = parse(plot.svg(measured))
+    assert len([e for e in root.iter(SVG + "circle")
+                if e.get("class") == "point"]) == 3
+    anchors = [e for e in root.iter(SVG + "path") if e.get("class") == "anchor"]
+    assert len(anchors) == 3  # two temperature points, one PWM point
+    assert {e.get("id") for e in root.iter()} >= {
+        "band", "min_temp", "recommended_temp", "max_temp", "into_air_power"}
+
+
+def test_bounds_marks_are_ordered_left_to_right(measured):
+    root = parse(plot.svg(measured))
+    x = {e.get("id"): float(e.get("x1")) for e in root.iter(SVG + "line")
+         if e.get("id")}
+    assert x["min_temp"] < x["recommended_temp"] < x["max_temp"]
+
+
+def test_without_power_lines_there_is_one_panel():
+    p = P.profile_from_dict(make())
+    root = parse(plot.svg(p))
+    assert root.get("height") == str(40 + plot.PANEL_HEIGHT)
+
+
+def test_bad_working_point_is_refused():
+    with pytest.raises(FlowloopError, match="working point"):
+        plot.svg(P.profile_from_dict(make()), 2.0)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("matplotlib") is not None,
+                    reason="matplotlib is installed: the PNG path is tested instead")
+def test_png_without_matplotlib_says_what_to_install(tmp_path):
+    with pytest.raises(FlowloopError, match="pip install matplotlib"):
+        plot.png(P.profile_from_dict(make()), tmp_path / "x.png")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("matplotlib") is None,
+                    reason="matplotlib is not installed (PNG plots are optional)")
+def test_png_with_matplotlib(tmp_path):
+    out = tmp_path / "x.png"
+    plot.png(P.profile_from_dict(make()), out)
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_nice_ticks_cover_the_range():
+    assert plot.nice_ticks(185.0, 265.0) == [200, 220, 240, 260]
+    assert plot.nice_ticks(0.0, 20.9) == [0, 5, 10, 15, 20]
