@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import shutil
 import signal
 import sys
 import traceback
@@ -43,15 +44,27 @@ class DemoContext:
     def query(self, obj: str) -> dict:
         return self.printer.query(obj)
 
+    def batch_klippy_log(self, test_file: Path) -> str:
+        """Run a tests/klippy .test file in batch mode; return klippy's log."""
+        from devtools.klippy_test import run_file
+        workdir = stack.short_tempdir("fl-demo-")
+        try:
+            return run_file(test_file, stack.build_klipper(), stack.klippy_venv(),
+                            workdir)
+        finally:
+            shutil.rmtree(workdir, ignore_errors=True)
+
 
 def demo_steps():
     for path in sorted(Path(__file__).parent.glob("demo_*.py")):
         yield path.stem[len("demo_"):], importlib.import_module(f"devtools.{path.stem}")
 
 
-def run_steps(ctx: DemoContext) -> int:
+def run_steps(ctx: DemoContext, only: Optional[str] = None) -> int:
     failed = 0
     for name, module in demo_steps():
+        if only and name != only:
+            continue
         ctx.say(f"\n=== {name.replace('_', ' ')} ===")
         try:
             module.demo(ctx)
@@ -66,6 +79,8 @@ def main(argv=None) -> int:
                                      description=__doc__.split("\n")[0])
     parser.add_argument("--once", action="store_true",
                         help="stop after the steps instead of waiting for Ctrl-C")
+    parser.add_argument("--step", choices=[name for name, _ in demo_steps()],
+                        help="run only this feature's step")
     args = parser.parse_args(argv)
     reason = stack.missing_klipper_reason()
     if reason:
@@ -79,7 +94,7 @@ def main(argv=None) -> int:
         print(f"\nMoonraker: {printer.moonraker.url}  (data: {printer.data_dir})")
         print(f"  GET {printer.moonraker.url}/server/flowloop/info")
         print("  " + describe(body["result"]).replace("\n", "\n  "))
-        failed = run_steps(DemoContext(printer))
+        failed = run_steps(DemoContext(printer), args.step)
         if failed:
             print(f"\n!!! {failed} demo step(s) failed (see above)")
         if not args.once:

@@ -99,13 +99,7 @@ def on_demo_printer(ctx) -> bool:
 
 
 def in_batch_klippy(ctx, test: Path) -> None:
-    from devtools import stack
-    from devtools.klippy_test import run_file
-    workdir = Path(tempfile.mkdtemp(prefix="fl-demo-"))
-    try:
-        log = run_file(test, stack.build_klipper(), stack.klippy_venv(), workdir)
-    finally:
-        shutil.rmtree(workdir, ignore_errors=True)
+    log = ctx.batch_klippy_log(test)
     ctx.say(f"klippy batch run of {test.name} (WAIT_BED_EQUILIBRIUM, two rounds of "
             "DIFF_AB_CALIBRATE with G28 between):")
     keep = ("A (x=y", "B (x=-y", "stepper_x: rot", "stepper_y: rot", "save_config: set",
@@ -126,13 +120,3 @@ def demo(ctx) -> None:
         in_batch_klippy(ctx, ctx.project / "tests" / "klippy"
                         / "diff_ab_calibrate_corexy.test")
 
-
-if __name__ == "__main__":
-    class _Ctx:
-        project = Path(__file__).resolve().parent.parent
-        klippy_available = False
-
-        def say(self, text=""):
-            print(text)
-
-    demo(_Ctx())

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import shutil
-import tempfile
 from pathlib import Path
 
 from flowloop import delta
@@ -66,13 +64,7 @@ def offline(ctx, cfg: Path) -> None:
 
 
 def in_klippy(ctx, test: Path) -> None:
-    from devtools import stack
-    from devtools.klippy_test import run_file
-    workdir = Path(tempfile.mkdtemp(prefix="fl-demo-"))
-    try:
-        log = run_file(test, stack.build_klipper(), stack.klippy_venv(), workdir)
-    finally:
-        shutil.rmtree(workdir, ignore_errors=True)
+    log = ctx.batch_klippy_log(test)
     ctx.say(f"klippy batch run of {test.name} (G28, ENDSTOP_CALIBRATE "
             "METHOD=manual, 7 x G1 Z/ACCEPT):")
     keep = ("ENDSTOP_CALIBRATE (", "stepper_a: position", "stepper_b: position",
@@ -91,13 +83,3 @@ def demo(ctx) -> None:
         ctx.say("(no klippy: the ENDSTOP_CALIBRATE run is shown by "
                 "tests/klippy/endstop_calibrate.test)")
 
-
-if __name__ == "__main__":
-    class _Ctx:
-        project = Path(__file__).resolve().parent.parent
-        klippy_available = True
-
-        def say(self, text=""):
-            print(text)
-
-    demo(_Ctx())
