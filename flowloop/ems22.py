@@ -1,9 +1,363 @@
-"""EMS22A magnetic encoder: the MCU protocol flowloop's firmware speaks.
+"""Bourns EMS22A magnetic encoder: the MCU protocol flowloop's firmware
+speaks, a bit-level model of the chip's serial output, and the decoder.
 
 The message formats are shared by the klippy adapters (to look the commands
-up) and by the firmware check that tells users to rebuild.
+up) and by the firmware check that tells users to rebuild. The record layout
+and frame checks mirror mcu_sensor/ems22_frame.h; tests/data/ems22_vectors.json
+holds vectors that both the C header and this module are tested against.
+
+Frame alignment (see docs/flow_sensor.md): the chip drives a new bit on DO
+at each rising CLK edge, valid 375 ns later, D9 first; CLK idles high and
+runs at 1 MHz at most. A master must therefore sample on falling edges, half
+a period (>= 500 ns) after the change. SPI mode 2 (CPOL=1, CPHA=0) does that
+with the clock idling high as the datasheet wants, and its first falling edge
+comes half a period after the transfer starts, honouring the 500 ns from
+CSn low to the first falling edge; it sees the frame one bit late (its first
+sample precedes D9), so the firmware clocks 24 bits and the host takes the
+16-bit frame at bit offset 1. Mode 1 (CPOL=0, what ddPrint used) sees it at
+offset 0; modes 0 and 3 sample on the very edge where DO changes and get
+the previous bit, which the model treats as offset 1 but which depends on
+hold time: they are allowed, not advised.
 """
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .errors import FlowloopError
 
 CONFIG_CMD = "config_ems22 oid=%c spi_oid=%c"
 QUERY_CMD = "query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c"
+BULK_DATA_MSG = "sensor_bulk_data oid=%c sequence=%hu data=%*s"
 
+# --- mirrors mcu_sensor/ems22_frame.h ----------------------------------------
+READ_BYTES = 3
+HEADER_BYTES = 2
+RECORD_BYTES = 1 + READ_BYTES
+RECORDS_PER_MSG = 12
+TCODE_ERROR = 0xFF
+ERR_OVERFLOW, ERR_SCHEDULE, ERR_SPI_TIME = 1, 2, 3
+
+POSITION_SHIFT = 6
+POSITIONS = 1024
+OCF, COF, LIN, MAGINC, MAGDEC = 1 << 5, 1 << 4, 1 << 3, 1 << 2, 1 << 1
+
+OK, MISSING, PARITY, NOT_READY, CORDIC, LINEARITY, MAGNET = range(7)
+# Host-only sample states (after the frame states of the header)
+MISALIGNED, OVERFLOW, SCHEDULE, SPI_TIME = 7, 8, 9, 10
+STATUS_NAMES = ("ok", "missing", "parity", "not_ready", "cordic_overflow",
+                "linearity", "magnet", "misaligned", "overflow", "schedule",
+                "spi_time")
+_MCU_ERRORS = {ERR_OVERFLOW: OVERFLOW, ERR_SCHEDULE: SCHEDULE,
+               ERR_SPI_TIME: SPI_TIME}
+
+# 3.17 mm (1/8") D-shaft pressed on the filament: 1024 counts per pi*3.17 mm
+SHAFT_DIAMETER_MM = 3.17
+DEFAULT_COUNTS_PER_MM = POSITIONS / (math.pi * SHAFT_DIAMETER_MM)
+MAX_SPI_HZ = 1_000_000
+
+
+def parity_odd(frame: int) -> int:
+    """1 when the 16-bit frame has an odd number of ones (parity error)."""
+    return bin(frame & 0xFFFF).count("1") & 1
+
+
+def make_frame(position: int, ocf: bool = True, cof: bool = False,
+               lin: bool = False, mag_inc: bool = False,
+               mag_dec: bool = False) -> int:
+    """The 16-bit frame the chip sends, with even parity in bit 0."""
+    frame = (position % POSITIONS) << POSITION_SHIFT
+    for flag, bit in ((ocf, OCF), (cof, COF), (lin, LIN), (mag_inc, MAGINC),
+                      (mag_dec, MAGDEC)):
+        if flag:
+            frame |= bit
+    return frame | parity_odd(frame)
+
+
+def frame_at(raw: Sequence[int], offset: int) -> int:
+    """The frame whose first bit is bit `offset` (0..8) of a 24-bit read."""
+    word = (raw[0] << 16) | (raw[1] << 8) | raw[2]
+    return (word >> (8 - offset)) & 0xFFFF
+
+
+def frame_status(frame: int) -> int:
+    if frame in (0x0000, 0xFFFF):
+        return MISSING
+    if parity_odd(frame):
+        return PARITY
+    if not frame & OCF:
+        return NOT_READY
+    if frame & COF:
+        return CORDIC
+    if frame & LIN:
+        return LINEARITY
+    if frame & (MAGINC | MAGDEC) == MAGINC | MAGDEC:
+        return MAGNET
+    return OK
+
+
+# --- bit-level model of the chip on the wire ---------------------------------
+
+def spi_read_model(frame: int, spi_mode: int, nbytes: int = READ_BYTES,
+                   di_level: int = 0, idle_do: int = 1) -> bytes:
+    """What an SPI master in `spi_mode` reads from the chip, edge by edge.
+
+    The chip: CSn low latches the frame; each rising CLK edge drives the next
+    bit on DO (D9 first; after 16 bits, the DI level), valid 375 ns later.
+    Before the first rising edge DO shows `idle_do`. The master: CPOL sets
+    the idle level, CPHA=0 samples on the leading edge of each clock, CPHA=1
+    on the trailing one. A sample on the edge where DO changes reads the old
+    level, since the new one is not valid until 375 ns later.
+    """
+    if spi_mode not in (0, 1, 2, 3):
+        raise FlowloopError(f"spi_mode must be 0..3, not {spi_mode}")
+    cpol, cpha = spi_mode >> 1, spi_mode & 1
+    do_level, rises, bits = idle_do, 0, []
+    clk = cpol
+    for _ in range(nbytes * 8):
+        for edge in (0, 1):  # leading, trailing
+            clk ^= 1
+            sample_now = edge == cpha
+            if sample_now:
+                bits.append(do_level)  # read before any change at this edge
+            if clk == 1:  # rising edge: the chip drives its next bit
+                do_level = (frame >> (15 - rises)) & 1 if rises < 16 else di_level
+                rises += 1
+    value = 0
+    for bit in bits:
+        value = (value << 1) | bit
+    return value.to_bytes(nbytes, "big")
+
+
+def bit_offset_for_mode(spi_mode: int) -> int:
+    """Where the frame starts in a read, per the model above."""
+    probe = make_frame(0x2A5)
+    raw = spi_read_model(probe, spi_mode)
+    for offset in range(9):
+        if frame_at(raw, offset) == probe:
+            return offset
+    raise AssertionError("model lost the frame")  # pragma: no cover
+
+
+# --- MCU record packing (what sensor_ems22.c sends) --------------------------
+
+def pack_messages(first_index: int, records: Sequence[Tuple[int, bytes]],
+                  per_message: int = RECORDS_PER_MSG) -> List[bytes]:
+    """sensor_bulk_data payloads for (tcode, 3-byte read) records, as the MCU
+    packs them: a 2-byte little-endian first-record index, then records."""
+    out = []
+    for start in range(0, len(records), per_message):
+        index = (first_index + start) & 0xFFFF
+        payload = bytearray((index & 0xFF, index >> 8))
+        for tcode, raw in records[start:start + per_message]:
+            payload.append(tcode)
+            payload += bytes(raw)
+        out.append(bytes(payload))
+    return out
+
+
+def error_record(code: int) -> Tuple[int, bytes]:
+    return TCODE_ERROR, bytes((code, 0, 0))
+
+
+# --- host decoder ------------------------------------------------------------
+
+@dataclass
+class Samples:
+    """Decoded records of one batch, in record order (numpy arrays)."""
+    index: np.ndarray        # record index since the query started (int64)
+    tcode: np.ndarray        # read time after the scheduled time, in tcode units
+    status: np.ndarray       # OK or one of the error states
+    counts: np.ndarray       # unwrapped position (valid where status == OK)
+    lost_messages: int = 0
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.status == OK
+
+    def error_counts(self) -> Dict[str, int]:
+        values, counts = np.unique(self.status[self.status != OK],
+                                   return_counts=True)
+        out = {STATUS_NAMES[v]: int(c) for v, c in zip(values, counts)}
+        if self.lost_messages:
+            out["lost_messages"] = self.lost_messages
+        return out
+
+
+def _empty() -> Samples:
+    z = np.zeros(0, dtype=np.int64)
+    return Samples(z, z.copy(), z.copy(), z.copy())
+
+
+@dataclass
+class Decoder:
+    """Turns sensor_bulk_data payloads into unwrapped counts, statefully."""
+    bit_offset: int = 1
+    next_index: int = 0
+    last_sequence: int = -1
+    last_position: int = -1   # 10-bit raw position of the last good frame
+    counts: int = 0           # unwrapped position of the last good frame
+    _other: int = field(init=False, default=0)
+
+    def __post_init__(self):
+        if not 0 <= self.bit_offset <= 8:
+            raise FlowloopError(f"bit_offset must be 0..8, not {self.bit_offset}")
+        self._other = 1 - self.bit_offset if self.bit_offset < 2 else -1
+
+    def reset(self) -> None:
+        self.next_index, self.last_sequence = 0, -1
+        self.last_position, self.counts = -1, 0
+
+    def decode(self, messages: Sequence[Tuple[int, bytes]]) -> Samples:
+        """Decode (sequence, payload) pairs, in arrival order."""
+        parts, lost = [], 0
+        for sequence, payload in messages:
+            if self.last_sequence >= 0 and (
+                    (sequence - self.last_sequence) & 0xFFFF) != 1:
+                lost += 1
+            self.last_sequence = sequence
+            if len(payload) < HEADER_BYTES + RECORD_BYTES:
+                continue
+            first = payload[0] | (payload[1] << 8)
+            index = self.next_index + ((first - self.next_index) & 0xFFFF)
+            n = (len(payload) - HEADER_BYTES) // RECORD_BYTES
+            parts.append((index, payload[HEADER_BYTES:HEADER_BYTES + n * RECORD_BYTES]))
+            self.next_index = index + n
+        if not parts:
+            return _empty()
+        index = np.concatenate([np.arange(i, i + len(p) // RECORD_BYTES,
+                                          dtype=np.int64) for i, p in parts])
+        rec = np.frombuffer(b"".join(p for _, p in parts),
+                            dtype=np.uint8).reshape(-1, RECORD_BYTES)
+        samples = self._decode_records(index, rec)
+        samples.lost_messages = lost
+        return samples
+
+    def _decode_records(self, index: np.ndarray, rec: np.ndarray) -> Samples:
+        tcode = rec[:, 0].astype(np.int64)
+        word = ((rec[:, 1].astype(np.int64) << 16) | (rec[:, 2].astype(np.int64) << 8)
+                | rec[:, 3])
+        frame = (word >> (8 - self.bit_offset)) & 0xFFFF
+        status = _frame_status(frame)
+        if self._other >= 0:
+            bad = status != OK
+            other = _frame_status((word >> (8 - self._other)) & 0xFFFF)
+            status[bad & (other == OK) & (status != MISSING)] = MISALIGNED
+        is_error = tcode == TCODE_ERROR
+        if is_error.any():
+            codes = rec[is_error, 1]
+            status[is_error] = [_MCU_ERRORS.get(int(c), SPI_TIME) for c in codes]
+        counts = np.zeros(len(index), dtype=np.int64)
+        good = np.flatnonzero(status == OK)
+        if len(good):
+            pos = (frame[good] >> POSITION_SHIFT).astype(np.int64)
+            prev = np.empty_like(pos)
+            prev[0] = pos[0] if self.last_position < 0 else self.last_position
+            prev[1:] = pos[:-1]
+            step = (pos - prev + POSITIONS // 2) % POSITIONS - POSITIONS // 2
+            unwrapped = self.counts + np.cumsum(step)
+            counts[good] = unwrapped
+            self.counts = int(unwrapped[-1])
+            self.last_position = int(pos[-1])
+        return Samples(index, tcode, status, counts)
+
+
+def _frame_status(frame: np.ndarray) -> np.ndarray:
+    """Vectorised frame_status (same order of checks)."""
+    status = np.full(len(frame), OK, dtype=np.int64)
+    parity = frame.copy()
+    for shift in (8, 4, 2, 1):
+        parity ^= parity >> shift
+    checks = (
+        ((frame & MAGINC) != 0) & ((frame & MAGDEC) != 0), MAGNET,
+        (frame & LIN) != 0, LINEARITY,
+        (frame & COF) != 0, CORDIC,
+        (frame & OCF) == 0, NOT_READY,
+        (parity & 1) != 0, PARITY,
+        (frame == 0) | (frame == 0xFFFF), MISSING,
+    )
+    # Later checks win, so apply them from the least to the most basic.
+    for i in range(0, len(checks), 2):
+        status[checks[i]] = checks[i + 1]
+    return status
+
+
+def time_shift_for(mcu_freq: float, span_s: float = 0.002) -> int:
+    """Smallest shift whose tcode range (0..254) covers span_s of MCU ticks."""
+    shift = 0
+    while float(TCODE_ERROR << shift) / mcu_freq < span_s:
+        shift += 1
+    return shift
+
+
+def sample_clocks(samples: Samples, start_clock: int, rest_ticks: int,
+                  time_shift: int) -> np.ndarray:
+    """MCU clock of each record's read (scheduled time + tcode)."""
+    tcode = np.where(samples.tcode == TCODE_ERROR, 0, samples.tcode)
+    return (start_clock + samples.index * rest_ticks
+            + (tcode << time_shift)).astype(np.float64)
+
+
+def check_spi_speed(speed_hz: int) -> None:
+    if speed_hz > MAX_SPI_HZ:
+        raise FlowloopError(
+            f"spi_speed {speed_hz} exceeds the EMS22's 1 MHz clock limit")
+
+
+class FaultMonitor:
+    """Counts bad samples by kind; `limit` consecutive bad samples make a
+    fault, which clears at the next good sample. Transients only count."""
+
+    STUCK_WINDOWS = 2
+
+    def __init__(self, limit: int = 100):
+        if limit < 1:
+            raise FlowloopError(f"fault_samples must be at least 1, not {limit}")
+        self.limit = limit
+        self.errors: Dict[str, int] = {}
+        self.fault: Optional[str] = None
+        self.episodes = 0
+        self._run = 0
+        self._stuck = 0
+
+    def update(self, samples: Samples) -> Optional[str]:
+        """Account a batch; return the fault if one started in it."""
+        for name, count in samples.error_counts().items():
+            self.errors[name] = self.errors.get(name, 0) + count
+        started = None
+        bad = samples.status != OK
+        # split the batch at good samples: each piece extends or ends a run
+        edges = [-1, *np.flatnonzero(~bad).tolist(), len(bad)]
+        for a, b in zip(edges[:-1], edges[1:]):
+            if a >= 0:  # a good sample ends the run and any sample fault
+                self._run = 0
+                if self.fault is not None and self.fault != "stuck":
+                    self.fault = None
+            if b - a - 1 <= 0:
+                continue
+            self._run += b - a - 1
+            if self._run >= self.limit and self.fault is None:
+                self.fault = STATUS_NAMES[int(samples.status[b - 1])]
+                self.episodes += 1
+                started = self.fault
+        return started
+
+    def note_window(self, reason: str) -> Optional[str]:
+        """Account a closed grip window (see grip.GripEstimator)."""
+        if reason != "stuck":
+            if reason == "judged":
+                self._stuck = 0
+                if self.fault == "stuck":
+                    self.fault = None
+            return None
+        self.errors["stuck"] = self.errors.get("stuck", 0) + 1
+        self._stuck += 1
+        if self._stuck >= self.STUCK_WINDOWS and self.fault is None:
+            self.fault = "stuck"
+            self.episodes += 1
+            return self.fault
+        return None

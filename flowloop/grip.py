@@ -1,0 +1,202 @@
+"""Grip: how much of the filament the extruder was told to push actually moved.
+
+The estimator takes sensor samples (print time, filament mm measured by the
+sensor) with the filament the extruder was commanded to have moved at the
+same print times, and closes a window each time the commanded filament has
+advanced `window_mm`. grip = measured / commanded over that window, divided
+by the sensor calibration (sensor mm per extruder mm measured where the
+feeder cannot slip), so a feeder that keeps up reads 1.0.
+
+A window is not judged (grip None) when it contains a retraction (the
+commanded position went back by more than `retract_tolerance_mm`), or when
+it took longer than `max_window_s` to collect `window_mm` (too little motion
+to say anything). A judged window in which the sensor did not move at all
+while the extruder did is reported as `stuck`: it is not grip 0, because a
+seized sensor looks exactly the same.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+from typing import Deque, List, Optional, Sequence, Tuple
+
+from .errors import FlowloopError
+
+FLOW_PERIOD_S = 0.25
+
+
+@dataclass(frozen=True)
+class Window:
+    start_time: float
+    end_time: float
+    commanded_mm: float
+    measured_mm: float
+    grip: Optional[float]
+    reason: str  # "judged", "retraction", "too_little_motion", "stuck"
+
+
+class GripEstimator:
+    def __init__(self, window_mm: float = 1.25, calibration: float = 1.0,
+                 filament_area_mm2: float = 2.405, max_window_s: float = 2.0,
+                 retract_tolerance_mm: float = 0.02,
+                 stuck_tolerance_mm: float = 0.02):
+        if window_mm <= 0:
+            raise FlowloopError(f"grip_window must be above 0, not {window_mm}")
+        if calibration <= 0:
+            raise FlowloopError(f"calibration must be above 0, not {calibration}")
+        self.window_mm = window_mm
+        self.calibration = calibration
+        self.filament_area_mm2 = filament_area_mm2
+        self.max_window_s = max_window_s
+        self.retract_tolerance_mm = retract_tolerance_mm
+        self.stuck_tolerance_mm = stuck_tolerance_mm
+        self.grip: Optional[float] = None
+        self.last_window: Optional[Window] = None
+        self._start: Optional[Tuple[float, float, float]] = None
+        self._high = 0.0
+        self._recent: Deque[Tuple[float, float, float]] = collections.deque()
+
+    def reset(self) -> None:
+        self._start = None
+        self.grip = None
+        self._recent.clear()
+
+    def add(self, times: Sequence[float], sensor_mm: Sequence[float],
+            commanded_mm: Sequence[float]) -> List[Window]:
+        """Feed samples in time order; return the windows they closed.
+
+        sensor_mm is raw sensor filament (counts / counts_per_mm); the
+        calibration is applied here.
+        """
+        closed = []
+        cal = self.calibration
+        for t, s, c in zip(times, sensor_mm, commanded_mm):
+            m = s / cal
+            self._note_recent(t, m, c)
+            if self._start is None:
+                self._start, self._high = (t, m, c), c
+                continue
+            t0, m0, c0 = self._start
+            if c < self._high - self.retract_tolerance_mm:
+                closed.append(self._close(t, m, c, None, "retraction"))
+                continue
+            self._high = max(self._high, c)
+            if c - c0 >= self.window_mm:
+                measured = m - m0
+                if abs(measured) <= self.stuck_tolerance_mm:
+                    closed.append(self._close(t, m, c, None, "stuck"))
+                else:
+                    closed.append(self._close(t, m, c, measured / (c - c0), "judged"))
+            elif t - t0 > self.max_window_s:
+                closed.append(self._close(t, m, c, None, "too_little_motion"))
+        return closed
+
+    def _close(self, t, m, c, grip, reason) -> Window:
+        t0, m0, c0 = self._start
+        window = Window(t0, t, c - c0, m - m0, grip, reason)
+        self.last_window = window
+        self.grip = grip
+        self._start, self._high = (t, m, c), c
+        return window
+
+    def _note_recent(self, t: float, m: float, c: float) -> None:
+        recent = self._recent
+        # Points >= 5 ms apart over the last second are enough for flows; the
+        # newest sample always replaces the last point if it is too close.
+        if len(recent) >= 2 and t - recent[-2][0] < 0.005:
+            recent[-1] = (t, m, c)
+            return
+        recent.append((t, m, c))
+        while recent[0][0] < t - 1.0:
+            recent.popleft()
+
+    @property
+    def filament_position(self) -> Optional[float]:
+        return self._recent[-1][1] if self._recent else None
+
+    @property
+    def last_time(self) -> Optional[float]:
+        return self._recent[-1][0] if self._recent else None
+
+    def flows(self, period_s: float = FLOW_PERIOD_S) -> Tuple[float, float]:
+        """(measured, commanded) volumetric flow in mm^3/s over the last period."""
+        if len(self._recent) < 2:
+            return 0.0, 0.0
+        t1, m1, c1 = self._recent[-1]
+        t0, m0, c0 = next(p for p in self._recent if p[0] >= t1 - period_s)
+        if t1 - t0 <= 0:
+            return 0.0, 0.0
+        area = self.filament_area_mm2
+        return (area * (m1 - m0) / (t1 - t0), area * (c1 - c0) / (t1 - t0))
+
+
+# --- calibrations ------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CalibrationFit:
+    calibration: float            # sensor mm per extruder mm
+    speeds: Tuple[float, ...]
+    ratios: Tuple[float, ...]
+    spread: float                 # (max - min) / calibration
+
+    def describe(self) -> str:
+        per_speed = ", ".join(f"{s:g} mm/s: {r:.5f}"
+                              for s, r in zip(self.speeds, self.ratios))
+        return (f"sensor mm per extruder mm at {per_speed}; "
+                f"spread {100 * self.spread:.2f}%")
+
+
+def fit_calibration(speeds: Sequence[float], commanded_mm: Sequence[float],
+                    measured_mm: Sequence[float],
+                    max_spread: float = 0.02) -> CalibrationFit:
+    """Sensor mm per extruder mm from slow extrusions, one per speed.
+
+    The fit is the least-squares line through the origin (sum m*c / sum c^2).
+    If the per-speed ratios disagree by more than max_spread of the fit, the
+    feeder slipped at some speed (or the sensor did): no fit is returned.
+    """
+    if not (len(speeds) == len(commanded_mm) == len(measured_mm)) or len(speeds) < 2:
+        raise FlowloopError("calibration needs at least two speeds")
+    if min(commanded_mm) <= 0:
+        raise FlowloopError("the extruder did not move forward")
+    ratios = [m / c for m, c in zip(measured_mm, commanded_mm)]
+    num = sum(m * c for m, c in zip(measured_mm, commanded_mm))
+    cal = num / sum(c * c for c in commanded_mm)
+    if cal <= 0.05:
+        raise FlowloopError(f"the sensor saw almost no filament (ratio {cal:.4f})")
+    spread = (max(ratios) - min(ratios)) / cal
+    fit = CalibrationFit(cal, tuple(speeds), tuple(ratios), spread)
+    if spread > max_spread:
+        raise FlowloopError(f"{fit.describe()}: the speeds disagree by more than "
+                            f"{100 * max_spread:.2f}%")
+    if not 0.5 <= cal <= 2.0:
+        raise FlowloopError(f"{fit.describe()}: calibration {cal:.4f} is outside "
+                            f"0.5..2; check counts_per_mm")
+    return fit
+
+
+@dataclass(frozen=True)
+class RotationDistanceChange:
+    ratio: float                  # filament measured / commanded
+    rotation_distance: float
+    calibration: float            # sensor mm per extruder mm from now on
+
+
+def rotation_distance_correction(rotation_distance: float, commanded_mm: float,
+                                 measured_mm: float,
+                                 max_change: float = 0.2) -> RotationDistanceChange:
+    """New rotation_distance from a sensor whose counts_per_mm is trusted.
+
+    The extruder moved measured/commanded of what it was told, so its real
+    rotation_distance is that much larger. With the correction applied, the
+    trusted sensor and the extruder agree: calibration is 1.0 again.
+    """
+    if commanded_mm <= 0:
+        raise FlowloopError("the extruder did not move forward")
+    ratio = measured_mm / commanded_mm
+    if not 1 - max_change <= ratio <= 1 + max_change:
+        raise FlowloopError(f"the sensor measured {measured_mm:.3f} mm for "
+                            f"{commanded_mm:.3f} mm commanded (ratio {ratio:.4f}), "
+                            f"more than {100 * max_change:.0f}% off")
+    return RotationDistanceChange(ratio, rotation_distance * ratio, 1.0)

@@ -1,0 +1,138 @@
+"""A host-side twin of the EMS22 flow sensor for demos and closed-loop tests.
+
+It turns the extruder's commanded filament position (sampled at the sensor's
+sample times) into the exact bytes the MCU would send: 24-bit SPI reads in
+flowloop's record layout, so the simulated path runs through the same
+decoder and grip estimator as the real sensor.
+
+The filament model: the hotend melts at most `MeltModel.max_flow(temp)`
+mm^3/s, a straight line in temperature (a material profile's shape: a slope
+in mm^3/s per degC through one point). When the demanded flow (smoothed over
+`melt_time_s`, the hotend's lag) exceeds it, the feeder slips and only
+capacity/demand of the commanded filament moves. Retractions always move.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from . import ems22
+from .errors import FlowloopError
+
+
+@dataclass(frozen=True)
+class MeltModel:
+    """Melt capacity: flow_mm3_s at temp_c, rising slope_mm3_s_per_c per degC."""
+    slope_mm3_s_per_c: float = 0.2
+    temp_c: float = 200.0
+    flow_mm3_s: float = 10.0
+
+    def __post_init__(self):
+        if self.slope_mm3_s_per_c <= 0 or self.flow_mm3_s <= 0:
+            raise FlowloopError("melt model needs a positive slope and flow")
+
+    def max_flow(self, temp_c: float) -> float:
+        return max(0.0, self.flow_mm3_s
+                   + self.slope_mm3_s_per_c * (temp_c - self.temp_c))
+
+    def grip(self, demand_mm3_s: float, temp_c: float) -> float:
+        """Share of commanded filament that moves at this demand."""
+        capacity = self.max_flow(temp_c)
+        if demand_mm3_s <= capacity:
+            return 1.0
+        return capacity / demand_mm3_s
+
+
+def raw_reads(frames: np.ndarray, bit_offset: int, idle_do: int = 1) -> np.ndarray:
+    """24-bit reads for frames at a bit offset (0 or 1), DI tied low: the
+    spi_read_model result, computed in bulk."""
+    frames = np.asarray(frames, dtype=np.int64)
+    word = (frames << (8 - bit_offset)) | ((idle_do << 23) if bit_offset else 0)
+    return np.stack([(word >> 16) & 0xFF, (word >> 8) & 0xFF, word & 0xFF],
+                    axis=1).astype(np.uint8)
+
+
+class SimulatedEms22:
+    def __init__(self, melt: MeltModel = MeltModel(),
+                 counts_per_mm: float = ems22.DEFAULT_COUNTS_PER_MM,
+                 sensor_scale: float = 1.0, noise_counts: float = 0.34,
+                 spi_mode: int = 2, filament_area_mm2: float = 2.405,
+                 melt_time_s: float = 0.05, seed: int = 0):
+        self.melt = melt
+        self.counts_per_mm = counts_per_mm
+        self.sensor_scale = sensor_scale
+        self.noise_counts = noise_counts
+        self.bit_offset = ems22.bit_offset_for_mode(spi_mode)
+        self.filament_area_mm2 = filament_area_mm2
+        self.melt_time_s = melt_time_s
+        self.rng = np.random.default_rng(seed)
+        self.filament_mm = 0.0      # filament that really moved
+        self.demand_mm3_s = 0.0     # smoothed demand
+        self.fault: Optional[str] = None
+        self.next_index = 0
+        self.sequence = 0
+        self._last: Optional[Tuple[float, float]] = None
+
+    def set_fault(self, fault: Optional[str]) -> None:
+        """Make the twin misbehave: 'missing', 'magnet', 'parity' or None."""
+        if fault not in (None, "missing", "magnet", "parity"):
+            raise FlowloopError(f"unknown simulated fault '{fault}'")
+        self.fault = fault
+
+    def advance(self, times: Sequence[float], commanded_mm: Sequence[float],
+                temp_c: float) -> np.ndarray:
+        """True filament position at each sample time (mm)."""
+        out = np.empty(len(times))
+        for i, (t, c) in enumerate(zip(times, commanded_mm)):
+            if self._last is not None:
+                t0, c0 = self._last
+                dt, dc = t - t0, c - c0
+                if dt > 0:
+                    alpha = 1.0 - math.exp(-dt / self.melt_time_s)
+                    demand = max(0.0, dc) / dt * self.filament_area_mm2
+                    self.demand_mm3_s += alpha * (demand - self.demand_mm3_s)
+                grip = self.melt.grip(self.demand_mm3_s, temp_c) if dc > 0 else 1.0
+                self.filament_mm += dc * grip
+            self._last = (t, c)
+            out[i] = self.filament_mm
+        return out
+
+    def frames(self, filament_mm: np.ndarray) -> np.ndarray:
+        counts = filament_mm * self.counts_per_mm * self.sensor_scale
+        if self.noise_counts > 0:
+            counts = counts + self.rng.normal(0.0, self.noise_counts, len(counts))
+        position = np.rint(counts).astype(np.int64) % ems22.POSITIONS
+        frames = position << ems22.POSITION_SHIFT | ems22.OCF
+        if self.fault == "magnet":
+            frames |= ems22.MAGINC | ems22.MAGDEC
+        parity = frames.copy()
+        for shift in (8, 4, 2, 1):
+            parity ^= parity >> shift
+        frames |= parity & 1
+        if self.fault == "parity":
+            frames ^= 1 << 9
+        if self.fault == "missing":
+            frames[:] = 0xFFFF
+        return frames
+
+    def messages(self, times: Sequence[float], commanded_mm: Sequence[float],
+                 temp_c: float) -> List[Tuple[int, bytes]]:
+        """(sequence, sensor_bulk_data payload) for one sample per time."""
+        if not len(times):
+            return []
+        frames = self.frames(self.advance(times, commanded_mm, temp_c))
+        raws = raw_reads(frames, self.bit_offset)
+        if self.fault == "missing":
+            raws[:] = 0xFF
+        records = [(0, bytes(r)) for r in raws]
+        payloads = ems22.pack_messages(self.next_index, records)
+        self.next_index += len(records)
+        out = []
+        for payload in payloads:
+            out.append((self.sequence, payload))
+            self.sequence = (self.sequence + 1) & 0xFFFF
+        return out

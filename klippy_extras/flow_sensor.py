@@ -1,0 +1,502 @@
+# [flow_sensor NAME]: an EMS22 encoder riding on the filament after the
+# feeder (or its simulated twin), grip from sensor vs commanded filament,
+# and the two calibrations it enables.
+#
+# The decoding, grip windows, fault counting and the simulated sensor live
+# in flowloop (pure Python); this module reads config, talks to the MCU and
+# the toolhead, and reports.
+#
+# This file may be distributed under the terms of the GNU GPLv3 license.
+import logging
+import threading
+
+from flowloop import ems22, simulated_sensor
+from flowloop import grip as flow_grip
+from flowloop.errors import FlowloopError
+
+from . import bulk_sensor, bus
+
+SAMPLE_PERIOD = 0.001
+MIN_MSG_TIME = 0.100
+DUMP_INTERVAL = 0.100
+SAMPLE_WAIT_TIMEOUT = 2.0
+MAX_CALIBRATION_SPREAD = 0.02
+REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: install "
+               "flowloop ('flowloop install'), then rebuild and flash Klipper "
+               "(cd ~/klipper; make menuconfig; make flash)")
+
+
+class FlowSensor:
+    def __init__(self, config):
+        self.printer = printer = config.get_printer()
+        printer.load_object(config, 'flowloop')
+        self.reactor = printer.get_reactor()
+        self.section = config.get_name()
+        self.name = self.section.split()[-1]
+        self.sensor_type = config.getchoice(
+            'sensor_type', {'ems22': 'ems22', 'simulated': 'simulated'})
+        self.sample_period = config.getfloat('sample_period', SAMPLE_PERIOD,
+                                             minval=0.0002, maxval=0.1)
+        self.extruder_name = config.get('extruder', 'extruder')
+        self.counts_per_mm = config.getfloat(
+            'counts_per_mm', ems22.DEFAULT_COUNTS_PER_MM, above=0.)
+        calibration = config.getfloat('calibration', 1., minval=0.5, maxval=2.)
+        grip_window = config.getfloat('grip_window', 1.25, minval=0.1, maxval=50.)
+        fault_samples = config.getint('fault_samples', 100, minval=1)
+        self.on_fault = config.getchoice('on_fault', {'warn': 'warn',
+                                                      'pause': 'pause'}, 'warn')
+        spi_mode = config.getint('spi_mode', 2, minval=0, maxval=3)
+        self.grip = flow_grip.GripEstimator(window_mm=grip_window,
+                                            calibration=calibration)
+        self.faults = ems22.FaultMonitor(fault_samples)
+        self.decoder = ems22.Decoder(bit_offset=ems22.bit_offset_for_mode(spi_mode))
+        self.lock = threading.Lock()
+        self.raw_queue = []
+        self.process_scheduled = False
+        self.start_clock = None
+        self.rest_ticks = self.time_shift = 0
+        self.total_samples = 0
+        self.rate_marks = []
+        self.dump_samples = None
+        self.extruder = self.toolhead = self.heater = None
+        self.query_cmd = None
+        self.oid = None
+        if self.sensor_type == 'ems22':
+            speed = config.getint('spi_speed', ems22.MAX_SPI_HZ, minval=100000,
+                                  maxval=ems22.MAX_SPI_HZ)
+            self.spi = bus.MCU_SPI_from_config(config, spi_mode,
+                                               default_speed=speed)
+            self.mcu = mcu = self.spi.get_mcu()
+            self.oid = mcu.create_oid()
+            mcu.add_config_cmd(
+                f"config_ems22 oid={self.oid} spi_oid={self.spi.get_oid()}")
+            mcu.add_config_cmd(f"query_ems22 oid={self.oid} clock=0 rest_ticks=0"
+                               " time_shift=0", on_restart=True)
+            mcu.register_config_callback(self._build_config)
+            mcu.register_serial_response(self._handle_bulk, ems22.BULK_DATA_MSG,
+                                         self.oid)
+            self.sim = None
+        else:
+            self.mcu = printer.lookup_object('mcu')
+            try:
+                melt = simulated_sensor.MeltModel(
+                    slope_mm3_s_per_c=config.getfloat('melt_slope', 0.2, above=0.),
+                    temp_c=config.getfloat('melt_temp', 200.),
+                    flow_mm3_s=config.getfloat('melt_flow', 10., above=0.))
+            except FlowloopError as e:
+                raise config.error(f"{self.section}: {e}") from None
+            self.sim = simulated_sensor.SimulatedEms22(
+                melt, counts_per_mm=self.counts_per_mm,
+                sensor_scale=config.getfloat('sensor_scale', 1., minval=0.5,
+                                             maxval=2.),
+                noise_counts=config.getfloat('noise_counts', 0.34, minval=0.),
+                spi_mode=spi_mode, seed=config.getint('seed', 0))
+            # The extruder's real rotation_distance (default: as configured)
+            self.sim_rotation_distance = config.getfloat(
+                'true_rotation_distance', None, above=0.)
+        self.batch_bulk = bulk_sensor.BatchBulkHelper(
+            printer, self._dump_batch, self._dump_start, self._dump_stop,
+            DUMP_INTERVAL)
+        self.batch_bulk.add_mux_endpoint(
+            "flow_sensor/dump_flow", "sensor", self.name,
+            {'header': ('time', 'filament_mm', 'commanded_mm')})
+        printer.register_event_handler('klippy:connect', self._handle_connect)
+        printer.register_event_handler('klippy:ready', self._handle_ready)
+        self._register_commands(config)
+
+    def _register_commands(self, config):
+        gcode = self.printer.lookup_object('gcode')
+        commands = [('QUERY_FLOW_SENSOR', self.cmd_QUERY_FLOW_SENSOR,
+                     self.cmd_QUERY_FLOW_SENSOR_help),
+                    ('CALIBRATE_FLOW_SENSOR', self.cmd_CALIBRATE_FLOW_SENSOR,
+                     self.cmd_CALIBRATE_FLOW_SENSOR_help),
+                    ('CALIBRATE_EXTRUDER_ROTATION_DISTANCE',
+                     self.cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE,
+                     self.cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE_help)]
+        if self.sim is not None:
+            commands.append(('SET_FLOW_SENSOR_SIMULATION',
+                             self.cmd_SET_FLOW_SENSOR_SIMULATION,
+                             self.cmd_SET_FLOW_SENSOR_SIMULATION_help))
+        else:
+            commands.append(('FLOW_SENSOR_FEED', self.cmd_FLOW_SENSOR_FEED,
+                             self.cmd_FLOW_SENSOR_FEED_help))
+        for cmd, func, desc in commands:
+            gcode.register_mux_command(cmd, 'SENSOR', self.name, func, desc=desc)
+            try:
+                # The first sensor also answers commands without SENSOR=
+                gcode.register_mux_command(cmd, 'SENSOR', None, func, desc=desc)
+            except config.error:
+                pass
+
+    # --- setup ---------------------------------------------------------------
+    def _build_config(self):
+        if not self.mcu.check_valid_response(ems22.QUERY_CMD):
+            raise self.printer.config_error(
+                f"[{self.section}] " + REBUILD_MSG.format(self.mcu.get_name()))
+        self.time_shift = ems22.time_shift_for(self.mcu.seconds_to_clock(1.))
+        self.query_cmd = self.mcu.lookup_command(
+            ems22.QUERY_CMD, cq=self.spi.get_command_queue())
+
+    def _handle_connect(self):
+        self.extruder = self.printer.lookup_object(self.extruder_name, None)
+        if self.extruder is None or not hasattr(self.extruder,
+                                                'find_past_position'):
+            raise self.printer.config_error(
+                f"[{self.section}] extruder '{self.extruder_name}' not found")
+        self.toolhead = self.printer.lookup_object('toolhead')
+        self.heater = self.extruder.get_heater()
+        area = getattr(self.extruder, 'filament_area', None)
+        if area:
+            self.grip.filament_area_mm2 = area
+            if self.sim is not None:
+                self.sim.filament_area_mm2 = area
+        if self.sim is not None:
+            self.time_shift = 0
+            self.motion_queuing = self.printer.lookup_object('motion_queuing')
+            self.motion_queuing.register_flush_callback(self._sim_flush)
+            stepper = self.extruder.extruder_stepper.stepper
+            rotation_distance, steps_per_rotation = stepper.get_rotation_distance()
+            if self.sim_rotation_distance is None:
+                self.sim_rotation_distance = rotation_distance
+            self.sim_mm_per_step = self.sim_rotation_distance / steps_per_rotation
+            self.sim_stepper = stepper
+
+    def _handle_ready(self):
+        self.rest_ticks = self.mcu.seconds_to_clock(self.sample_period)
+        self.decoder.reset()
+        systime = self.reactor.monotonic()
+        print_time = self.mcu.estimated_print_time(systime)
+        if self.sim is not None:
+            # The twin samples from now on (no motion can be older)
+            self.start_clock = self.mcu.print_time_to_clock(print_time)
+        else:
+            self.start_clock = self.mcu.print_time_to_clock(print_time
+                                                            + MIN_MSG_TIME)
+            self.query_cmd.send([self.oid, self.start_clock & 0xffffffff,
+                                 self.rest_ticks, self.time_shift],
+                                reqclock=self.start_clock)
+
+    # --- sample path (MCU messages and the twin's messages alike) -------------
+    def _handle_bulk(self, params):
+        # Runs in the serial thread: queue, and process on the reactor.
+        with self.lock:
+            self.raw_queue.append((params['sequence'], params['data']))
+            if self.process_scheduled:
+                return
+            self.process_scheduled = True
+        self.reactor.register_async_callback(self._process_queue)
+
+    def _process_queue(self, eventtime=None):
+        with self.lock:
+            messages, self.raw_queue = self.raw_queue, []
+            self.process_scheduled = False
+        if messages:
+            self._process(messages)
+
+    def _process(self, messages):
+        samples = self.decoder.decode(messages)
+        started = self.faults.update(samples)
+        valid = samples.valid
+        if valid.any():
+            clocks = ems22.sample_clocks(samples, self.start_clock,
+                                         self.rest_ticks, self.time_shift)[valid]
+            times = self._clocks_to_print_time(clocks)
+            sensor_mm = samples.counts[valid] / self.counts_per_mm
+            find = self.extruder.find_past_position
+            commanded = [find(t) for t in times]
+            for window in self.grip.add(times, sensor_mm, commanded):
+                started = self.faults.note_window(window.reason) or started
+            marks = self.rate_marks
+            marks.append((float(times[0]), self.total_samples + 1))
+            self.total_samples += len(times)
+            marks.append((float(times[-1]), self.total_samples))
+            while len(marks) > 2 and marks[1][0] <= marks[-1][0] - 1.:
+                marks.pop(0)
+            if self.dump_samples is not None:
+                cal = self.grip.calibration
+                self.dump_samples.extend(
+                    (round(t, 6), round(s / cal, 5), round(c, 5))
+                    for t, s, c in zip(times.tolist(), sensor_mm.tolist(),
+                                       commanded))
+        if started is not None:
+            self._report_fault(started)
+
+    def _clocks_to_print_time(self, clocks):
+        # clock_to_print_time is linear over one batch: two calls, not one each
+        to_time = self.mcu.clock_to_print_time
+        base = float(clocks[0])
+        t0 = to_time(base)
+        per_clock = (to_time(base + 1e6) - t0) / 1e6
+        return t0 + (clocks - base) * per_clock
+
+    def _report_fault(self, fault):
+        msg = (f"flow_sensor {self.name}: fault '{fault}' ({self.faults.limit}"
+               " consecutive bad samples, or stuck windows); grip is not judged"
+               " until it clears")
+        logging.warning(msg)
+        self.reactor.register_callback(lambda e: self._act_on_fault(msg))
+
+    def _act_on_fault(self, msg):
+        gcode = self.printer.lookup_object('gcode')
+        if self.on_fault == 'pause':
+            pause_resume = self.printer.lookup_object('pause_resume', None)
+            if pause_resume is None:
+                gcode.respond_info(msg + " (on_fault: pause needs [pause_resume])")
+                return
+            gcode.respond_info(msg + ": pausing")
+            pause_resume.send_pause_command()
+            gcode.run_script("PAUSE")
+            return
+        gcode.respond_info(msg)
+
+    # --- simulated sensor ------------------------------------------------------
+    def _sim_flush(self, flush_time, step_gen_time):
+        # Steps up to motion_queuing's last_step_gen_time exist already (it is
+        # updated after the callbacks), so the twin can read the extruder there.
+        self._sim_catch_up()
+
+    def _sim_catch_up(self, until=None):
+        # Samples up to `until` (inclusive) are valid only if no motion is
+        # queued beyond the generated steps (the caller waited for moves).
+        if self.sim is None or not self.rest_ticks:
+            return
+        done_time = self.motion_queuing.last_step_gen_time
+        if until is not None:
+            done_time = max(done_time, until + 1e-9)
+        if self.start_clock is None:
+            return
+        to_time = self.mcu.clock_to_print_time
+        index = self.sim.next_index
+        times = []
+        while True:
+            t = to_time(self.start_clock + (index + len(times)) * self.rest_ticks)
+            if t >= done_time:
+                break
+            times.append(t)
+        if not times:
+            return
+        # Filament the stepper really fed: its steps times the true mm/step
+        steps = self.sim_stepper.get_past_mcu_position
+        fed = [steps(t) * self.sim_mm_per_step for t in times]
+        temp_c = self.heater.get_status(0.)['target']
+        for sequence, payload in self.sim.messages(times, fed, temp_c):
+            self._handle_bulk({'sequence': sequence, 'data': payload})
+        self._process_queue()
+
+    def _sim_sync(self, until=None):
+        # In batch mode steps are generated only when the reactor gets to
+        # its flush timer, which a G-code batch never yields to: generate
+        # them now so the twin can follow the motion queued so far.
+        if self.sim is not None and self.mcu.is_fileoutput():
+            self.toolhead.flush_step_generation()
+        self._sim_catch_up(until)
+
+    # --- status and dump endpoint ---------------------------------------------
+    def sample_rate(self):
+        marks = self.rate_marks
+        if len(marks) < 2 or marks[-1][0] <= marks[0][0]:
+            return 0.
+        return (marks[-1][1] - marks[0][1]) / (marks[-1][0] - marks[0][0])
+
+    def get_status(self, eventtime=None):
+        self._sim_catch_up()
+        measured, commanded = self.grip.flows()
+        position = self.grip.filament_position
+        position = None if position is None else round(float(position), 4)
+        grip = self.grip.grip
+        fault = self.faults.fault
+        return {
+            'grip': None if grip is None or fault else round(float(grip), 4),
+            'measured_flow': round(float(measured), 3),
+            'commanded_flow': round(float(commanded), 3),
+            'filament_position': position,
+            'sample_rate': round(self.sample_rate(), 1),
+            'samples': self.total_samples,
+            'errors': dict(self.faults.errors),
+            'fault': fault,
+            'calibration': round(self.grip.calibration, 6),
+        }
+
+    def _dump_start(self):
+        self.dump_samples = []
+
+    def _dump_stop(self):
+        self.dump_samples = None
+
+    def _dump_batch(self, eventtime):
+        self._sim_catch_up()
+        if not self.dump_samples:
+            return {}
+        data, self.dump_samples = self.dump_samples, []
+        status = self.get_status(eventtime)
+        return {'data': data, 'grip': status['grip'], 'fault': status['fault'],
+                'errors': status['errors']}
+
+    # --- commands --------------------------------------------------------------
+    cmd_QUERY_FLOW_SENSOR_help = "Report grip, flows and errors of a flow sensor"
+
+    def cmd_QUERY_FLOW_SENSOR(self, gcmd):
+        self._sim_sync()
+        s = self.get_status()
+        grip = "not judged" if s['grip'] is None else f"{s['grip']:.3f}"
+        position = s['filament_position']
+        position = "none" if position is None else f"{position:.3f} mm"
+        gcmd.respond_info(
+            f"flow_sensor {self.name}: grip {grip},"
+            f" measured flow {s['measured_flow']:.2f} mm^3/s,"
+            f" commanded flow {s['commanded_flow']:.2f} mm^3/s,"
+            f" filament position {position}, {s['sample_rate']:.0f} samples/s,"
+            f" errors {s['errors'] or 'none'}, fault {s['fault'] or 'none'}")
+
+    cmd_FLOW_SENSOR_FEED_help = ("Feed one sensor_bulk_data payload (hex) to the"
+                                 " sensor's response handler (testing)")
+
+    def cmd_FLOW_SENSOR_FEED(self, gcmd):
+        data = gcmd.get('DATA')
+        sequence = gcmd.get_int('SEQUENCE', minval=0, maxval=0xffff)
+        try:
+            payload = bytes.fromhex(data)
+        except ValueError:
+            raise gcmd.error(f"DATA must be hex bytes, not '{data}'") from None
+        if len(payload) > bulk_sensor.MAX_BULK_MSG_SIZE:
+            raise gcmd.error("DATA is longer than a sensor_bulk_data message")
+        # Encode and parse with the MCU's own dictionary: the handler gets
+        # exactly what the serial thread would hand it.
+        parser = self.mcu._serial.get_msgparser()
+        fmt = parser.lookup_command(ems22.BULK_DATA_MSG)
+        cmd = fmt.encode_by_name(oid=self.oid, sequence=sequence, data=payload)
+        block = []
+        for part in parser.encode_msgblock(0, cmd):  # its crc is a 2-byte list
+            block.extend(part if isinstance(part, list) else [part])
+        params = parser.parse(bytes(block))
+        self._handle_bulk(params)
+        self._process_queue()
+
+    cmd_SET_FLOW_SENSOR_SIMULATION_help = "Make the simulated sensor misbehave"
+
+    def cmd_SET_FLOW_SENSOR_SIMULATION(self, gcmd):
+        fault = gcmd.get('FAULT', 'none').lower()
+        self._sim_catch_up()
+        try:
+            self.sim.set_fault(None if fault == 'none' else fault)
+        except FlowloopError as e:
+            raise gcmd.error(str(e)) from None
+        gcmd.respond_info(f"flow_sensor {self.name}: simulated fault {fault}")
+
+    def _wait_for_samples(self, print_time):
+        """Sensor filament (counts / counts_per_mm) once samples reach
+        print_time; the toolhead must be idle (after wait_moves)."""
+        deadline = self.reactor.monotonic() + SAMPLE_WAIT_TIMEOUT
+        while True:
+            self._sim_sync(until=print_time)
+            self._process_queue()
+            last = self.grip.last_time
+            if last is not None and last >= print_time - self.sample_period:
+                return self.grip.filament_position * self.grip.calibration
+            if self.faults.fault:
+                raise self.printer.command_error(
+                    f"flow_sensor {self.name}: fault '{self.faults.fault}'")
+            now = self.reactor.monotonic()
+            if now > deadline:
+                raise self.printer.command_error(
+                    f"flow_sensor {self.name}: no samples from the sensor")
+            self.reactor.pause(now + 0.020)
+
+    def _measure_extrusion(self, length, speed):
+        """(commanded mm, sensor mm) of one extrude-only move."""
+        toolhead = self.toolhead
+        toolhead.wait_moves()
+        start = toolhead.get_last_move_time()
+        sensor0 = self._wait_for_samples(start)
+        pos = toolhead.get_position()
+        pos[3] += length
+        toolhead.move(pos, speed)
+        end = toolhead.get_last_move_time()
+        toolhead.wait_moves()
+        sensor1 = self._wait_for_samples(end)
+        find = self.extruder.find_past_position
+        return find(end) - find(start), sensor1 - sensor0
+
+    def _check_extruder(self, gcmd):
+        toolhead_extruder = self.toolhead.get_extruder()
+        if toolhead_extruder is not self.extruder:
+            raise gcmd.error(f"flow_sensor {self.name} watches {self.extruder_name};"
+                             " activate it first")
+
+    cmd_CALIBRATE_FLOW_SENSOR_help = (
+        "Extrude at slow speeds and set sensor mm per extruder mm")
+
+    def cmd_CALIBRATE_FLOW_SENSOR(self, gcmd):
+        length = gcmd.get_float('LENGTH', 20., minval=1., maxval=200.)
+        speeds = self._parse_speeds(gcmd, gcmd.get('SPEEDS', '0.5,1,2'))
+        max_spread = gcmd.get_float('MAX_SPREAD', MAX_CALIBRATION_SPREAD,
+                                    minval=0.001, maxval=0.2)
+        self._check_extruder(gcmd)
+        commanded, measured = [], []
+        for speed in speeds:
+            c, m = self._measure_extrusion(length, speed)
+            commanded.append(c)
+            measured.append(m)
+        try:
+            fit = flow_grip.fit_calibration(speeds, commanded, measured, max_spread)
+        except FlowloopError as e:
+            raise gcmd.error(
+                f"flow_sensor {self.name}: {e}; calibration unchanged") from None
+        old = self.grip.calibration
+        self._set_calibration(fit.calibration)
+        gcmd.respond_info(
+            f"flow_sensor {self.name}: {fit.describe()}\n"
+            f"calibration {old:.5f} -> {fit.calibration:.5f}"
+            " (staged: SAVE_CONFIG to keep it)")
+
+    cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE_help = (
+        "Correct the extruder rotation_distance from what the sensor measured")
+
+    def cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE(self, gcmd):
+        length = gcmd.get_float('LENGTH', 50., minval=5., maxval=500.)
+        speed = gcmd.get_float('SPEED', 1., above=0., maxval=10.)
+        self._check_extruder(gcmd)
+        stepper = self.extruder.extruder_stepper.stepper
+        old_rd = stepper.get_rotation_distance()[0]
+        commanded, measured = self._measure_extrusion(length, speed)
+        try:
+            change = flow_grip.rotation_distance_correction(
+                old_rd, commanded, measured)
+        except FlowloopError as e:
+            raise gcmd.error(f"flow_sensor {self.name}: {e}; nothing changed") from None
+        gcode = self.printer.lookup_object('gcode')
+        gcode.run_script_from_command(
+            f"SET_EXTRUDER_ROTATION_DISTANCE EXTRUDER={self.extruder_name}"
+            f" DISTANCE={change.rotation_distance:.6f}")
+        configfile = self.printer.lookup_object('configfile')
+        configfile.set(self.extruder_name, 'rotation_distance',
+                       f"{change.rotation_distance:.6f}")
+        old_cal = self.grip.calibration
+        self._set_calibration(change.calibration)
+        gcmd.respond_info(
+            f"flow_sensor {self.name}: commanded {commanded:.3f} mm, sensor"
+            f" measured {measured:.3f} mm (ratio {change.ratio:.5f})\n"
+            f"{self.extruder_name} rotation_distance {old_rd:.6f} ->"
+            f" {change.rotation_distance:.6f}, sensor calibration"
+            f" {old_cal:.5f} -> {change.calibration:.5f}"
+            " (staged: SAVE_CONFIG to keep them)")
+
+    def _set_calibration(self, calibration):
+        self.grip.calibration = calibration
+        self.grip.reset()
+        configfile = self.printer.lookup_object('configfile')
+        configfile.set(self.section, 'calibration', f"{calibration:.6f}")
+
+    def _parse_speeds(self, gcmd, text):
+        try:
+            speeds = [float(s) for s in text.split(',') if s.strip()]
+        except ValueError:
+            raise gcmd.error(
+                f"SPEEDS must be comma separated mm/s, not '{text}'") from None
+        if len(speeds) < 2 or min(speeds) <= 0. or max(speeds) > 10.:
+            raise gcmd.error("SPEEDS needs at least two speeds in 0..10 mm/s")
+        return speeds
+
+
+def load_config_prefix(config):
+    return FlowSensor(config)

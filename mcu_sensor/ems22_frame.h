@@ -1,0 +1,111 @@
+// Bourns EMS22A frame checks and the flowloop bulk record layout.
+//
+// Pure header: no Klipper includes, so the same code is compiled into the
+// MCU firmware (record layout) and into the host test program (tests/c). The Python side
+// (flowloop/ems22.py) mirrors these constants; tests/data/ems22_vectors.json
+// holds the vectors both are checked against.
+//
+// This file may be distributed under the terms of the GNU GPLv3 license.
+#ifndef __EMS22_FRAME_H
+#define __EMS22_FRAME_H
+
+#include <stdint.h> // uint16_t
+
+// One read clocks 24 bits: the 16-bit frame plus spare clocks (the chip then
+// shifts out DI), so a frame that arrives one bit late is still whole.
+#define EMS22_READ_BYTES 3
+// sensor_bulk_data payload: 2-byte index of the first record (low 16 bits of
+// the timer event counter), then one 4-byte record per timer event.
+#define EMS22_HEADER_BYTES 2
+#define EMS22_RECORD_BYTES (1 + EMS22_READ_BYTES)
+#define EMS22_RECORDS_PER_MSG 12
+// Record: tcode (read time - scheduled time, >> time_shift) then the raw read;
+// tcode EMS22_TCODE_ERROR marks an error record whose next byte is the code.
+#define EMS22_TCODE_ERROR 0xff
+enum {
+    EMS22_ERR_OVERFLOW = 1,   // timer fired again before the task read
+    EMS22_ERR_SCHEDULE = 2,   // read too late to encode its time
+    EMS22_ERR_SPI_TIME = 3,   // the SPI transfer took too long
+};
+
+// Frame bits (bit 15 first on the wire): D9..D0, OCF, COF, LIN, MagINC,
+// MagDEC, even parity over bits 15..1.
+#define EMS22_POSITION_SHIFT 6
+#define EMS22_OCF     (1 << 5)
+#define EMS22_COF     (1 << 4)
+#define EMS22_LIN     (1 << 3)
+#define EMS22_MAGINC  (1 << 2)
+#define EMS22_MAGDEC  (1 << 1)
+
+enum {
+    EMS22_OK = 0,
+    EMS22_MISSING,      // all 0s or all 1s: no chip driving DO
+    EMS22_PARITY,
+    EMS22_NOT_READY,    // OCF still 0
+    EMS22_CORDIC,       // COF: CORDIC overflow
+    EMS22_LINEARITY,    // LIN alarm
+    EMS22_MAGNET,       // MagINC and MagDEC both set: magnet out of range
+};
+
+// 1 when the 16 bits hold an odd number of ones (a parity error).
+static inline uint_fast8_t
+ems22_parity_odd(uint16_t frame)
+{
+    uint_fast8_t v = (frame >> 8) ^ (frame & 0xff);
+    v ^= v >> 4;
+    v ^= v >> 2;
+    v ^= v >> 1;
+    return v & 1;
+}
+
+// The 16-bit frame whose first bit is bit 'offset' (0..8) of a 24-bit read.
+static inline uint16_t
+ems22_frame_at(const uint8_t *raw, uint_fast8_t offset)
+{
+    uint32_t word = ((uint32_t)raw[0] << 16) | ((uint16_t)raw[1] << 8) | raw[2];
+    return (word >> (8 - offset)) & 0xffff;
+}
+
+static inline uint_fast8_t
+ems22_frame_check(uint16_t frame)
+{
+    if (frame == 0x0000 || frame == 0xffff)
+        return EMS22_MISSING;
+    if (ems22_parity_odd(frame))
+        return EMS22_PARITY;
+    if (!(frame & EMS22_OCF))
+        return EMS22_NOT_READY;
+    if (frame & EMS22_COF)
+        return EMS22_CORDIC;
+    if (frame & EMS22_LIN)
+        return EMS22_LINEARITY;
+    if ((frame & (EMS22_MAGINC | EMS22_MAGDEC))
+        == (EMS22_MAGINC | EMS22_MAGDEC))
+        return EMS22_MAGNET;
+    return EMS22_OK;
+}
+
+static inline uint16_t
+ems22_position(uint16_t frame)
+{
+    return frame >> EMS22_POSITION_SHIFT;
+}
+
+// A read that holds a good frame at bit offset 0 or 1, whatever the SPI
+// mode: for a good frame only its own offset passes (read bit 12 is its
+// COF=0 at offset 0 but would have to be OCF=1 at offset 1). The firmware
+// sends every read as is (the host knows the mode); tests/c uses this.
+static inline uint_fast8_t
+ems22_read_plausible(const uint8_t *raw)
+{
+    uint_fast8_t off;
+    for (off = 0; off < 2; off++) {
+        uint16_t frame = ems22_frame_at(raw, off);
+        if (frame != 0xffff && !ems22_parity_odd(frame)
+            && (frame & (EMS22_OCF | EMS22_COF)) == EMS22_OCF)
+            return 1;
+    }
+    return 0;
+}
+
+#endif // ems22_frame.h

@@ -1,0 +1,189 @@
+// Polling a Bourns EMS22A absolute encoder (flowloop's filament flow sensor)
+//
+// A timer marks a poll pending and wakes the task; the task does the SPI
+// read, so no SPI traffic ever runs in interrupt context. Every timer event
+// produces exactly one record (a sample or an error), and every message
+// carries the index of its first record, so the host rebuilds each sample's
+// time exactly even if a message is lost.
+//
+// This file may be distributed under the terms of the GNU GPLv3 license.
+
+#include "basecmd.h" // oid_alloc
+#include "board/irq.h" // irq_disable
+#include "board/misc.h" // timer_read_time
+#include "command.h" // DECL_COMMAND
+#include "ems22_frame.h" // EMS22_RECORD_BYTES
+#include "sched.h" // DECL_TASK
+#include "sensor_bulk.h" // sensor_bulk_report
+#include "spicmds.h" // spidev_transfer
+
+// A 3-byte read takes 24us at 1MHz; much longer means it was interrupted
+#define MAX_SPI_READ_US 200
+// No record waits longer than this in the MCU (goal: 30ms at the host)
+#define MAX_BATCH_AGE_US 20000
+
+struct ems22 {
+    struct timer timer;
+    uint32_t rest_ticks, spi_ticks;
+    struct spidev_s *spi;
+    uint16_t next_index;
+    uint8_t flags, time_shift, overflow, batch_records, max_records;
+    struct sensor_bulk sb;
+};
+
+enum { EF_PENDING = 1 };
+
+static struct task_wake ems22_wake;
+
+// Timer: only mark the poll pending (or count it as overrun) and wake the task
+static uint_fast8_t
+ems22_event(struct timer *timer)
+{
+    struct ems22 *e = container_of(timer, struct ems22, timer);
+    if (e->flags & EF_PENDING)
+        e->overflow++;
+    else
+        e->flags |= EF_PENDING;
+    sched_wake_task(&ems22_wake);
+    e->timer.waketime += e->rest_ticks;
+    return SF_RESCHEDULE;
+}
+
+void
+command_config_ems22(uint32_t *args)
+{
+    struct ems22 *e = oid_alloc(args[0], command_config_ems22, sizeof(*e));
+    e->timer.func = ems22_event;
+    e->spi = spidev_oid_lookup(args[1]);
+    if (!spidev_have_cs_pin(e->spi))
+        shutdown("ems22 sensor requires cs pin");
+}
+DECL_COMMAND(command_config_ems22, "config_ems22 oid=%c spi_oid=%c");
+
+static void
+ems22_flush(struct ems22 *e, uint8_t oid)
+{
+    if (e->sb.data_count > EMS22_HEADER_BYTES)
+        sensor_bulk_report(&e->sb, oid);
+    e->sb.data_count = 0;
+}
+
+// Append one record; a new message starts with the index of its first record
+static void
+ems22_add(struct ems22 *e, uint8_t oid, uint_fast8_t tcode, const uint8_t *raw)
+{
+    struct sensor_bulk *sb = &e->sb;
+    if (!sb->data_count) {
+        sb->data[0] = e->next_index;
+        sb->data[1] = e->next_index >> 8;
+        sb->data_count = EMS22_HEADER_BYTES;
+        e->batch_records = 0;
+    }
+    uint8_t *d = &sb->data[sb->data_count];
+    d[0] = tcode;
+    d[1] = raw[0];
+    d[2] = raw[1];
+    d[3] = raw[2];
+    sb->data_count += EMS22_RECORD_BYTES;
+    e->next_index++;
+    // Send when full, or when the oldest record would be too old by next poll
+    if (++e->batch_records >= e->max_records)
+        ems22_flush(e, oid);
+}
+
+static void
+ems22_add_error(struct ems22 *e, uint8_t oid, uint_fast8_t code)
+{
+    uint8_t raw[EMS22_READ_BYTES] = { code, 0, 0 };
+    ems22_add(e, oid, EMS22_TCODE_ERROR, raw);
+}
+
+// One SPI read of 24 clocks (the chip takes no command: DI idles).
+// Returns 0 when the transfer took too long to be trusted.
+static int
+ems22_read(struct ems22 *e, uint8_t *raw, uint32_t *mtime)
+{
+    raw[0] = raw[1] = raw[2] = 0;
+    uint32_t mtime1 = timer_read_time();
+    spidev_transfer(e->spi, 1, EMS22_READ_BYTES, raw);
+    uint32_t mtime2 = timer_read_time();
+    *mtime = mtime1;
+    return mtime2 - mtime1 <= e->spi_ticks;
+}
+
+// Frames are checked on the host: which bits hold the frame depends on the
+// SPI mode, and every timer event must give one record anyway.
+static void
+ems22_sample(struct ems22 *e, uint8_t oid, uint32_t stime)
+{
+    uint8_t raw[EMS22_READ_BYTES];
+    uint32_t mtime;
+    if (!ems22_read(e, raw, &mtime)) {
+        ems22_add_error(e, oid, EMS22_ERR_SPI_TIME);
+        return;
+    }
+    uint32_t tdiff = mtime - stime;
+    if (e->time_shift)
+        tdiff = (tdiff + (1 << (e->time_shift - 1))) >> e->time_shift;
+    if (tdiff >= EMS22_TCODE_ERROR) {
+        ems22_add_error(e, oid, EMS22_ERR_SCHEDULE);
+        return;
+    }
+    ems22_add(e, oid, tdiff, raw);
+}
+
+void
+command_query_ems22(uint32_t *args)
+{
+    uint8_t oid = args[0];
+    struct ems22 *e = oid_lookup(oid, command_config_ems22);
+    sched_del_timer(&e->timer);
+    e->flags = 0;
+    e->overflow = 0;
+    if (!args[2])
+        // End measurements
+        return;
+    e->timer.waketime = args[1];
+    e->rest_ticks = args[2];
+    e->time_shift = args[3];
+    e->spi_ticks = timer_from_us(MAX_SPI_READ_US);
+    // Records per message: as many as fit, unless the first would then wait
+    // MAX_BATCH_AGE_US or more (counted once here: no division on the MCU)
+    uint32_t max_age = timer_from_us(MAX_BATCH_AGE_US), age = e->rest_ticks;
+    uint8_t count = 1;
+    while (count < EMS22_RECORDS_PER_MSG && age < max_age) {
+        age += e->rest_ticks;
+        count++;
+    }
+    e->max_records = count;
+    e->next_index = 0;
+    sensor_bulk_reset(&e->sb);
+    sched_add_timer(&e->timer);
+}
+DECL_COMMAND(command_query_ems22,
+             "query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c");
+
+void
+ems22_task(void)
+{
+    if (!sched_check_wake(&ems22_wake))
+        return;
+    uint8_t oid;
+    struct ems22 *e;
+    foreach_oid(oid, e, command_config_ems22) {
+        if (!(e->flags & EF_PENDING))
+            continue;
+        irq_disable();
+        uint32_t stime = e->timer.waketime;
+        uint_fast8_t overflow = e->overflow;
+        e->flags = 0;
+        e->overflow = 0;
+        irq_enable();
+        // Missed events take the earlier record slots; the read now belongs
+        // to the latest event (waketime already points at the next one)
+        while (overflow--)
+            ems22_add_error(e, oid, EMS22_ERR_OVERFLOW);
+        ems22_sample(e, oid, stime - e->rest_ticks);
+    }
+}
+DECL_TASK(ems22_task);

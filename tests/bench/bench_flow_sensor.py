@@ -1,0 +1,198 @@
+"""EMS22 flow sensor: flash cost, host decode cost, worst sample age.
+
+- Flash: the patched Klipper tree built for atmega2560 twice in one run, with
+  and without sensor_ems22.c (its Makefile line removed); avr-size text+data.
+  Goal: <= 800 bytes added.
+- Decode: flowloop's decoder (records -> unwrapped counts -> print times, as
+  klippy_extras/flow_sensor.py runs it) against Klipper's own angle.py
+  `_extract_samples` decoding the same number of samples. Goal: <= 1.0x.
+- Age: the firmware's batching rule (12 records, or fewer when 12 would make
+  the first wait 20 ms) replayed at 1 kHz with task
+  jitter, plus serial time at 250000 baud and the measured host decode time
+  per message. Modelled, not measured on hardware. Goal: <= 30 ms.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import shutil
+import subprocess
+import sys
+import time
+import types
+from pathlib import Path
+
+import numpy as np
+
+try:
+    import pytest
+except ImportError:  # the angle.py comparison runs in klippy's venv
+    pytest = None
+
+from flowloop import ems22
+
+SAMPLES = 120_000
+
+
+def _avr_size(elf) -> int:
+    out = subprocess.run(["avr-size", str(elf)], capture_output=True, text=True,
+                         check=True).stdout.splitlines()[1].split()
+    return int(out[0]) + int(out[1])
+
+
+def _build(tree) -> int:
+    for cmd in (["make", "distclean"], None, ["make", "olddefconfig"],
+                ["make", "-j2"]):
+        if cmd is None:
+            shutil.copy(tree / "test" / "configs" / "atmega2560.config",
+                        tree / ".config")
+            continue
+        subprocess.run(cmd, cwd=tree, capture_output=True, check=True)
+    return _avr_size(tree / "out" / "klipper.elf")
+
+
+def test_flash_cost_on_atmega2560(klipper_build, bench, tmp_path):
+    if shutil.which("avr-size") is None or shutil.which("avr-gcc") is None:
+        pytest.skip("no avr toolchain")
+    tree = tmp_path / "klipper"
+    shutil.copytree(klipper_build.tree, tree, symlinks=True,
+                    ignore=shutil.ignore_patterns("flowloop-dict", "out"))
+    with_sensor = _build(tree)
+    makefile = tree / "src" / "Makefile"
+    text = makefile.read_text()
+    assert "sensor_ems22.c" in text
+    makefile.write_text("".join(line for line in text.splitlines(True)
+                                if "sensor_ems22.c" not in line))
+    without = _build(tree)
+    bench.figure("flow_sensor flash bytes added (atmega2560)", with_sensor - without,
+                 " bytes", goal="<= 800")
+    bench.ratio("flow_sensor firmware size with/without", with_sensor, without)
+
+
+def _our_messages(n):
+    positions = (np.arange(n) * 7) % 1024
+    frames = (positions << 6) | ems22.OCF
+    parity = frames.copy()
+    for shift in (8, 4, 2, 1):
+        parity ^= parity >> shift
+    frames |= parity & 1
+    word = frames << 7
+    records = [(3, bytes(((w >> 16) & 0xFF, (w >> 8) & 0xFF, w & 0xFF)))
+               for w in word.tolist()]
+    return list(enumerate(ems22.pack_messages(0, records)))
+
+
+def _our_decode(messages):
+    decoder = ems22.Decoder(bit_offset=1)
+    samples = decoder.decode(messages)
+    valid = samples.valid
+    clocks = ems22.sample_clocks(samples, 1000, 16000, 3)[valid]
+
+    def to_time(clock):  # what mcu.clock_to_print_time does
+        return clock / 16e6
+
+    base = float(clocks[0])
+    t0 = to_time(base)
+    per_clock = (to_time(base + 1e6) - t0) / 1e6
+    return t0 + (clocks - base) * per_clock, samples.counts[valid]
+
+
+def _angle_setup(angle, n):
+    obj = angle.Angle.__new__(angle.Angle)
+    obj.sample_ticks, obj.start_clock, obj.time_shift = 16000, 1000, 3
+    obj.last_sequence = obj.last_angle = 0
+    obj.mcu = types.SimpleNamespace(clock_to_print_time=lambda c: c / 16e6)
+    obj.sensor_helper = types.SimpleNamespace(is_tcode_absolute=False,
+                                              get_static_delay=lambda: 0.)
+    per = angle.SAMPLES_PER_BLOCK
+    raw = []
+    for seq in range(n // per):
+        data = bytearray()
+        for i in range(per):
+            value = ((seq * per + i) * 7 * 64) & 0xFFFF
+            data += bytes((3, value & 0xFF, value >> 8))
+        raw.append({'sequence': seq & 0xFFFF, 'data': bytes(data)})
+    return obj, raw
+
+
+def _best_of(fn, repeat=5):
+    best = float("inf")
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def _compare_in_klippy_python(klippy_dir):
+    """Run inside klippy's own interpreter (angle.py needs its packages)."""
+    sys.path.insert(0, klippy_dir)
+    angle = importlib.import_module("extras.angle")
+    messages = _our_messages(SAMPLES)
+    times, counts = _our_decode(messages)
+    assert len(times) == SAMPLES and counts[1] - counts[0] == 7
+    obj, raw = _angle_setup(angle, SAMPLES)
+    n_angle = len(raw) * angle.SAMPLES_PER_BLOCK
+
+    def run_angle():
+        obj.last_sequence = obj.last_angle = 0
+        return obj._extract_samples(raw)
+
+    assert len(run_angle()[0]) == n_angle
+    ours = _best_of(lambda: _our_decode(messages)) / SAMPLES
+    theirs = _best_of(run_angle) / n_angle
+    print(json.dumps({"ours": ours, "angle": theirs}))
+
+
+def test_decode_cost_against_klippers_angle_sensor(klipper_build, klippy_venv, bench):
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+            f"import bench_flow_sensor as b; "
+            f"b._compare_in_klippy_python({str(klipper_build.tree / 'klippy')!r})")
+    proc = subprocess.run([str(klippy_venv.python), "-c", code],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    bench.ratio("flow_sensor host decode per sample vs angle.py",
+                result["ours"] * 1e6, result["angle"] * 1e6, " us", goal="<= 1.0x")
+
+
+def _max_records(period_s, max_age_s=0.020):
+    """command_query_ems22's count: as many as fit, unless the first would
+    wait max_age_s or more."""
+    count, age = 1, period_s
+    while count < ems22.RECORDS_PER_MSG and age < max_age_s - 1e-12:
+        age += period_s
+        count += 1
+    return count
+
+
+def _replay_firmware(period_s, seconds, jitter_s, rng):
+    """(sample time, send time, records in its message) under the firmware's
+    rule: a message is sent once it holds max_records records."""
+    limit = _max_records(period_s)
+    sends, batch = [], []
+    for i in range(int(seconds / period_s)):
+        stime = i * period_s
+        now = stime + rng.uniform(0, jitter_s)  # the task runs a little later
+        batch.append(stime)
+        if len(batch) >= limit:
+            sends.extend((t, now, len(batch)) for t in batch)
+            batch = []
+    return sends
+
+
+def test_worst_sample_age_at_the_host(bench):
+    rng = np.random.default_rng(1)
+    messages = _our_messages(ems22.RECORDS_PER_MSG * 200)
+    per_message = (_best_of(lambda: [_our_decode([m]) for m in messages])
+                   / len(messages))
+    for period in (0.001, 0.005, 0.1):
+        sends = _replay_firmware(period, 5.0, 0.0005, rng)
+        worst = 0.
+        for sample_time, sent, count in sends:
+            wire = (ems22.HEADER_BYTES + count * ems22.RECORD_BYTES + 10) * 10 / 250000
+            worst = max(worst, sent - sample_time + wire + per_message)
+        goal = "<= 30 ms" if period == 0.001 else ""
+        bench.figure(f"flow_sensor worst sample age at {period * 1000:g} ms period",
+                     worst * 1000, " ms", goal=goal)

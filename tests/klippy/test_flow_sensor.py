@@ -1,0 +1,71 @@
+"""flow_sensor klippy runs judged on their logs: config errors name the
+option, old firmware is told to rebuild, on_fault: pause pauses, and a
+calibration whose speeds disagree changes nothing."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from devtools.klippy_test import run_file
+from flowloop import ems22
+
+HERE = Path(__file__).resolve().parent
+
+
+@pytest.mark.parametrize("name, message", [
+    ("no_cs_pin", "Option 'cs_pin' in section 'flow_sensor bad' must be specified"),
+    ("fast_spi", "Option 'spi_speed' in section 'flow_sensor bad' must have maximum"
+                 " of 1000000"),
+    ("short_period", "Option 'sample_period' in section 'flow_sensor bad' must have"
+                     " minimum of 0.0002"),
+    ("long_period", "Option 'sample_period' in section 'flow_sensor bad' must have"
+                    " maximum of 0.1"),
+    ("bad_mode", "Option 'spi_mode' in section 'flow_sensor bad' must have maximum"),
+    ("bad_type", "Choice 'ems23' for option 'sensor_type' in section 'flow_sensor"
+                 " bad' is not a valid choice"),
+])
+def test_bad_option_fails_naming_it(klipper_build, klippy_venv, short_tmp, name,
+                                    message):
+    log = run_file(HERE / f"flow_sensor_fail_{name}.test", klipper_build,
+                   klippy_venv, short_tmp)
+    assert message in log
+
+
+def test_firmware_without_the_command_is_told_to_rebuild(klipper_build, klippy_venv,
+                                                         short_tmp):
+    data = json.loads(klipper_build.dictionary("atmega2560").read_text())
+    for fmt in (ems22.CONFIG_CMD, ems22.QUERY_CMD):
+        del data["commands"][fmt]
+    old = short_tmp / "old-firmware.dict"
+    old.write_text(json.dumps(data))
+    test = short_tmp / "old.test"
+    test.write_text(f"DICTIONARY {old}\nCONFIG {HERE / 'flow_sensor.cfg'}\n"
+                    "SHOULD_FAIL\n")
+    log = run_file(test, klipper_build, klippy_venv, short_tmp)
+    assert "firmware has no EMS22 sensor support" in log
+    assert "make flash" in log
+
+
+def test_on_fault_pause_pauses_after_the_fault(klipper_build, klippy_venv,
+                                               short_tmp):
+    log = run_file(HERE / "flow_sensor_sim.test", klipper_build, klippy_venv,
+                   short_tmp)
+    fault = log.index("flow_sensor sim: fault 'missing'")
+    assert log.index("action:paused", fault) > fault
+    assert "Transition to shutdown" not in log
+
+
+def test_calibration_with_slipping_speeds_changes_nothing(klipper_build,
+                                                          klippy_venv, short_tmp):
+    # 8 mm/s of 1.75 mm filament is 19 mm^3/s: the twin melts only 10 at 200 C
+    test = short_tmp / "slip.test"
+    test.write_text(
+        f"DICTIONARY atmega2560.dict\nCONFIG {HERE / 'flow_sensor_sim.cfg'}\n"
+        "SHOULD_FAIL\nSET_HEATER_TEMPERATURE HEATER=extruder TARGET=200\n"
+        "CALIBRATE_FLOW_SENSOR SENSOR=sim LENGTH=20 SPEEDS=1,8\n")
+    log = run_file(test, klipper_build, klippy_venv, short_tmp)
+    assert "the speeds disagree by more than 2.00%; calibration unchanged" in log
+    assert "save_config: set [flow_sensor sim]" not in log

@@ -1,0 +1,218 @@
+"""EMS22 frame decoding, the bit-level model, unwrap and MCU record timing."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from flowloop import ems22
+from flowloop.errors import FlowloopError
+
+VECTORS = Path(__file__).resolve().parents[1] / "data" / "ems22_vectors.json"
+
+
+def build_vectors() -> list:
+    """Vectors for C and Python: reads made by the bit-level model in every
+    SPI mode, plus hand-made broken reads. Regenerate with
+    `python tests/unit/test_ems22.py` after a deliberate change."""
+    out = []
+    flag_sets = [dict(), dict(mag_inc=True), dict(mag_dec=True),
+                 dict(mag_inc=True, mag_dec=True), dict(ocf=False),
+                 dict(cof=True), dict(lin=True)]
+    for mode in range(4):
+        offset = ems22.bit_offset_for_mode(mode)
+        for position in (0, 1, 2, 341, 511, 512, 682, 1022, 1023):
+            for flags in flag_sets:
+                frame = ems22.make_frame(position, **flags)
+                for idle in (0, 1):
+                    raw = ems22.spi_read_model(frame, mode, idle_do=idle)
+                    status = ems22.STATUS_NAMES[ems22.frame_status(frame)]
+                    out.append({"raw": raw.hex(), "offset": offset, "mode": mode,
+                                "frame": frame, "position": position,
+                                "status": status})
+    frame = ems22.make_frame(300)
+    broken = [("000000", "missing"), ("ffffff", "missing"),
+              (f"{(frame ^ 0x0400) << 8:06x}", "parity"),
+              (f"{(frame ^ 0x0001) << 8:06x}", "parity")]
+    for raw_hex, status in broken:
+        word = int(raw_hex, 16)
+        out.append({"raw": raw_hex, "offset": 0, "mode": 1, "frame": word >> 8,
+                    "position": (word >> 14) & 0x3FF, "status": status})
+    return out
+
+
+def test_shared_vectors_file_is_current():
+    assert json.loads(VECTORS.read_text()) == build_vectors()
+
+
+def test_python_decode_matches_every_shared_vector():
+    vectors = json.loads(VECTORS.read_text())
+    assert len(vectors) > 500
+    for v in vectors:
+        frame = ems22.frame_at(bytes.fromhex(v["raw"]), v["offset"])
+        assert ems22.STATUS_NAMES[ems22.frame_status(frame)] == v["status"], v
+        if v["status"] == "ok":
+            assert frame >> ems22.POSITION_SHIFT == v["position"]
+
+
+def test_frame_layout_by_hand_from_the_datasheet():
+    # position 0b1010101010 = 682, OCF=1, others 0: bits 15..1 hold six ones,
+    # so even parity leaves P1 = 0.
+    frame = 0b1010101010_1_0_0_0_0_0
+    assert ems22.make_frame(682) == frame
+    assert ems22.frame_status(frame) == ems22.OK
+    # one more one in the payload (MagINC) needs P1 = 1
+    assert ems22.make_frame(682, mag_inc=True) == frame | 0b100 | 1
+
+
+def test_spi_mode_offsets_follow_the_clock_edges():
+    # mode 1 samples on falling edges after a first rising edge: aligned.
+    # mode 2 samples on leading falling edges: one bit late. 0 and 3 sample on
+    # the changing edge and read the level from before it: one bit late.
+    assert [ems22.bit_offset_for_mode(m) for m in range(4)] == [1, 0, 1, 1]
+
+
+@given(st.integers(0, 1023), st.integers(0, 3), st.integers(0, 1), st.integers(0, 1))
+def test_model_reads_decode_to_the_position_in_every_mode(position, mode, idle, di):
+    frame = ems22.make_frame(position)
+    raw = ems22.spi_read_model(frame, mode, idle_do=idle, di_level=di)
+    got = ems22.frame_at(raw, ems22.bit_offset_for_mode(mode))
+    assert got == frame and ems22.frame_status(got) == ems22.OK
+
+
+@given(st.integers(0, 1023), st.integers(0, 3), st.integers(0, 1))
+def test_a_frame_read_one_bit_off_is_never_accepted(position, mode, idle):
+    raw = ems22.spi_read_model(ems22.make_frame(position), mode, idle_do=idle)
+    offset = ems22.bit_offset_for_mode(mode)
+    for wrong in (offset - 1, offset + 1):
+        if 0 <= wrong <= 8:
+            assert ems22.frame_status(ems22.frame_at(raw, wrong)) != ems22.OK
+
+
+def _messages(frames, mode=2, first_index=0, tcode=3, first_sequence=0):
+    records = [(tcode, ems22.spi_read_model(f, mode)) for f in frames]
+    payloads = ems22.pack_messages(first_index, records)
+    return [(first_sequence + i, p) for i, p in enumerate(payloads)]
+
+
+@settings(max_examples=60)
+@given(st.lists(st.integers(-500, 500), min_size=1, max_size=300),
+       st.integers(0, 1023))
+def test_unwrap_follows_many_turns_both_ways(steps, start):
+    truth = start + np.cumsum([0] + steps)
+    frames = [ems22.make_frame(int(p) % 1024) for p in truth]
+    decoder = ems22.Decoder(bit_offset=1)
+    counts = []
+    for msg in _messages(frames):  # one message at a time, as they arrive
+        counts.extend(decoder.decode([msg]).counts.tolist())
+    assert counts == (truth - truth[0]).tolist()
+
+
+def test_unwrap_over_twenty_turns_forward_then_back():
+    path = list(range(0, 20 * 1024, 97)) + list(range(20 * 1024, -3 * 1024, -301))
+    decoder = ems22.Decoder(bit_offset=0)
+    s = decoder.decode(_messages([ems22.make_frame(p % 1024) for p in path], mode=1))
+    assert s.counts.tolist() == path
+
+
+def test_bad_frames_are_counted_and_skipped_without_losing_position():
+    frames = [ems22.make_frame(10), ems22.make_frame(20), 0x0000,
+              ems22.make_frame(30) ^ 0x0040, ems22.make_frame(40, mag_inc=True,
+                                                            mag_dec=True),
+              ems22.make_frame(50, ocf=False), ems22.make_frame(60)]
+    decoder = ems22.Decoder(bit_offset=1)
+    s = decoder.decode(_messages(frames))
+    assert s.status.tolist() == [ems22.OK, ems22.OK, ems22.MISSING, ems22.PARITY,
+                                 ems22.MAGNET, ems22.NOT_READY, ems22.OK]
+    assert s.counts[s.valid].tolist() == [0, 10, 50]
+    assert s.error_counts() == {"missing": 1, "parity": 1, "magnet": 1,
+                                "not_ready": 1}
+
+
+def test_a_wrong_spi_mode_is_reported_as_misaligned():
+    frames = [ems22.make_frame(p) for p in range(0, 600, 7)]
+    s = ems22.Decoder(bit_offset=0).decode(_messages(frames, mode=2))
+    assert (s.status == ems22.MISALIGNED).all()
+
+
+def test_mcu_error_records_keep_their_time_slot():
+    good = (3, ems22.spi_read_model(ems22.make_frame(5), 2))
+    records = [good, ems22.error_record(ems22.ERR_OVERFLOW), good,
+               ems22.error_record(ems22.ERR_SPI_TIME)]
+    s = ems22.Decoder().decode([(0, p) for p in ems22.pack_messages(0, records)])
+    assert s.index.tolist() == [0, 1, 2, 3]
+    assert s.status.tolist() == [ems22.OK, ems22.OVERFLOW, ems22.OK, ems22.SPI_TIME]
+
+
+def test_time_is_rebuilt_exactly_after_a_lost_message():
+    frames = [ems22.make_frame(p) for p in range(40)]
+    msgs = _messages(frames, first_index=65530, first_sequence=7)
+    decoder = ems22.Decoder()
+    decoder.next_index = 65530
+    s = decoder.decode([msgs[0], msgs[2], msgs[3]])  # msgs[1] dropped by the MCU
+    assert s.lost_messages == 1
+    expect = list(range(65530, 65542)) + list(range(65554, 65570))
+    assert s.index.tolist() == expect
+    clocks = ems22.sample_clocks(s, start_clock=1000, rest_ticks=16000, time_shift=2)
+    assert clocks[0] == 1000 + 65530 * 16000 + (3 << 2)
+    # the absolute encoder loses nothing across the gap
+    assert s.counts[12] - s.counts[11] == 24 - 11
+
+
+def test_time_shift_covers_two_milliseconds_of_ticks():
+    shift = ems22.time_shift_for(16e6)
+    assert (254 << shift) / 16e6 >= 0.002 > (254 << (shift - 1)) / 16e6
+
+
+def _status(codes):
+    z = np.zeros(len(codes), dtype=np.int64)
+    return ems22.Samples(z, z, np.array(codes, dtype=np.int64), z)
+
+
+def test_transient_errors_are_counted_but_never_a_fault():
+    monitor = ems22.FaultMonitor(limit=5)
+    for _ in range(50):
+        assert monitor.update(_status([ems22.PARITY] * 4 + [ems22.OK])) is None
+    assert monitor.fault is None and monitor.errors == {"parity": 200}
+
+
+def test_consecutive_bad_samples_across_batches_raise_one_fault_then_clear():
+    monitor = ems22.FaultMonitor(limit=5)
+    assert monitor.update(_status([ems22.OK, ems22.MISSING, ems22.MISSING])) is None
+    assert monitor.update(_status([ems22.MISSING] * 3)) == "missing"
+    assert monitor.update(_status([ems22.MISSING] * 30)) is None  # same episode
+    assert monitor.fault == "missing" and monitor.episodes == 1
+    monitor.update(_status([ems22.OK]))
+    assert monitor.fault is None
+
+
+def test_two_stuck_windows_make_a_stuck_fault_a_judged_one_clears_it():
+    monitor = ems22.FaultMonitor()
+    assert monitor.note_window("stuck") is None
+    assert monitor.note_window("stuck") == "stuck"
+    monitor.update(_status([ems22.OK] * 3))
+    assert monitor.fault == "stuck"
+    monitor.note_window("judged")
+    assert monitor.fault is None and monitor.errors == {"stuck": 2}
+
+
+def test_default_counts_per_mm_is_the_3_17mm_axle():
+    assert ems22.DEFAULT_COUNTS_PER_MM == pytest.approx(102.823, abs=1e-3)
+    assert 1024 / ems22.DEFAULT_COUNTS_PER_MM == pytest.approx(math.pi * 3.17)
+
+
+def test_spi_speed_over_1mhz_is_refused():
+    ems22.check_spi_speed(1_000_000)
+    with pytest.raises(FlowloopError, match="1 MHz"):
+        ems22.check_spi_speed(1_000_001)
+
+
+if __name__ == "__main__":
+    VECTORS.write_text(json.dumps(build_vectors(), indent=0) + "\n")
+    print(f"wrote {VECTORS}")

@@ -1,0 +1,130 @@
+"""Grip windows: judged, not judged across retractions or with too little motion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from flowloop.errors import FlowloopError
+from flowloop.grip import GripEstimator, fit_calibration, rotation_distance_correction
+
+
+def _run(est, t, measured, commanded):
+    return est.add(list(t), list(measured), list(commanded))
+
+
+def test_a_feeder_that_keeps_up_reads_grip_one_through_the_calibration():
+    t = np.arange(0, 2, 0.001)
+    commanded = 3.0 * t                       # 3 mm/s of filament
+    sensor = 0.97 * commanded                 # sensor reads 3 % short
+    est = GripEstimator(window_mm=1.25, calibration=0.97)
+    windows = _run(est, t, sensor, commanded)
+    assert len(windows) == 4
+    assert all(w.reason == "judged" for w in windows)
+    assert est.grip == pytest.approx(1.0, abs=1e-3)
+
+
+@given(st.floats(0.3, 1.0), st.floats(0.5, 10.0), st.floats(0.8, 1.2))
+def test_grip_is_the_measured_share_of_commanded_filament(grip, speed, cal):
+    t = np.arange(0, 3.0, 0.002)
+    commanded = speed * t
+    est = GripEstimator(window_mm=1.0, calibration=cal)
+    windows = _run(est, t, grip * cal * commanded, commanded)
+    judged = [w for w in windows if w.reason == "judged"]
+    assert judged
+    for w in judged:
+        assert w.grip == pytest.approx(grip, rel=1e-6)
+        assert w.commanded_mm >= 1.0
+
+
+def test_grip_is_not_judged_across_a_retraction():
+    t = np.arange(0, 1.0, 0.001)
+    commanded = np.where(t < 0.3, 5 * t, 5 * 0.3 - 0.8)   # a 0.8 mm retraction
+    commanded = np.where(t > 0.5, commanded + 8 * (t - 0.5), commanded)
+    est = GripEstimator(window_mm=1.25)
+    windows = _run(est, t, commanded, commanded)
+    reasons = [w.reason for w in windows]
+    assert "retraction" in reasons
+    retraction = windows[reasons.index("retraction")]
+    assert retraction.grip is None
+    # judging resumes once the filament moves forward for a whole window again
+    assert reasons[-1] == "judged"
+
+
+def test_pressure_advance_wobble_below_the_tolerance_is_not_a_retraction():
+    t = np.arange(0, 1.0, 0.001)
+    commanded = 3 * t - 0.01 * np.sin(40 * t) ** 2
+    windows = _run(GripEstimator(), t, commanded, commanded)
+    assert windows and all(w.reason == "judged" for w in windows)
+
+
+def test_too_little_motion_is_not_judged():
+    t = np.arange(0, 5.0, 0.01)
+    commanded = 0.1 * t                       # 0.1 mm/s: 1.25 mm takes 12.5 s
+    est = GripEstimator(window_mm=1.25, max_window_s=2.0)
+    windows = _run(est, t, 0.2 * commanded, commanded)
+    assert windows and all(w.reason == "too_little_motion" for w in windows)
+    assert est.grip is None
+
+
+def test_a_sensor_that_does_not_move_is_stuck_not_grip_zero():
+    t = np.arange(0, 1.0, 0.001)
+    est = GripEstimator()
+    windows = _run(est, t, np.zeros_like(t), 4 * t)
+    assert windows and all(w.reason == "stuck" and w.grip is None for w in windows)
+
+
+def test_flows_are_volumetric():
+    t = np.arange(0, 1.0, 0.001)
+    est = GripEstimator(filament_area_mm2=2.0)
+    _run(est, t, 2.5 * t, 5 * t)
+    measured, commanded = est.flows()
+    assert commanded == pytest.approx(10.0, rel=1e-3)
+    assert measured == pytest.approx(5.0, rel=1e-3)
+    assert est.filament_position == pytest.approx(2.5 * t[-1])
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(FlowloopError, match="grip_window"):
+        GripEstimator(window_mm=0)
+    with pytest.raises(FlowloopError, match="calibration"):
+        GripEstimator(calibration=-1)
+
+
+# --- calibration fits ---------------------------------------------------------
+
+
+@given(st.floats(0.7, 1.4), st.lists(st.floats(0.2, 5.0), min_size=2, max_size=6,
+                                     unique=True),
+       st.floats(5.0, 100.0))
+def test_fit_recovers_the_sensor_ratio_from_any_speeds(ratio, speeds, length):
+    commanded = [length] * len(speeds)
+    fit = fit_calibration(speeds, commanded, [ratio * c for c in commanded])
+    assert fit.calibration == pytest.approx(ratio)
+    assert fit.spread == pytest.approx(0, abs=1e-9)
+
+
+@given(st.floats(0.03, 0.3))
+def test_fit_is_refused_when_speeds_disagree_beyond_the_bound(slip):
+    with pytest.raises(FlowloopError, match="disagree by more than 2.00%"):
+        fit_calibration([0.5, 1, 4], [20, 20, 20], [20, 20, 20 * (1 - slip)])
+
+
+def test_fit_within_the_bound_is_the_least_squares_ratio():
+    fit = fit_calibration([1, 2], [10, 30], [10.1, 30.0])
+    assert fit.calibration == pytest.approx((10 * 10.1 + 30 * 30) / (100 + 900))
+    assert "1 mm/s: 1.01000" in fit.describe()
+
+
+@given(st.floats(0.85, 1.15), st.floats(1.0, 40.0))
+def test_rotation_distance_scales_by_what_the_sensor_measured(ratio, rd):
+    change = rotation_distance_correction(rd, 50.0, 50.0 * ratio)
+    assert change.rotation_distance == pytest.approx(rd * ratio)
+    assert change.calibration == 1.0
+
+
+def test_an_implausible_rotation_distance_change_is_refused():
+    with pytest.raises(FlowloopError, match="more than 20% off"):
+        rotation_distance_correction(7.7, 50.0, 30.0)
