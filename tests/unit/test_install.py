@@ -56,17 +56,38 @@ def klipper_tree(tmp_path):
     return tree
 
 
+def _moonraker_package(dest: Path) -> None:
+    """Moonraker's own package from the test venv when built, else a stand-in."""
+    built = sorted(stack.cache_dir().glob("moonraker-venv-*/lib/python*/"
+                                          "site-packages/moonraker"))
+    if built:
+        shutil.copytree(built[-1], dest, symlinks=True,
+                        ignore=shutil.ignore_patterns("__pycache__", "flowloop.py"))
+    else:
+        (dest / "components").mkdir(parents=True)
+        (dest / "__init__.py").write_text("")
+        (dest / "components" / "__init__.py").write_text("")
+        (dest / "components" / "klippy_apis.py").write_text("# stand-in\n")
+
+
 @pytest.fixture
 def moonraker_checkout(tmp_path):
     """Moonraker laid out as a git checkout (what KIAUH installs)."""
     root = tmp_path / "moonraker"
-    comps = root / "moonraker" / "components"
-    comps.mkdir(parents=True)
-    (comps / "__init__.py").write_text("")
-    (comps / "klippy_apis.py").write_text("# stand-in\n")
+    _moonraker_package(root / "moonraker")
     (root / ".git" / "info").mkdir(parents=True)
     (root / ".git" / "info" / "exclude").write_text("")
     return root
+
+
+@pytest.fixture
+def moonraker_venv_copy(tmp_path):
+    """A virtualenv whose python imports moonraker (pip-installed Moonraker)."""
+    venv = tmp_path / "moonraker-env"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)],
+                   check=True)
+    _moonraker_package(next(venv.glob("lib/python*/site-packages")) / "moonraker")
+    return venv
 
 
 @pytest.fixture
@@ -86,9 +107,12 @@ def args_for(klipper, moonraker, config_dir):
             "--config-dir", str(config_dir)]
 
 
+@pytest.mark.parametrize("moonraker_form", ["moonraker_checkout",
+                                            "moonraker_venv_copy"])
 def test_dry_run_then_install_then_uninstall_restores_every_byte(
-        klipper_tree, moonraker_checkout, config_dir, capsys):
-    trees = (klipper_tree, moonraker_checkout, config_dir)
+        klipper_tree, moonraker_form, config_dir, capsys, request):
+    moonraker = request.getfixturevalue(moonraker_form)
+    trees = (klipper_tree, moonraker, config_dir)
     before = [snapshot(t) for t in trees]
     args = args_for(*trees)
 
@@ -100,7 +124,7 @@ def test_dry_run_then_install_then_uninstall_restores_every_byte(
     extras = klipper_tree / "klippy" / "extras" / "flowloop.py"
     assert extras.is_symlink()
     assert extras.resolve() == PROJECT / "klippy_extras" / "flowloop.py"
-    comp = moonraker_checkout / "moonraker" / "components" / "flowloop.py"
+    comp = install.moonraker_components_dir(moonraker) / "flowloop.py"
     assert comp.resolve() == PROJECT / "moonraker_components" / "flowloop.py"
     conf = (config_dir / "moonraker.conf").read_text()
     assert "[update_manager flowloop]" in conf
@@ -235,16 +259,10 @@ def test_a_missing_moonraker_conf_is_named(klipper_tree, moonraker_checkout, tmp
     assert "moonraker.conf: no such file" in capsys.readouterr().err
 
 
-def test_a_venv_is_asked_where_its_moonraker_lives(tmp_path):
-    venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)],
-                   check=True)
-    site = next(venv.glob("lib/python*/site-packages"))
-    comps = site / "moonraker" / "components"
-    comps.mkdir(parents=True)
-    (site / "moonraker" / "__init__.py").write_text("")
-    (comps / "__init__.py").write_text("")
-    assert install.moonraker_components_dir(venv).resolve() == comps.resolve()
+def test_a_venv_is_asked_where_its_moonraker_lives(moonraker_venv_copy):
+    site = next(moonraker_venv_copy.glob("lib/python*/site-packages"))
+    assert install.moonraker_components_dir(moonraker_venv_copy).resolve() == (
+        site / "moonraker" / "components").resolve()
 
 
 def test_a_venv_without_moonraker_is_refused(tmp_path):
