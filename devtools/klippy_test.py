@@ -4,7 +4,10 @@ The file format is Klipper's own (scripts/test_klippy.py): CONFIG, DICTIONARY,
 GCODE and SHOULD_FAIL directives, every other line is G-code; '#' starts a
 comment. Several CONFIG lines make several runs, each with the G-code read
 so far. This is our own runner so that a run can be judged on its log too:
-an "Unknown command" anywhere in the log fails the run.
+an "Unknown command" anywhere in the log fails the run, and a comment line
+"# EXPECT_LOG: text" (a comment, so Klipper's own runner ignores it) requires
+that text in the log of every run of the file: a SHOULD_FAIL test says why
+it must fail.
 """
 
 from __future__ import annotations
@@ -15,6 +18,8 @@ from pathlib import Path
 from typing import List, Optional
 
 from .stack import KlipperBuild, Venv
+
+EXPECT_LOG = "# EXPECT_LOG:"
 
 
 class KlippyTestFailure(Exception):
@@ -28,20 +33,25 @@ class Run:
     gcode: List[str]
     gcode_file: Optional[Path]
     should_fail: bool
+    expect_log: List[str] = dataclasses.field(default_factory=list)
 
 
 def parse(test_file: Path, dict_dir: Path) -> List[Run]:
-    here = test_file.parent
+    here = Path(test_file).resolve().parent
     config = gcode_file = None
     dictionaries: List[str] = []
     should_fail = multi = False
     gcode: List[str] = []
     runs: List[Run] = []
+    expect_log: List[str] = []
 
     def launch(cfg: Path) -> None:
         runs.append(Run(cfg, list(dictionaries), list(gcode), gcode_file, should_fail))
 
     for raw in test_file.read_text().splitlines():
+        if raw.strip().startswith(EXPECT_LOG):
+            expect_log.append(raw.strip()[len(EXPECT_LOG):].strip())
+            continue
         line = raw.split("#", 1)[0].strip()
         parts = line.split()
         if not parts:
@@ -68,6 +78,8 @@ def parse(test_file: Path, dict_dir: Path) -> List[Run]:
         if config is None:
             raise KlippyTestFailure(f"{test_file}: no CONFIG line")
         launch(config)
+    for run in runs:
+        run.expect_log = list(expect_log)
     return runs
 
 
@@ -105,6 +117,10 @@ def run_file(test_file: Path, build: KlipperBuild, venv: Venv, workdir: Path,
                                     + _tail(log))
         if not run.should_fail and proc.returncode != 0:
             raise KlippyTestFailure(f"{where}: klippy failed ({proc.returncode})\n"
+                                    + _tail(log))
+        missing = [text for text in run.expect_log if text not in log]
+        if missing:
+            raise KlippyTestFailure(f"{where}: log lacks {missing[0]!r}\n"
                                     + _tail(log))
         unknown = [ln for ln in log.splitlines() if "Unknown command" in ln]
         if unknown and not allow_unknown:

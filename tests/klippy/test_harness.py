@@ -47,3 +47,23 @@ def test_installing_flowloop_moved_no_pinned_klippy_package(klippy_venv):
              if after.get(name) != v}
     assert not moved
     assert "klipper-flowloop" in after
+
+
+def test_expect_log_lines_are_read_from_comments(tmp_path):
+    test = tmp_path / "why.test"
+    test.write_text("CONFIG a.cfg\nDICTIONARY a.dict\nSHOULD_FAIL\n"
+                    "# EXPECT_LOG: must be above 0\nG28\n")
+    (run,) = parse(test, tmp_path)
+    assert run.expect_log == ["must be above 0"]
+    assert run.gcode == ["G28"]
+
+
+def test_a_failure_for_another_reason_fails_the_test(klipper_build, klippy_venv,
+                                                     short_tmp):
+    test = short_tmp / "wrong_reason.test"
+    cfg = klipper_build.tree / "config" / "example-cartesian.cfg"
+    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nSHOULD_FAIL\n"
+                    "# EXPECT_LOG: a reason that never appears\n"
+                    "G28\nG1 X9999\n")  # fails, but for another reason
+    with pytest.raises(KlippyTestFailure, match="log lacks"):
+        run_file(test, klipper_build, klippy_venv, short_tmp)
