@@ -34,6 +34,12 @@ def test_info_reports_what_klippy_loaded(full_stack):
     assert info["klippy_connected"] is True
     assert info["klippy_version"] == info["version"]
     assert "mcu" in info["sensor_firmware"]
+    cfg = (stack.PROJECT / "config" / "printer.cfg").read_text()
+    declared = sorted(line.strip("[]") for line in cfg.splitlines()
+                      if line.startswith("[") and line.strip("[]").split()[0] in (
+                          "flow_sensor", "flowrate_limiter", "autotemp",
+                          "diff_ab_calibrate", "endstop_calibrate"))
+    assert declared and info["sections"] == declared
 
 
 def test_sensor_firmware_check_matches_the_built_dictionary(full_stack, klipper_build):
