@@ -171,6 +171,12 @@ class Venv:
     def freeze(self, which: str) -> Dict[str, str]:
         return json.loads((self.path / f"freeze-{which}.json").read_text())
 
+    def moved_by_flowloop(self) -> Dict[str, tuple]:
+        """Host packages installing flowloop changed: {name: (was, is)}."""
+        host, after = self.freeze("host"), self.freeze("flowloop")
+        return {name: (was, after.get(name)) for name, was in host.items()
+                if after.get(name) != was}
+
 
 def _freeze(python: Path) -> Dict[str, str]:
     out = _run([str(python), "-m", "pip", "list", "--format=json",
