@@ -21,7 +21,7 @@ import math
 import os
 import re
 from pathlib import Path
-from typing import Dict, List, Optional, Set, Tuple, Union
+from typing import Dict, List, Optional, Sequence, Set, Tuple, Union
 
 from .errors import FlowloopError
 
@@ -240,3 +240,32 @@ def _file_sets(path: Path, section: str, option: str) -> bool:
         if match and match.group("option").strip().lower() == option.lower():
             return True
     return False
+
+
+def save_plan(main_config: str, items: Sequence[Tuple[str, str, str]]
+              ) -> Tuple[List[Tuple[str, str, str]], List[str]]:
+    """Split (section, option, value) items for SAVE_CONFIG.
+
+    Returns the items SAVE_CONFIG can store, and the lines telling the user
+    what to paste by hand for the others: SAVE_CONFIG refuses to save an
+    option that an included file sets.
+    """
+    stageable: List[Tuple[str, str, str]] = []
+    by_file: Dict[str, List[Tuple[str, str, str]]] = {}
+    for item in items:
+        files = included_definitions(main_config, item[0], item[1])
+        if files:
+            by_file.setdefault(", ".join(files), []).append(item)
+        else:
+            stageable.append(item)
+    lines = []
+    for files, pasted in by_file.items():
+        lines.append(f"{files} sets these, which SAVE_CONFIG cannot change;"
+                     " paste them there:")
+        section = None
+        for item_section, option, value in pasted:
+            if item_section != section:
+                section = item_section
+                lines.append(f"  [{section}]")
+            lines.append(f"  {option}: {value}")
+    return stageable, lines

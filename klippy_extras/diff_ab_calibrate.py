@@ -8,10 +8,9 @@
 # applied at runtime and staged for SAVE_CONFIG.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
-import logging
 import re
 
-from flowloop import diff_ab, klipper_config
+from flowloop import diff_ab
 from flowloop.errors import FlowloopError
 
 MAX_DISTANCES = 9
@@ -24,7 +23,7 @@ SAMPLE_PERIOD_S = 1.
 class DiffABCalibrate:
     def __init__(self, config):
         self.printer = config.get_printer()
-        self.printer.load_object(config, 'flowloop')
+        self.host = self.printer.load_object(config, 'flowloop')
         self.name = config.get_name()
         self.kinematics = config.getsection('printer').get(
             'kinematics', '').strip()
@@ -121,36 +120,26 @@ class DiffABCalibrate:
             for stepper in self.steppers[result.axis]:
                 old = stepper.get_rotation_distance()[0]
                 changes.append((stepper, old, old * result.fit.scale))
-        config_file = self.printer.get_start_args().get('config_file')
-        included = {}
-        for stepper, _old, _new in changes:
-            try:
-                included[stepper.get_name()] = klipper_config.included_definitions(
-                    config_file, stepper.get_name(), 'rotation_distance')
-            except (FlowloopError, OSError) as e:
-                logging.warning("diff_ab_calibrate: cannot read %s: %s",
-                                config_file, e)
-                included[stepper.get_name()] = []
-        return calibration, changes, included
+        return calibration, changes
 
-    def _apply(self, changes, included):
+    def _apply(self, changes):
+        """Apply now, stage for SAVE_CONFIG: (staged, lines to paste)."""
         self.toolhead.flush_step_generation()
         for stepper, _old, new in changes:
             stepper.set_rotation_distance(new)
         # The axes' positions no longer match the new scale: home again.
         self.toolhead.get_kinematics().clear_homing_state('xy')
-        for stepper, _old, new in changes:
-            if not included[stepper.get_name()]:
-                self.configfile.set(stepper.get_name(), 'rotation_distance',
-                                    f"{new:.6f}")
+        return self.host.stage_for_save_config(
+            [(stepper.get_name(), 'rotation_distance', f"{new:.6f}")
+             for stepper, _old, new in changes])
 
     cmd_DIFF_AB_CALIBRATE_help = (
         "Set A/B (X/Y) rotation_distance from pylon caliper readings:"
         " A1=.. A2=.. B1=.. B2=.. [D1=10 D2=150] [FORCE=1]")
 
     def cmd_DIFF_AB_CALIBRATE(self, gcmd):
-        calibration, changes, included = self._plan(gcmd)
-        self._apply(changes, included)
+        calibration, changes = self._plan(gcmd)
+        staged, paste = self._apply(changes)
         self.history = diff_ab.append_history(
             self.history, calibration)[-HISTORY_LENGTH:]
         self.last_result = calibration.as_dict()
@@ -158,17 +147,8 @@ class DiffABCalibrate:
         for stepper, old, new in changes:
             lines.append(f"{stepper.get_name()}: rotation_distance"
                          f" {old:.6f} -> {new:.6f} (applied now)")
-        pasted = [(s, new) for s, _old, new in changes
-                  if included[s.get_name()]]
-        if pasted:
-            files = sorted({f for s, _new in pasted
-                            for f in included[s.get_name()]})
-            lines.append(f"rotation_distance is set in {', '.join(files)},"
-                         " which SAVE_CONFIG cannot change; paste there:")
-            for stepper, new in pasted:
-                lines.append(f"  [{stepper.get_name()}]")
-                lines.append(f"  rotation_distance: {new:.6f}")
-        if len(pasted) < len(changes):
+        lines += paste
+        if staged:
             lines.append("Run SAVE_CONFIG to keep the new values.")
         lines.append("X and Y are no longer homed: run G28 before moving.")
         gcmd.respond_info("\n".join(lines))

@@ -23,7 +23,7 @@ OWN_PARAMS = ('SAMPLES', 'RADIUS', 'TOLERANCE')
 class EndstopCalibrate:
     def __init__(self, config):
         self.printer = config.get_printer()
-        self.printer.load_object(config, 'flowloop')
+        self.host = self.printer.load_object(config, 'flowloop')
         self.name = config.get_name()
         kinematics = config.getsection('printer').get('kinematics', '')
         if kinematics.strip() != 'delta':
@@ -142,9 +142,8 @@ class EndstopCalibrate:
         tolerance = active['tolerance']
         check = delta.check_flatness(solution.heights_before_mm, tolerance)
         staged = not check.within_tolerance
-        if staged:
-            self._stage(solution.position_endstop)
-        self._report(solution, check, staged)
+        paste = self._stage(solution.position_endstop) if staged else []
+        self._report(solution, check, staged, paste)
         self.last_result = {
             'mode': 'verify' if self.verify_mode else 'calibrate',
             'points': len(medians),
@@ -164,12 +163,14 @@ class EndstopCalibrate:
                      solution.heights_before_mm, solution.heights_after_mm)
 
     def _stage(self, endstops):
-        for name, value in zip(TOWERS, endstops):
-            self.configfile.set(name, 'position_endstop', f"{value:.6f}")
-        self.configfile.set(self.name, 'calibrated_position_endstop',
-                            ", ".join(f"{v:.6f}" for v in endstops))
+        """Stage for SAVE_CONFIG; return the lines to paste by hand, if any."""
+        items = [(name, 'position_endstop', f"{value:.6f}")
+                 for name, value in zip(TOWERS, endstops)]
+        items.append((self.name, 'calibrated_position_endstop',
+                      ", ".join(f"{v:.6f}" for v in endstops)))
+        return self.host.stage_for_save_config(items)[1]
 
-    def _report(self, solution, check, staged):
+    def _report(self, solution, check, staged, paste):
         mode = "verify" if self.verify_mode else "calibrate"
         lines = [f"ENDSTOP_CALIBRATE ({mode}):"
                  f" {len(solution.heights_before_mm)} points,"
@@ -201,6 +202,7 @@ class EndstopCalibrate:
         else:
             lines.append(f"Already within {check.tolerance_mm:.4f} mm;"
                          " nothing staged.")
+        lines += paste
         self.gcode.respond_info("\n".join(lines))
 
     def get_status(self, eventtime):

@@ -26,6 +26,12 @@ REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: install "
                "(cd ~/klipper; make menuconfig; make flash)")
 
 
+def _staged_note(paste):
+    if paste:
+        return " (applied; SAVE_CONFIG stores all but what is listed to paste)"
+    return " (applied and staged: SAVE_CONFIG to keep)"
+
+
 class FlowSensor:
     def __init__(self, config):
         self.printer = printer = config.get_printer()
@@ -443,11 +449,11 @@ class FlowSensor:
             raise gcmd.error(
                 f"flow_sensor {self.name}: {e}; calibration unchanged") from None
         old = self.grip.calibration
-        self._set_calibration(fit.calibration)
-        gcmd.respond_info(
-            f"flow_sensor {self.name}: {fit.describe()}\n"
+        paste = self._set_calibration(fit.calibration)
+        gcmd.respond_info("\n".join([
+            f"flow_sensor {self.name}: {fit.describe()}",
             f"calibration {old:.5f} -> {fit.calibration:.5f}"
-            " (staged: SAVE_CONFIG to keep it)")
+            + _staged_note(paste)] + paste))
 
     cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE_help = (
         "Correct the extruder rotation_distance from what the sensor measured")
@@ -468,24 +474,27 @@ class FlowSensor:
         gcode.run_script_from_command(
             f"SET_EXTRUDER_ROTATION_DISTANCE EXTRUDER={self.extruder_name}"
             f" DISTANCE={change.rotation_distance:.6f}")
-        configfile = self.printer.lookup_object('configfile')
-        configfile.set(self.extruder_name, 'rotation_distance',
-                       f"{change.rotation_distance:.6f}")
         old_cal = self.grip.calibration
-        self._set_calibration(change.calibration)
-        gcmd.respond_info(
+        paste = self._set_calibration(change.calibration, [
+            (self.extruder_name, 'rotation_distance',
+             f"{change.rotation_distance:.6f}")])
+        gcmd.respond_info("\n".join([
             f"flow_sensor {self.name}: commanded {commanded:.3f} mm, sensor"
-            f" measured {measured:.3f} mm (ratio {change.ratio:.5f})\n"
+            f" measured {measured:.3f} mm (ratio {change.ratio:.5f})",
             f"{self.extruder_name} rotation_distance {old_rd:.6f} ->"
             f" {change.rotation_distance:.6f}, sensor calibration"
             f" {old_cal:.5f} -> {change.calibration:.5f}"
-            " (staged: SAVE_CONFIG to keep them)")
+            + _staged_note(paste)] + paste))
 
-    def _set_calibration(self, calibration):
+    def _set_calibration(self, calibration, also_stage=()):
+        """Use a new calibration now and stage it (with also_stage) for
+        SAVE_CONFIG; return the lines to paste for values in included files."""
         self.grip.calibration = calibration
         self.grip.reset()
-        configfile = self.printer.lookup_object('configfile')
-        configfile.set(self.section, 'calibration', f"{calibration:.6f}")
+        host = self.printer.lookup_object('flowloop')
+        return host.stage_for_save_config(
+            [(self.section, 'calibration', f"{calibration:.6f}")]
+            + list(also_stage))[1]
 
     def _parse_speeds(self, gcmd, text):
         try:

@@ -7,8 +7,10 @@
 # sends the active profiles through the flowloop/set_active_profile endpoint.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
+import logging
+
 import flowloop
-from flowloop import ems22
+from flowloop import ems22, klipper_config
 from flowloop import profile as fl_profile
 from flowloop.errors import FlowloopError
 
@@ -28,6 +30,25 @@ class FlowloopHost:
         webhooks = self.printer.lookup_object('webhooks')
         webhooks.register_endpoint('flowloop/set_active_profile',
                                    self._handle_set_active_profile)
+
+    def stage_for_save_config(self, items):
+        """Stage (section, option, value) items for SAVE_CONFIG.
+
+        Values that an included file sets cannot be saved (SAVE_CONFIG would
+        refuse them all): those are left out. Returns (staged items, lines
+        telling the user what to paste where).
+        """
+        config_file = self.printer.get_start_args().get('config_file')
+        try:
+            stageable, paste = klipper_config.save_plan(config_file, items)
+        except (FlowloopError, OSError) as e:
+            logging.warning("flowloop: cannot read %s (%s); staging all",
+                            config_file, e)
+            stageable, paste = list(items), []
+        configfile = self.printer.lookup_object('configfile')
+        for section, option, value in stageable:
+            configfile.set(section, option, value)
+        return stageable, paste
 
     def _handle_connect(self):
         for name, mcu in self.printer.lookup_objects('mcu'):

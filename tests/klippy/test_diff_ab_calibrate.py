@@ -49,8 +49,8 @@ def test_values_from_an_included_file_are_printed_to_paste(
     log = run_file(HERE / "diff_ab_calibrate_cartesian.test", klipper_build,
                    klippy_venv, short_tmp)
     included = str((HERE / "diff_ab_calibrate_cartesian_y.cfg").resolve())
-    assert (f"rotation_distance is set in {included}, which SAVE_CONFIG cannot "
-            "change; paste there:") in log
+    assert (f"{included} sets these, which SAVE_CONFIG cannot change; paste "
+            "them there:") in log
     assert "  [stepper_y1]\n  rotation_distance: 32.250600" in log
     assert "save_config: set [stepper_y" not in log
     assert "X and Y are no longer homed: run G28 before moving." in log

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from flowloop import klipper_config
 from flowloop.errors import FlowloopError
 from flowloop.klipper_config import AUTOSAVE_HEADER, parse_config, read_config
 
@@ -152,3 +153,18 @@ def test_same_values_as_klippys_reader(tmp_path_factory, regular, block):
     ours = parse_config(text)
     theirs = klippy_reader(text, tmp_path_factory.mktemp("k"))
     assert {s: ours.options(s) for s in ours.sections()} == theirs
+
+
+def test_save_plan_leaves_included_values_to_paste(tmp_path):
+    (tmp_path / "steppers.cfg").write_text(
+        "[stepper_a]\nposition_endstop: 300\n[stepper_b]\nstep_pin: PA1\n")
+    main = tmp_path / "printer.cfg"
+    main.write_text("[include steppers.cfg]\n[stepper_b]\nposition_endstop: 301\n")
+    items = [("stepper_a", "position_endstop", "300.5"),
+             ("stepper_b", "position_endstop", "300.7"),
+             ("endstop_calibrate", "calibrated_position_endstop", "1, 2, 3")]
+    staged, paste = klipper_config.save_plan(str(main), items)
+    assert staged == items[1:]
+    assert paste == [f"{(tmp_path / 'steppers.cfg').resolve()} sets these, which "
+                     "SAVE_CONFIG cannot change; paste them there:",
+                     "  [stepper_a]", "  position_endstop: 300.5"]
