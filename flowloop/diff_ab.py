@@ -356,21 +356,49 @@ def calibrate(kinematics: str,
     return Calibration(kinematics=kin, a=results["a"], b=results["b"])
 
 
-def reading_sets(nominals: Sequence[float],
-                 readings: Sequence, axis: str) -> List[ReadingSet]:
-    """Pair nominal distances with reading lists (strings or numbers)."""
+MAX_DISTANCES = 9  # D1..D9: a row of up to 10 pylons
+
+
+def numbered_reading_sets(axis: str, readings: Dict[int, str],
+                          nominals: Dict[int, float]) -> List[ReadingSet]:
+    """Reading sets from numbered parameters: readings[k] is what A<k>= (or
+    B<k>=) gave, nominals[k] the distance D<k> (given or default)."""
+    name = axis.upper()
+    for k in (1, 2):
+        if k not in readings:
+            raise FlowloopError(f"{name}{k}=<readings> is missing")
+    for k in readings:
+        if not 1 <= k <= MAX_DISTANCES:
+            raise FlowloopError(f"{name}{k}: distances are numbered 1 to "
+                                f"{MAX_DISTANCES}")
+        if nominals.get(k) is None:
+            raise FlowloopError(f"{name}{k} needs D{k}=<nominal distance>")
+    ks = sorted(readings)
+    return reading_sets([nominals[k] for k in ks], [readings[k] for k in ks], axis,
+                        numbers=ks)
+
+
+def check_nominals_used(given: Sequence[int], used: Sequence[int]) -> None:
+    """A D<k> given without A<k> or B<k> readings is a typo, not a default."""
+    for k in sorted(set(given) - set(used)):
+        raise FlowloopError(f"D{k} is given but neither A{k} nor B{k} readings")
+
+
+def reading_sets(nominals: Sequence[float], readings: Sequence, axis: str,
+                 numbers: Optional[Sequence[int]] = None) -> List[ReadingSet]:
+    """Pair nominal distances with reading lists (strings or numbers);
+    numbers are the user's names for them (D<k>, A<k>), default 1, 2, ..."""
     if len(nominals) != len(readings):
         raise FlowloopError(f"{axis.upper()}: {len(readings)} reading sets for "
                             f"{len(nominals)} distances")
-    for i, (low, high) in enumerate(zip(nominals, nominals[1:]), start=1):
+    numbers = list(numbers or range(1, len(nominals) + 1))
+    for i in range(1, len(nominals)):
+        low, high = nominals[i - 1], nominals[i]
         if not high > low:
-            raise FlowloopError(f"D{i + 1} ({high:g} mm) must be greater than "
-                                f"D{i} ({low:g} mm)")
-    sets = []
-    for i, (nominal, values) in enumerate(zip(nominals, readings), start=1):
-        sets.append(ReadingSet(float(nominal),
-                               parse_readings(values, f"{axis.upper()}{i}")))
-    return sets
+            raise FlowloopError(f"D{numbers[i]} ({high:g} mm) must be greater than "
+                                f"D{numbers[i - 1]} ({low:g} mm)")
+    return [ReadingSet(float(nominal), parse_readings(values, f"{axis.upper()}{k}"))
+            for k, nominal, values in zip(numbers, nominals, readings)]
 
 
 # --- iteration history -----------------------------------------------------

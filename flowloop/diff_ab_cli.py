@@ -13,7 +13,8 @@ from pathlib import Path
 from . import diff_ab, pylons
 from .errors import FlowloopError
 
-EXTRA_DISTANCES = (3, 4, 5, 6)   # --a3/--b3/--d3 ... for rows of more pylons
+# --a3/--b3/--d3 ... for rows of more pylons
+EXTRA_DISTANCES = tuple(range(3, diff_ab.MAX_DISTANCES + 1))
 
 
 def register(subparsers) -> None:
@@ -63,23 +64,21 @@ def _register_calibrate(subparsers) -> None:
 
 
 def _axis_sets(args, axis: str):
-    nominals, readings = [args.d1, args.d2], [getattr(args, f"{axis}1"),
-                                              getattr(args, f"{axis}2")]
-    for k in EXTRA_DISTANCES:
-        values, nominal = getattr(args, f"{axis}{k}"), getattr(args, f"d{k}")
-        if values is None:
-            continue
-        if nominal is None:
-            raise FlowloopError(f"--{axis}{k} needs --d{k}")
-        nominals.append(nominal)
-        readings.append(values)
-    return diff_ab.reading_sets(nominals, readings, axis)
+    ks = (1, 2) + EXTRA_DISTANCES
+    nominals = {k: getattr(args, f"d{k}") for k in ks}
+    readings = {k: getattr(args, f"{axis}{k}") for k in ks
+                if getattr(args, f"{axis}{k}") is not None}
+    return diff_ab.numbered_reading_sets(axis, readings, nominals)
 
 
 def calibration_from_args(args) -> diff_ab.Calibration:
     budget = diff_ab.ErrorBudget(caliper_accuracy_mm=args.caliper_accuracy,
                                  caliper_range_mm=args.caliper_range,
                                  reading_error_mm=args.reading_error)
+    ks = (1, 2) + EXTRA_DISTANCES
+    diff_ab.check_nominals_used(
+        [k for k in EXTRA_DISTANCES if getattr(args, f"d{k}") is not None],
+        [k for k in ks for axis in "ab" if getattr(args, f"{axis}{k}") is not None])
     return diff_ab.calibrate(args.kinematics,
                              diff_ab.check_rotation_distance(
                                  args.rotation_distance_a, "--rotation-distance-a"),

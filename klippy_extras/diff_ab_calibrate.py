@@ -13,7 +13,6 @@ import re
 from flowloop import diff_ab
 from flowloop.errors import FlowloopError
 
-MAX_DISTANCES = 9
 AXIS_STEPPER_RE = {'a': re.compile(r'^stepper_x\d*$'),
                    'b': re.compile(r'^stepper_y\d*$')}
 HISTORY_LENGTH = 10
@@ -75,23 +74,21 @@ class DiffABCalibrate:
 
     # --- DIFF_AB_CALIBRATE ------------------------------------------------
 
-    def _reading_sets(self, gcmd, axis):
-        nominals, readings = [], []
-        for k in range(1, MAX_DISTANCES + 1):
-            name = f"{axis.upper()}{k}"
-            values = gcmd.get(name, None)
-            default = {1: self.d1, 2: self.d2}.get(k)
-            nominal = gcmd.get_float(f"D{k}", default, above=0.)
-            if values is None:
-                if k <= 2:
-                    raise gcmd.error(
-                        f"DIFF_AB_CALIBRATE needs {name}=<readings>")
-                break
-            if nominal is None:
-                raise gcmd.error(f"{name} needs D{k}=<nominal distance>")
-            nominals.append(nominal)
-            readings.append(values)
-        return diff_ab.reading_sets(nominals, readings, axis)
+    def _reading_sets(self, gcmd):
+        """Both axes' reading sets from A<k>=, B<k>=, D<k>= (k = 1..9)."""
+        ks = range(1, diff_ab.MAX_DISTANCES + 1)
+        nominals = {1: self.d1, 2: self.d2}
+        nominals.update({k: gcmd.get_float(f"D{k}", above=0.) for k in ks
+                         if gcmd.get(f"D{k}", None) is not None})
+        readings = {axis: {k: gcmd.get(f"{axis.upper()}{k}") for k in ks
+                           if gcmd.get(f"{axis.upper()}{k}", None) is not None}
+                    for axis in 'ab'}
+        sets = {axis: diff_ab.numbered_reading_sets(axis, readings[axis], nominals)
+                for axis in 'ab'}
+        diff_ab.check_nominals_used(
+            [k for k in ks if gcmd.get(f"D{k}", None) is not None],
+            set(readings['a']) | set(readings['b']))
+        return sets['a'], sets['b']
 
     def _rotation_distance(self, axis):
         steppers = self.steppers[axis]
@@ -108,9 +105,10 @@ class DiffABCalibrate:
         except FlowloopError as e:
             raise gcmd.error(f"DIFF_AB_CALIBRATE: {e}") from None
         try:
+            sets_a, sets_b = self._reading_sets(gcmd)
             calibration = diff_ab.calibrate(
                 kin, self._rotation_distance('a'), self._rotation_distance('b'),
-                self._reading_sets(gcmd, 'a'), self._reading_sets(gcmd, 'b'),
+                sets_a, sets_b,
                 budget=self.budget, max_scale_change=self.max_scale_change,
                 force=bool(force), force_hint="FORCE=1")
         except FlowloopError as e:

@@ -18,7 +18,7 @@ HERE = Path(__file__).resolve().parent
     ("delta", "kinematics 'delta' is not supported: differential A/B calibration "
               "needs corexy or cartesian"),
     ("fail_bad_reading", "A1: 'abc' is not a number"),
-    ("fail_missing_b", "DIFF_AB_CALIBRATE needs B2=<readings>"),
+    ("fail_missing_b", "DIFF_AB_CALIBRATE: B2=<readings> is missing"),
     ("fail_scale", "A: scale 1.02857 is +2.86 % from 1, more than 2 %"),
     ("fail_order", "D2 (10 mm) must be greater than D1 (150 mm)"),
     ("fail_shrunk", "B: readings must grow with the nominal distance"),

@@ -400,7 +400,9 @@ def test_cli_human_report_and_history(capsys, tmp_path):
     (["--rotation-distance-a", "-1"], "--rotation-distance-a must be a positive"),
     (["--a2", "154"], "A: scale .* add --force"),
     (["--d2", "10"], "D2 .* must be greater than D1"),
-    (["--a3", "80"], "--a3 needs --d3"),
+    (["--a3", "80"], "A3 needs D3=<nominal distance>"),
+    (["--d4", "80"], "D4 is given but neither A4 nor B4 readings"),
+    (["--a9", "1", "--d9", "1"], "D9 .* must be greater than D2"),
 ])
 def test_cli_bad_input_exits_with_one_line(capsys, change, message):
     args = list(ARGS)
