@@ -74,6 +74,15 @@ def run_steps(ctx: DemoContext, only: Optional[str] = None) -> int:
     return failed
 
 
+def _stop_on_signals() -> None:
+    """Ctrl-C (and a plain kill) end the demo through its cleanup, even when
+    started from a shell that made SIGINT ignored for background jobs."""
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="make demo",
                                      description=__doc__.split("\n")[0])
@@ -82,6 +91,7 @@ def main(argv=None) -> int:
     parser.add_argument("--step", choices=[name for name, _ in demo_steps()],
                         help="run only this feature's step")
     args = parser.parse_args(argv)
+    _stop_on_signals()
     reason = stack.missing_klipper_reason()
     if reason:
         print("!!! " + reason, flush=True)
@@ -103,9 +113,13 @@ def main(argv=None) -> int:
             try:
                 signal.pause()
             except KeyboardInterrupt:
-                print("\nstopping klippy and Moonraker...")
+                print("\nstopping klippy and Moonraker...", flush=True)
     return 1 if failed else 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # while starting: the stack has cleaned up
+        print("\nstopped", flush=True)
+        sys.exit(130)
