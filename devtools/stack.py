@@ -243,8 +243,11 @@ class Process:
         self.name = name
         self.log_path = log_path
         self._out = open(log_path.with_suffix(".stdout"), "wb")
+        # Own session: a terminal's Ctrl-C reaches only the supervisor, which
+        # stops each child by pid (Moonraker hit by SIGINT hangs on SIGTERM).
         self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, **kw)
+                                     stdin=subprocess.DEVNULL,
+                                     start_new_session=True, **kw)
         self.pid = self.proc.pid
 
     def alive(self) -> bool:
