@@ -296,10 +296,16 @@ def time_shift_for(mcu_freq: float, span_s: float = 0.002) -> int:
 
 def sample_clocks(samples: Samples, start_clock: int, rest_ticks: int,
                   time_shift: int) -> np.ndarray:
-    """MCU clock of each record's read (scheduled time + tcode)."""
+    """MCU clock of each record's read (scheduled time + tcode).
+
+    The MCU truncates the delay to tcode << time_shift (no rounding: it
+    costs flash), so the read lies in the next 1 << time_shift ticks: take
+    the middle of that span.
+    """
     tcode = np.where(samples.tcode == TCODE_ERROR, 0, samples.tcode)
+    centre = (1 << time_shift) / 2.0 if time_shift else 0.0
     return (start_clock + samples.index * rest_ticks
-            + (tcode << time_shift)).astype(np.float64)
+            + (tcode << time_shift) + centre).astype(np.float64)
 
 
 def check_spi_speed(speed_hz: int) -> None:

@@ -24,14 +24,13 @@
 
 struct ems22 {
     struct timer timer;
-    uint32_t rest_ticks, spi_ticks;
+    uint32_t rest_ticks;
     struct spidev_s *spi;
     uint16_t next_index;
-    uint8_t flags, time_shift, overflow, batch_records, max_records;
+    // Timer events not yet read: more than one means the task fell behind
+    uint8_t pending, time_shift, max_bytes;
     struct sensor_bulk sb;
 };
-
-enum { EF_PENDING = 1 };
 
 static struct task_wake ems22_wake;
 
@@ -40,10 +39,8 @@ static uint_fast8_t
 ems22_event(struct timer *timer)
 {
     struct ems22 *e = container_of(timer, struct ems22, timer);
-    if (e->flags & EF_PENDING)
-        e->overflow++;
-    else
-        e->flags |= EF_PENDING;
+    if (e->pending < 255)
+        e->pending++;
     sched_wake_task(&ems22_wake);
     e->timer.waketime += e->rest_ticks;
     return SF_RESCHEDULE;
@@ -60,42 +57,35 @@ command_config_ems22(uint32_t *args)
 }
 DECL_COMMAND(command_config_ems22, "config_ems22 oid=%c spi_oid=%c");
 
-static void
-ems22_flush(struct ems22 *e, uint8_t oid)
-{
-    if (e->sb.data_count > EMS22_HEADER_BYTES)
-        sensor_bulk_report(&e->sb, oid);
-    e->sb.data_count = 0;
-}
-
 // Append one record; a new message starts with the index of its first record
 static void
-ems22_add(struct ems22 *e, uint8_t oid, uint_fast8_t tcode, const uint8_t *raw)
+ems22_add(struct ems22 *e, uint8_t oid, uint_fast8_t tcode, uint_fast8_t r0
+          , uint_fast8_t r1, uint_fast8_t r2)
 {
     struct sensor_bulk *sb = &e->sb;
     if (!sb->data_count) {
         sb->data[0] = e->next_index;
         sb->data[1] = e->next_index >> 8;
         sb->data_count = EMS22_HEADER_BYTES;
-        e->batch_records = 0;
     }
     uint8_t *d = &sb->data[sb->data_count];
     d[0] = tcode;
-    d[1] = raw[0];
-    d[2] = raw[1];
-    d[3] = raw[2];
+    d[1] = r0;
+    d[2] = r1;
+    d[3] = r2;
     sb->data_count += EMS22_RECORD_BYTES;
     e->next_index++;
     // Send when full, or when the oldest record would be too old by next poll
-    if (++e->batch_records >= e->max_records)
-        ems22_flush(e, oid);
+    if (sb->data_count >= e->max_bytes) {
+        sensor_bulk_report(sb, oid);
+        sb->data_count = 0;
+    }
 }
 
 static void
 ems22_add_error(struct ems22 *e, uint8_t oid, uint_fast8_t code)
 {
-    uint8_t raw[EMS22_READ_BYTES] = { code, 0, 0 };
-    ems22_add(e, oid, EMS22_TCODE_ERROR, raw);
+    ems22_add(e, oid, EMS22_TCODE_ERROR, code, 0, 0);
 }
 
 // One SPI read of 24 clocks (the chip takes no command: DI idles).
@@ -108,7 +98,7 @@ ems22_read(struct ems22 *e, uint8_t *raw, uint32_t *mtime)
     spidev_transfer(e->spi, 1, EMS22_READ_BYTES, raw);
     uint32_t mtime2 = timer_read_time();
     *mtime = mtime1;
-    return mtime2 - mtime1 <= e->spi_ticks;
+    return mtime2 - mtime1 <= timer_from_us(MAX_SPI_READ_US);
 }
 
 // Frames are checked on the host: which bits hold the frame depends on the
@@ -122,14 +112,12 @@ ems22_sample(struct ems22 *e, uint8_t oid, uint32_t stime)
         ems22_add_error(e, oid, EMS22_ERR_SPI_TIME);
         return;
     }
-    uint32_t tdiff = mtime - stime;
-    if (e->time_shift)
-        tdiff = (tdiff + (1 << (e->time_shift - 1))) >> e->time_shift;
+    uint32_t tdiff = (mtime - stime) >> e->time_shift;
     if (tdiff >= EMS22_TCODE_ERROR) {
         ems22_add_error(e, oid, EMS22_ERR_SCHEDULE);
         return;
     }
-    ems22_add(e, oid, tdiff, raw);
+    ems22_add(e, oid, tdiff, raw[0], raw[1], raw[2]);
 }
 
 void
@@ -138,24 +126,24 @@ command_query_ems22(uint32_t *args)
     uint8_t oid = args[0];
     struct ems22 *e = oid_lookup(oid, command_config_ems22);
     sched_del_timer(&e->timer);
-    e->flags = 0;
-    e->overflow = 0;
+    e->pending = 0;
     if (!args[2])
         // End measurements
         return;
     e->timer.waketime = args[1];
     e->rest_ticks = args[2];
     e->time_shift = args[3];
-    e->spi_ticks = timer_from_us(MAX_SPI_READ_US);
     // Records per message: as many as fit, unless the first would then wait
     // MAX_BATCH_AGE_US or more (counted once here: no division on the MCU)
-    uint32_t max_age = timer_from_us(MAX_BATCH_AGE_US), age = e->rest_ticks;
-    uint8_t count = 1;
-    while (count < EMS22_RECORDS_PER_MSG && age < max_age) {
-        age += e->rest_ticks;
-        count++;
+    uint32_t rest_ticks = args[2], age = rest_ticks;
+    uint8_t max_bytes = EMS22_HEADER_BYTES + EMS22_RECORD_BYTES;
+    while (max_bytes < EMS22_HEADER_BYTES
+                       + EMS22_RECORDS_PER_MSG * EMS22_RECORD_BYTES
+           && age < timer_from_us(MAX_BATCH_AGE_US)) {
+        age += rest_ticks;
+        max_bytes += EMS22_RECORD_BYTES;
     }
-    e->max_records = count;
+    e->max_bytes = max_bytes;
     e->next_index = 0;
     sensor_bulk_reset(&e->sb);
     sched_add_timer(&e->timer);
@@ -171,13 +159,12 @@ ems22_task(void)
     uint8_t oid;
     struct ems22 *e;
     foreach_oid(oid, e, command_config_ems22) {
-        if (!(e->flags & EF_PENDING))
+        if (!e->pending)
             continue;
         irq_disable();
         uint32_t stime = e->timer.waketime;
-        uint_fast8_t overflow = e->overflow;
-        e->flags = 0;
-        e->overflow = 0;
+        uint_fast8_t overflow = e->pending - 1;
+        e->pending = 0;
         irq_enable();
         // Missed events take the earlier record slots; the read now belongs
         // to the latest event (waketime already points at the next one)
