@@ -439,7 +439,10 @@ class FlowSensor:
                                     minval=0.001, maxval=0.2)
         self._check_extruder(gcmd)
         commanded, measured = [], []
-        for speed in speeds:
+        for i, speed in enumerate(speeds):
+            gcmd.respond_info(
+                f"flow_sensor {self.name}: extruding {length:g} mm at {speed:g}"
+                f" mm/s ({i + 1} of {len(speeds)}, about {length / speed:.0f} s)")
             c, m = self._measure_extrusion(length, speed)
             commanded.append(c)
             measured.append(m)
@@ -464,6 +467,8 @@ class FlowSensor:
         self._check_extruder(gcmd)
         stepper = self.extruder.extruder_stepper.stepper
         old_rd = stepper.get_rotation_distance()[0]
+        gcmd.respond_info(f"flow_sensor {self.name}: extruding {length:g} mm at"
+                          f" {speed:g} mm/s (about {length / speed:.0f} s)")
         commanded, measured = self._measure_extrusion(length, speed)
         try:
             change = flow_grip.rotation_distance_correction(
