@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import subprocess
-import sys
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence
 
@@ -106,6 +105,21 @@ def drop_block(text: str, block_id: str) -> str:
     return text[:start] + text[stop:]
 
 
+def _stale_links(changes: List[Change], folder: Path, source: Path,
+                 current: Sequence[Path]) -> None:
+    """Links into the flowloop checkout that no current file backs (modules an
+    older flowloop had): removed by install and uninstall alike."""
+    if not folder.is_dir():
+        return
+    for path in sorted(folder.iterdir()):
+        if not path.is_symlink() or path.name in {p.name for p in current}:
+            continue
+        target = os.readlink(path)
+        if Path(target).is_absolute() and source in Path(target).parents:
+            changes.append(Change(path, f"remove stale link {path}",
+                                  unlink_from=target))
+
+
 def _line_offset(text: str, line: str, path: Path, after: int = 0) -> int:
     for offset in _line_starts(text, after):
         if text.startswith(line, offset):
@@ -133,14 +147,14 @@ class Change:
     path: Path
     what: str
     new_text: Optional[str] = None      # write this text
-    old_text: Optional[str] = None
+    old_text: Optional[str] = None      # what it replaces (None: a new file)
     link_to: Optional[Path] = None      # create this symlink
-    unlink: bool = False                # remove the symlink at path
+    unlink_from: Optional[str] = None   # remove the symlink, which points here
 
     def apply(self) -> None:
         if self.link_to is not None:
             os.symlink(self.link_to, self.path)
-        elif self.unlink:
+        elif self.unlink_from is not None:
             os.unlink(self.path)
         else:
             _write_atomic(self.path, self.new_text)
@@ -149,8 +163,8 @@ class Change:
         if self.link_to is not None or (self.new_text is not None
                                         and self.old_text is None):
             os.unlink(self.path)  # it did not exist before
-        elif self.unlink:
-            os.symlink(self.old_text, self.path)
+        elif self.unlink_from is not None:
+            os.symlink(self.unlink_from, self.path)
         else:
             _write_atomic(self.path, self.old_text)
 
@@ -206,8 +220,7 @@ def _link(changes: List[Change], path: Path, target: Path, uninstall: bool) -> N
         raise InstallError(f"{path} exists and is not flowloop's link to {target}; "
                            f"move it away first")
     if uninstall and ours:
-        changes.append(Change(path, f"remove link {path}", unlink=True,
-                              old_text=str(target)))
+        changes.append(Change(path, f"remove link {path}", unlink_from=str(target)))
     elif not uninstall and not ours:
         changes.append(Change(path, f"link {path} -> {target}", link_to=target))
 
@@ -251,9 +264,12 @@ def git_exclude_file(tree: Path) -> Optional[Path]:
     dotgit = tree / ".git"
     if dotgit.is_dir():
         return dotgit / "info" / "exclude"
-    if dotgit.is_file():  # a worktree: "gitdir: PATH"
-        gitdir = dotgit.read_text().partition("gitdir:")[2].strip()
-        return (tree / gitdir).resolve() / "info" / "exclude"
+    if dotgit.is_file():  # a worktree: "gitdir: PATH"; excludes live in the
+        gitdir = (tree / dotgit.read_text().partition("gitdir:")[2].strip()).resolve()
+        common = gitdir / "commondir"  # main repository's git dir
+        if common.is_file():
+            gitdir = (gitdir / common.read_text().strip()).resolve()
+        return gitdir / "info" / "exclude"
     return None
 
 
@@ -287,8 +303,11 @@ def plan_klipper(klipper: Path, source: Path, uninstall: bool = False) -> List[C
     c_files = mcu_sources(source)
     for c_file in c_files:
         rel = f"src/{c_file.name}"
-        _link(changes, klipper / rel, c_file, uninstall or not c_files)
+        _link(changes, klipper / rel, c_file, uninstall)
         excluded.append(rel)
+    _stale_links(changes, klipper / "klippy" / "extras", source,
+                 klippy_modules(source))
+    _stale_links(changes, klipper / "src", source, c_files)
     makefile = klipper / "src" / "Makefile"
     kconfig = klipper / "src" / "Kconfig"
     if uninstall or not c_files:
@@ -336,12 +355,12 @@ def plan_moonraker(moonraker: Path, source: Path,
                    uninstall: bool = False) -> List[Change]:
     components = moonraker_components_dir(moonraker)
     changes: List[Change] = []
-    rels = []
-    for comp in sorted((source / "moonraker_components").glob("*.py")):
-        if comp.name.startswith("_"):
-            continue
+    comps = [comp for comp in sorted((source / "moonraker_components").glob("*.py"))
+             if not comp.name.startswith("_")]
+    for comp in comps:
         _link(changes, components / comp.name, comp, uninstall)
-        rels.append(f"moonraker/components/{comp.name}")
+    _stale_links(changes, components, source, comps)
+    rels = [f"moonraker/components/{comp.name}" for comp in comps]
     checkout = components.parent.parent
     if (checkout / ".git").exists():
         _exclude_changes(changes, checkout, rels, uninstall)
@@ -364,7 +383,9 @@ def _git_origin(source: Path) -> Optional[str]:
                               capture_output=True, text=True)
     except OSError:
         return None
-    return proc.stdout.strip() or None if proc.returncode == 0 else None
+    if proc.returncode != 0:
+        return None
+    return proc.stdout.strip() or None
 
 
 def plan_moonraker_conf(config_dir: Path, source: Path,
@@ -432,20 +453,20 @@ def plan(args, source: Path) -> List[Change]:
 def run(args) -> int:
     source = source_tree()
     changes = plan(args, source)
-    for change in changes:
-        change.check()
-    verb = "would " if args.dry_run else ""
-    for change in changes:
-        print(f"{verb}{change.what}: {change.path}")
     if not changes:
         print("nothing to do: " + ("flowloop is not installed" if args.uninstall
                                    else "flowloop is installed"))
         return 0
     if args.dry_run:
+        for change in changes:
+            change.check()
+            print(f"would {change.what}: {change.path}")
         return 0
-    apply(changes)
+    apply(changes)  # checks everything first; prints only what was done
+    for change in changes:
+        print(f"{change.what}: {change.path}")
     if not args.uninstall and mcu_sources(source):
         print("MCU: rebuild and flash Klipper's firmware to get the EMS22 sensor "
-              "command (cd ~/klipper; make menuconfig; make flash)", file=sys.stdout)
+              "command (cd ~/klipper; make menuconfig; make flash)")
     print("restart klipper and moonraker to load the change")
     return 0

@@ -277,3 +277,50 @@ def test_a_users_own_update_manager_section_is_kept(config_dir):
     conf = config_dir / "moonraker.conf"
     conf.write_text("[update_manager flowloop]\ntype: git_repo\npath: ~/mine\n")
     assert install.plan_moonraker_conf(config_dir, PROJECT) == []
+
+
+def test_links_of_a_module_an_older_flowloop_had_are_removed(klipper_tree, tmp_path):
+    """Upgrade path: a module renamed or dropped since the last install."""
+    source = tmp_path / "source"
+    shutil.copytree(PROJECT / "klippy_extras", source / "klippy_extras")
+    before = snapshot(klipper_tree)
+    (source / "klippy_extras" / "old_module.py").write_text("# gone soon\n")
+    install.apply(install.plan_klipper(klipper_tree, source.resolve()))
+    old_link = klipper_tree / "klippy" / "extras" / "old_module.py"
+    assert old_link.is_symlink()
+    (source / "klippy_extras" / "old_module.py").unlink()  # the new version
+    install.apply(install.plan_klipper(klipper_tree, source.resolve()))
+    assert not old_link.is_symlink()
+    install.apply(install.plan_klipper(klipper_tree, source.resolve(), uninstall=True))
+    assert snapshot(klipper_tree) == before
+
+
+def test_a_link_into_someone_elses_tree_is_not_stale(klipper_tree, tmp_path):
+    other = tmp_path / "other_plugin.py"
+    other.write_text("")
+    link = klipper_tree / "klippy" / "extras" / "other_plugin.py"
+    link.symlink_to(other)
+    install.apply(install.plan_klipper(klipper_tree, PROJECT))
+    install.apply(install.plan_klipper(klipper_tree, PROJECT, uninstall=True))
+    assert link.is_symlink()
+
+
+def test_a_worktree_excludes_in_the_main_repositorys_git_dir(tmp_path):
+    main_git = tmp_path / "repo" / ".git"
+    (main_git / "info").mkdir(parents=True)
+    (main_git / "worktrees" / "wt").mkdir(parents=True)
+    (main_git / "worktrees" / "wt" / "commondir").write_text("../..\n")
+    tree = tmp_path / "wt"
+    tree.mkdir()
+    (tree / ".git").write_text(f"gitdir: {main_git / 'worktrees' / 'wt'}\n")
+    assert install.git_exclude_file(tree) == (main_git / "info" / "exclude").resolve()
+
+
+def test_install_reports_what_it_did_only_after_doing_it(
+        klipper_tree, moonraker_checkout, config_dir, capsys, monkeypatch):
+    def failing(path, text):
+        raise PermissionError(13, "Permission denied", str(path))
+    monkeypatch.setattr(install, "_write_atomic", failing)
+    assert run_install(*args_for(klipper_tree, moonraker_checkout, config_dir)) == 2
+    out = capsys.readouterr().out
+    assert "link" not in out
