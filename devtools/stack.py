@@ -29,6 +29,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional
+from urllib.parse import quote
 
 PROJECT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(PROJECT))
@@ -227,6 +228,18 @@ def moonraker_venv() -> Venv:
 # Processes
 
 
+def wait_until(predicate, timeout: float, interval: float = 0.1):
+    """Poll predicate() until it returns something true; return that, or the
+    last (false) value at the timeout."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    return predicate()
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -290,14 +303,10 @@ class Klippy(Process):
         super().__init__("klippy", cmd, workdir / "klippy.log", cwd=str(build.tree))
 
     def wait_ready(self, timeout: float = 30.0) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if not self.alive():
-                raise RuntimeError("klippy exited:\n" + self.log_tail())
-            if self.api_socket.exists():
-                return
-            time.sleep(0.1)
-        raise RuntimeError("klippy did not open its API socket:\n" + self.log_tail())
+        if not wait_until(lambda: self.api_socket.exists() or not self.alive(),
+                          timeout) or not self.alive():
+            raise RuntimeError("klippy did not open its API socket:\n"
+                               + self.log_tail())
 
 
 MOONRAKER_CONF = """\
@@ -360,22 +369,20 @@ class Moonraker(Process):
         text = raw.decode(errors="replace")
         return status, (json.loads(text) if "json" in ctype else text)
 
+    def _ready(self, klippy: bool) -> bool:
+        try:
+            status, body = self.request("GET", "/server/info", timeout=2)
+        except (OSError, ValueError):
+            return False
+        if status == 401:
+            return not klippy  # up, but this client is not in trusted_clients
+        return status == 200 and (not klippy
+                                  or body["result"]["klippy_state"] == "ready")
+
     def wait_ready(self, timeout: float = 60.0, klippy: bool = False) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if not self.alive():
-                raise RuntimeError("moonraker exited:\n" + self.log_tail())
-            try:
-                status, body = self.request("GET", "/server/info", timeout=2)
-            except (OSError, ValueError):
-                status, body = None, None
-            if status == 200 and (not klippy or
-                                  body["result"]["klippy_state"] == "ready"):
-                return
-            if status == 401 and not klippy:
-                return  # up, but this client is not in trusted_clients
-            time.sleep(0.2)
-        raise RuntimeError("moonraker not ready:\n" + self.log_tail())
+        if not wait_until(lambda: self._ready(klippy) or not self.alive(), timeout,
+                          interval=0.2) or not self.alive():
+            raise RuntimeError("moonraker not ready:\n" + self.log_tail())
 
 
 class PrinterStack:
@@ -395,7 +402,6 @@ class PrinterStack:
         return body["result"]
 
     def query(self, obj: str) -> dict:
-        from urllib.parse import quote
         status, body = self.moonraker.request(
             "GET", "/printer/objects/query?" + quote(obj))
         if status != 200:

@@ -22,6 +22,7 @@ class FlowloopHost:
     def __init__(self, config):
         self.printer = config.get_printer()
         self.sensor_firmware = {}
+        self.sections = ()  # flowloop sections loaded: known once connected
         # extruder name -> (Profile, working point); status is rebuilt on change
         self.active_profiles = {}
         self.profile_status = {}
@@ -51,6 +52,9 @@ class FlowloopHost:
         return stageable, paste
 
     def _handle_connect(self):
+        self.sections = tuple(sorted(
+            name for name, obj in self.printer.lookup_objects()
+            if name.split()[0] in SECTIONS))
         for name, mcu in self.printer.lookup_objects('mcu'):
             self.sensor_firmware[name] = mcu.check_valid_response(
                 ems22.QUERY_CMD)
@@ -104,13 +108,9 @@ class FlowloopHost:
         """(Profile, working point) active for an extruder, or None."""
         return self.active_profiles.get(extruder)
 
-    def loaded_sections(self):
-        return sorted(name for name, obj in self.printer.lookup_objects()
-                      if name.split()[0] in SECTIONS)
-
     def get_status(self, eventtime=None):
         return {'version': flowloop.__version__,
-                'sections': self.loaded_sections(),
+                'sections': self.sections,
                 'sensor_firmware': dict(self.sensor_firmware),
                 'profiles': self.profile_status}
 
