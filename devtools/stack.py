@@ -79,9 +79,9 @@ def _run(cmd: List[str], cwd: Optional[Path] = None, log_file: Optional[Path] = 
     return proc.stdout
 
 
-def _hash_files(h, paths: List[Path]) -> None:
+def _hash_files(h, root: Path, paths: List[Path]) -> None:
     for path in paths:
-        h.update(str(path.relative_to(PROJECT)).encode())
+        h.update(str(path.relative_to(root)).encode())
         h.update(path.read_bytes() if path.is_file() else b"dir")
 
 
@@ -125,7 +125,8 @@ def klipper_key(source: Path = PROJECT) -> str:
     h.update(_run(["git", "-C", str(kp), "status", "--porcelain"]).encode())
     h.update(_run(["git", "-C", str(kp), "diff"]).encode())
     h.update(str(source).encode())  # the symlinks point into this checkout
-    _hash_files(h, [source / "flowloop" / "install.py"] + install.mcu_sources(source))
+    _hash_files(h, source,
+                [source / "flowloop" / "install.py"] + install.mcu_sources(source))
     # klippy modules are links: their names shape the tree, their text does not.
     h.update(" ".join(p.name for p in install.klippy_modules(source)).encode())
     return h.hexdigest()[:16]

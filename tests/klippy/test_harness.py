@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import shutil
 import subprocess
+import sys
 
 import pytest
 
+from devtools import stack
 from devtools.klippy_test import KlippyTestFailure, parse, run_file
 
 
@@ -64,3 +68,32 @@ def test_a_failure_for_another_reason_fails_the_test(klipper_build, klippy_venv,
                     "G28\nG1 X9999\n")  # fails, but for another reason
     with pytest.raises(KlippyTestFailure, match="log lacks"):
         run_file(test, klipper_build, klippy_venv, short_tmp)
+
+
+def test_the_build_cache_follows_the_patch_not_the_module_text(tmp_path):
+    """A second run reuses the build; a changed patch input rebuilds it."""
+    source = tmp_path / "source"
+    for folder in ("klippy_extras", "mcu_sensor", "flowloop"):
+        shutil.copytree(stack.PROJECT / folder, source / folder)
+    key = stack.klipper_key(source)
+    assert stack.klipper_key(source) == key
+    module = source / "klippy_extras" / "flowloop.py"
+    module.write_text(module.read_text() + "\n# edited\n")
+    assert stack.klipper_key(source) == key  # a link: klippy reads it live
+    sensor = source / "mcu_sensor" / "sensor_ems22.c"
+    sensor.write_text(sensor.read_text() + "\n// edited\n")
+    assert stack.klipper_key(source) != key  # compiled into the dictionaries
+
+
+def test_without_klipper_the_tier_is_skipped_with_one_loud_line():
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+         "tests/klippy/test_harness.py::test_import_test_passes_in_the_patched_tree"],
+        cwd=stack.PROJECT, capture_output=True, text=True,
+        env={**os.environ, "KLIPPER_PATH": "/nonexistent/klipper"})
+    assert proc.returncode == 0, proc.stdout
+    lines = proc.stdout.splitlines()
+    loud = [ln for ln in lines if ln.startswith("!!! no Klipper")]
+    assert len(loud) == 1 and "git clone" in loud[0]  # how to get one
+    assert sum("git clone" in ln for ln in lines) == 1  # not repeated per test
+    assert "1 skipped" in proc.stdout
