@@ -67,7 +67,7 @@ def in_klippy(ctx, test: Path) -> None:
     log = ctx.batch_klippy_log(test)
     ctx.say(f"klippy batch run of {test.name} (G28, ENDSTOP_CALIBRATE "
             "METHOD=manual, 7 x G1 Z/ACCEPT):")
-    keep = ("ENDSTOP_CALIBRATE (", "stepper_a: position", "stepper_b: position",
+    keep = ("ENDSTOP_CALIBRATE: ", "stepper_a: position", "stepper_b: position",
             "stepper_c: position", "predicted spread", "save_config: set")
     for line in log.splitlines():
         if line.startswith(keep):

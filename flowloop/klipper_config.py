@@ -19,7 +19,6 @@ import configparser
 import glob
 import math
 import os
-import re
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Set, Tuple, Union
 
@@ -81,13 +80,23 @@ def _add_text(parser: configparser.RawConfigParser, text: str, source: str) -> N
 
 
 def _add_with_includes(parser: configparser.RawConfigParser, text: str, path: Path,
-                       visiting: Set[Path]) -> List[Path]:
-    """Parse text from path, following [include] lines; return files read."""
+                       own: Dict[Path, configparser.RawConfigParser],
+                       visiting: Set[Path]) -> None:
+    """Parse text from path into parser, following [include] lines.
+
+    own[file] gets each file's own lines too (its includes not followed):
+    which file sets an option is what SAVE_CONFIG checks.
+    """
     key = path.resolve()
     if key in visiting:
         raise FlowloopError(f"recursive include of config file {path}")
     visiting.add(key)
-    read = [path]
+    own_parser = own.setdefault(key, _new_parser())
+
+    def add(lines: List[str]) -> None:
+        for target in (parser, own_parser):
+            _add_text(target, "\n".join(lines), str(path))
+
     pending: List[str] = []
     for line in text.split("\n"):
         line = _strip_comment(line)
@@ -96,7 +105,7 @@ def _add_with_includes(parser: configparser.RawConfigParser, text: str, path: Pa
         if header is None or not header.startswith("include "):
             pending.append(line)
             continue
-        _add_text(parser, "\n".join(pending), str(path))
+        add(pending)
         pending = []
         pattern = os.path.join(str(path.parent), header[len("include "):].strip())
         names = sorted(glob.glob(pattern))
@@ -104,20 +113,32 @@ def _add_with_includes(parser: configparser.RawConfigParser, text: str, path: Pa
             raise FlowloopError(f"include file {pattern} does not exist")
         for name in names:
             child = Path(name)
-            read += _add_with_includes(parser, _read_text(child), child, visiting)
-    _add_text(parser, "\n".join(pending), str(path))
+            _add_with_includes(parser, _read_text(child), child, own, visiting)
+    add(pending)
     visiting.discard(key)
-    return read
 
 
 class KlipperConfig:
     """A parsed printer.cfg; options are looked up as klippy would see them."""
 
     def __init__(self, parser: configparser.RawConfigParser,
-                 autosave: configparser.RawConfigParser, files: List[Path]):
+                 own: Dict[Path, configparser.RawConfigParser]):
         self._parser = parser
-        self.autosave = autosave
-        self.files = files
+        self._own = own  # per file, main first: the options its own lines set
+
+    @property
+    def files(self) -> List[Path]:
+        """The files read (resolved), the main file first, in reading order."""
+        return list(self._own)
+
+    def included_files_setting(self, section: str, option: str) -> List[Path]:
+        """Files other than the main one whose own lines set [section] option.
+
+        SAVE_CONFIG refuses to save such an option (klippy's configfile:
+        "conflicts with included value").
+        """
+        return [path for path in self.files[1:]
+                if self._own[path].has_option(section, option)]
 
     # --- lookup -------------------------------------------------------------
 
@@ -161,40 +182,24 @@ class KlipperConfig:
                                 f" must be above {above}")
         return value
 
-    def from_autosave(self, section: str, option: str) -> bool:
-        """True when the value in force came from the SAVE_CONFIG block."""
-        return self.autosave.has_option(section, option)
-
 
 def parse_config(text: str, path: Union[str, Path] = "printer.cfg") -> KlipperConfig:
     """Parse config text; includes resolve relative to `path`'s folder."""
     path = Path(path)
     regular_text, autosave_text = split_autosave(text.replace("\r\n", "\n"))
     parser = _new_parser()
-    files = _add_with_includes(parser, regular_text, path, set())
-    # An option still set above the block wins, as in klippy.
-    kept = []
-    section = None
-    dropping = False
-    for line in autosave_text.split("\n"):
-        code = _strip_comment(line).rstrip()
-        if code and code[0].isspace():  # continuation of the option above
-            if not dropping:
-                kept.append(line)
-            continue
-        dropping = False
-        header = configparser.RawConfigParser.SECTCRE.match(code)
-        if header:
-            section = header.group("header").strip()
-        elif code and section is not None:
-            option = re.split(r"[=:]", code, maxsplit=1)[0].strip().lower()
-            dropping = parser.has_option(section, option)
-        if not dropping:
-            kept.append(line)
-    autosave = _new_parser()
-    _add_text(autosave, "\n".join(kept), f"{path} (SAVE_CONFIG block)")
-    _add_text(parser, "\n".join(kept), f"{path} (SAVE_CONFIG block)")
-    return KlipperConfig(parser, autosave, files)
+    own: Dict[Path, configparser.RawConfigParser] = {}
+    _add_with_includes(parser, regular_text, path, own, set())
+    block = _new_parser()
+    _add_text(block, autosave_text, f"{path} (SAVE_CONFIG block)")
+    for section in block.sections():
+        if not parser.has_section(section):
+            parser.add_section(section)
+        for option, value in block.items(section):
+            # An option still set above the block wins, as in klippy.
+            if not parser.has_option(section, option):
+                parser.set(section, option, value)
+    return KlipperConfig(parser, own)
 
 
 def read_config(path: Union[str, Path]) -> KlipperConfig:
@@ -204,9 +209,6 @@ def read_config(path: Union[str, Path]) -> KlipperConfig:
 
 # --- which file sets an option ----------------------------------------------
 
-_SECTION_RE = re.compile(r"^\[(?P<header>[^]]+)\]")
-_OPTION_RE = re.compile(r"^(?P<option>[^:=\s][^:=]*?)\s*[:=]")
-
 
 def included_definitions(main_config: str, section: str, option: str) -> List[str]:
     """Files other than the main config that set [section] option.
@@ -214,32 +216,8 @@ def included_definitions(main_config: str, section: str, option: str) -> List[st
     SAVE_CONFIG refuses to save an option that an included file sets, so such
     a value must be pasted into that file by hand.
     """
-    main = Path(main_config).resolve()
-    files = []
-    for path in read_config(main).files:
-        path = path.resolve()
-        if path != main and path not in files and _file_sets(path, section, option):
-            files.append(path)
-    return [str(f) for f in files]
-
-
-def _file_sets(path: Path, section: str, option: str) -> bool:
-    """Does this one file (its includes not followed) set the option?"""
-    current = None
-    for raw in path.read_text(errors="replace").split("\n"):
-        line = raw.split("#", 1)[0].rstrip()
-        if not line:
-            continue
-        header = _SECTION_RE.match(line)
-        if header:
-            current = header.group("header").strip()
-            continue
-        if current != section or line[0].isspace():
-            continue
-        match = _OPTION_RE.match(line)
-        if match and match.group("option").strip().lower() == option.lower():
-            return True
-    return False
+    config = read_config(main_config)
+    return [str(path) for path in config.included_files_setting(section, option)]
 
 
 def save_plan(main_config: str, items: Sequence[Tuple[str, str, str]]
@@ -250,12 +228,13 @@ def save_plan(main_config: str, items: Sequence[Tuple[str, str, str]]
     what to paste by hand for the others: SAVE_CONFIG refuses to save an
     option that an included file sets.
     """
+    config = read_config(main_config)
     stageable: List[Tuple[str, str, str]] = []
     by_file: Dict[str, List[Tuple[str, str, str]]] = {}
     for item in items:
-        files = included_definitions(main_config, item[0], item[1])
+        files = config.included_files_setting(item[0], item[1])
         if files:
-            by_file.setdefault(", ".join(files), []).append(item)
+            by_file.setdefault(", ".join(map(str, files)), []).append(item)
         else:
             stageable.append(item)
     lines = []

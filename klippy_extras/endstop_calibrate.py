@@ -3,8 +3,8 @@
 # Probes near each tower (and the centre, and by default opposite each tower)
 # through Klipper's probe helpers, then solves the three position_endstop
 # values exactly (flowloop.delta) and stages them for SAVE_CONFIG. Delta
-# geometry is only read at startup, so a second call after the restart
-# verifies the result.
+# geometry is only read at startup: a second call after the restart checks
+# the result (within tolerance, nothing is staged).
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import logging
@@ -37,9 +37,6 @@ class EndstopCalibrate:
             'geometry_warning', delta.DEFAULT_GEOMETRY_WARNING_MM, above=0.)
         self.opposite_points = config.getboolean('opposite_points', True)
         has_points = config.get('points', None) is not None
-        # Written to the SAVE_CONFIG block with the endstops it staged.
-        self.calibrated_endstops = config.getfloatlist(
-            'calibrated_position_endstop', None, count=3)
         self.probe_helper = probe.ProbePointsHelper(
             config, self.probe_finalize,
             default_points=self._points(delta.DEFAULT_ANGLES_DEG, self.radius))
@@ -48,7 +45,6 @@ class EndstopCalibrate:
         self.fixed_points = None
         if has_points:
             self.fixed_points = list(self.probe_helper.probe_points)
-        self.verify_mode = False
         self.active = None
         self.last_result = {}
         self.gcode = self.printer.lookup_object('gcode')
@@ -60,18 +56,8 @@ class EndstopCalibrate:
 
     def _handle_connect(self):
         self.toolhead = self.printer.lookup_object('toolhead')
-        self.configfile = self.printer.lookup_object('configfile')
-        kin = self.toolhead.get_kinematics()
-        if not hasattr(kin, 'get_calibration'):
-            raise self.printer.config_error(
-                f"[{self.name}] is for linear delta printers")
         if self.fixed_points is None:
             self._check_radius(self.radius, self.printer.config_error)
-        endstops = kin.get_calibration().endstops
-        self.verify_mode = (
-            self.calibrated_endstops is not None
-            and all(abs(a - b) < 1e-6
-                    for a, b in zip(endstops, self.calibrated_endstops)))
 
     def _points(self, angles, radius):
         points = delta.tower_probe_points(angles, radius)
@@ -141,16 +127,18 @@ class EndstopCalibrate:
             raise self.gcode.error(f"ENDSTOP_CALIBRATE: {e}") from None
         tolerance = active['tolerance']
         check = delta.check_flatness(solution.heights_before_mm, tolerance)
-        staged = not check.within_tolerance
-        paste = self._stage(solution.position_endstop) if staged else []
+        staged, paste = [], []
+        if not check.within_tolerance:
+            staged, paste = self.host.stage_for_save_config(
+                [(name, 'position_endstop', f"{value:.6f}")
+                 for name, value in zip(TOWERS, solution.position_endstop)])
         self._report(solution, check, staged, paste)
         self.last_result = {
-            'mode': 'verify' if self.verify_mode else 'calibrate',
             'points': len(medians),
             'samples': active['samples'],
             'tolerance': tolerance,
             'within_tolerance': check.within_tolerance,
-            'staged': staged,
+            'staged': bool(staged),
             'position_endstop_before': tuple(solution.position_endstop_before),
             'position_endstop': tuple(solution.position_endstop),
             'spread_before_mm': solution.spread_before_mm,
@@ -162,18 +150,8 @@ class EndstopCalibrate:
         logging.info("ENDSTOP_CALIBRATE heights before %s after %s",
                      solution.heights_before_mm, solution.heights_after_mm)
 
-    def _stage(self, endstops):
-        """Stage for SAVE_CONFIG; return the lines to paste by hand, if any."""
-        items = [(name, 'position_endstop', f"{value:.6f}")
-                 for name, value in zip(TOWERS, endstops)]
-        items.append((self.name, 'calibrated_position_endstop',
-                      ", ".join(f"{v:.6f}" for v in endstops)))
-        return self.host.stage_for_save_config(items)[1]
-
     def _report(self, solution, check, staged, paste):
-        mode = "verify" if self.verify_mode else "calibrate"
-        lines = [f"ENDSTOP_CALIBRATE ({mode}):"
-                 f" {len(solution.heights_before_mm)} points,"
+        lines = [f"ENDSTOP_CALIBRATE: {len(solution.heights_before_mm)} points,"
                  f" spread {solution.spread_before_mm:.4f} mm,"
                  f" mean height {check.mean_height_mm:.4f} mm"]
         for i, name in enumerate(TOWERS):
@@ -188,26 +166,20 @@ class EndstopCalibrate:
                      f" mm (residual {solution.residual_mm:.4f} mm)")
         if solution.geometry_warning:
             lines.append("WARNING: " + solution.geometry_warning)
-        if staged:
-            if self.verify_mode:
-                lines.append(f"Not yet within {check.tolerance_mm:.4f} mm:"
-                             " another round is staged.")
-            lines.append(
-                "The SAVE_CONFIG command will store these position_endstop"
-                " values and restart; run ENDSTOP_CALIBRATE again after the"
-                " restart to verify.")
-        elif self.verify_mode:
-            lines.append(f"Verified: the bed is within {check.tolerance_mm:.4f}"
-                         " mm; nothing to change.")
+        if check.within_tolerance:
+            lines.append(f"Within {check.tolerance_mm:.4f} mm: nothing to"
+                         " change.")
         else:
-            lines.append(f"Already within {check.tolerance_mm:.4f} mm;"
-                         " nothing staged.")
-        lines += paste
+            lines += paste
+            if staged:
+                lines.append("The SAVE_CONFIG command will store the staged"
+                             " position_endstop values and restart.")
+            lines.append("Delta geometry is read at startup: after the"
+                         " restart, G28 and ENDSTOP_CALIBRATE again to check.")
         self.gcode.respond_info("\n".join(lines))
 
     def get_status(self, eventtime):
-        return {'verify_mode': self.verify_mode,
-                'last_result': self.last_result}
+        return {'last_result': self.last_result}
 
 
 def load_config(config):

@@ -39,8 +39,6 @@ def test_save_config_block_values_are_in_force():
     assert cfg.getfloat("stepper_a", "position_endstop") == 301.25
     assert cfg.getfloat("stepper_a", "angle") == 210.5
     assert cfg.getfloat("stepper_a", "arm_length") == 250.0
-    assert cfg.from_autosave("stepper_a", "position_endstop")
-    assert not cfg.from_autosave("stepper_a", "arm_length")
     assert cfg.has_section("delta_calibrate")
 
 
@@ -50,7 +48,6 @@ def test_an_option_still_set_above_the_block_wins_as_in_klippy():
     cfg = parse_config(text)
     assert cfg.getfloat("stepper_a", "position_endstop") == 300.0
     assert cfg.getfloat("stepper_a", "angle") == 211.0
-    assert not cfg.from_autosave("stepper_a", "position_endstop")
 
 
 def test_a_hand_edited_block_is_ignored_as_in_klippy():
@@ -75,6 +72,9 @@ def test_includes_resolve_relative_to_the_including_file_in_order(tmp_path):
     assert cfg.getfloat("stepper_a", "position_endstop") == 2.0
     assert cfg.getfloat("stepper_b", "angle") == 331.0
     assert [p.name for p in cfg.files] == ["printer.cfg", "a.cfg", "b.cfg", "more.cfg"]
+    assert cfg.included_files_setting("stepper_a", "arm_length") == [
+        (tmp_path / "parts" / name).resolve() for name in ("a.cfg", "b.cfg")]
+    assert cfg.included_files_setting("stepper_a", "position_endstop") == []
 
 
 def test_a_missing_include_or_an_include_loop_is_one_line(tmp_path):
@@ -162,9 +162,22 @@ def test_save_plan_leaves_included_values_to_paste(tmp_path):
     main.write_text("[include steppers.cfg]\n[stepper_b]\nposition_endstop: 301\n")
     items = [("stepper_a", "position_endstop", "300.5"),
              ("stepper_b", "position_endstop", "300.7"),
-             ("endstop_calibrate", "calibrated_position_endstop", "1, 2, 3")]
+             ("stepper_c", "position_endstop", "300.2")]
     staged, paste = klipper_config.save_plan(str(main), items)
     assert staged == items[1:]
     assert paste == [f"{(tmp_path / 'steppers.cfg').resolve()} sets these, which "
                      "SAVE_CONFIG cannot change; paste them there:",
                      "  [stepper_a]", "  position_endstop: 300.5"]
+
+
+def test_an_included_file_with_indented_options_is_seen_setting_them(tmp_path):
+    # klippy's reader (configparser) takes indented lines right after a header
+    # as options, so SAVE_CONFIG would refuse to save them.
+    (tmp_path / "steppers.cfg").write_text(
+        "[stepper_a]\n  position_endstop: 300\n  arm_length: 250\n")
+    main = tmp_path / "printer.cfg"
+    main.write_text("[include steppers.cfg]\n")
+    assert read_config(main).getfloat("stepper_a", "arm_length") == 250.0
+    items = [("stepper_a", "position_endstop", "300.5")]
+    staged, paste = klipper_config.save_plan(str(main), items)
+    assert staged == [] and paste[-1] == "  position_endstop: 300.5"
