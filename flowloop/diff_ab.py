@@ -43,6 +43,8 @@ MEDIAN_EFFICIENCY = math.sqrt(math.pi / 2.0)
 COVERAGE_SIGMAS = 3.0
 
 KINEMATICS = ("corexy", "cartesian")
+# The paper's nominal D1 and D2 (mm): the defaults of the part and the commands.
+NOMINAL_DISTANCES_MM = (10.0, 150.0)
 AXIS_STEPPERS = {"a": "stepper_x", "b": "stepper_y"}
 
 
@@ -416,10 +418,33 @@ def history_entry(calibration: Calibration, iteration: int) -> Dict:
     return entry
 
 
-def append_history(history: Sequence[Dict], calibration: Calibration) -> List[Dict]:
-    """A new history list with this calibration appended (input unchanged)."""
+def append_history(history: Sequence[Dict], calibration: Calibration,
+                   keep: Optional[int] = None) -> List[Dict]:
+    """A new history list with this calibration appended (input unchanged),
+    numbered on from the last entry, trimmed to the last `keep` entries."""
     history = list(history)
-    return history + [history_entry(calibration, len(history) + 1)]
+    number = history[-1]["iteration"] + 1 if history else 1
+    history.append(history_entry(calibration, number))
+    return history[-keep:] if keep else history
+
+
+def check_history(data, source: str) -> List[Dict]:
+    """Earlier iterations as read back from JSON: a list of history_entry
+    records, else a one-line FlowloopError."""
+    if not isinstance(data, list):
+        raise FlowloopError(f"history {source} is not a JSON list")
+    for i, entry in enumerate(data, start=1):
+        ok = (isinstance(entry, dict) and isinstance(entry.get("iteration"), int)
+              and isinstance(entry.get("converged"), bool)
+              and all(isinstance(entry.get(axis), dict)
+                      and isinstance(entry[axis].get("scale"), (int, float))
+                      and isinstance(entry[axis].get("rotation_distance"),
+                                     (int, float))
+                      for axis in ("a", "b")))
+        if not ok:
+            raise FlowloopError(f"history {source}: entry {i} is not an "
+                                f"ab-calibrate iteration")
+    return list(data)
 
 
 def history_lines(history: Sequence[Dict]) -> List[str]:

@@ -41,8 +41,9 @@ def _register_calibrate(subparsers) -> None:
             p.add_argument(f"--{axis}{k}", required=True, metavar="V[,V...]",
                            help=f"readings of {axis.upper()}{k} in mm (pylon 1 to "
                                 f"{k + 1}, outside to outside)")
-    p.add_argument("--d1", type=float, default=10.0, help="nominal D1 in mm (10)")
-    p.add_argument("--d2", type=float, default=150.0, help="nominal D2 in mm (150)")
+    d1, d2 = diff_ab.NOMINAL_DISTANCES_MM
+    p.add_argument("--d1", type=float, default=d1, help=f"nominal D1 in mm ({d1:g})")
+    p.add_argument("--d2", type=float, default=d2, help=f"nominal D2 in mm ({d2:g})")
     for k in EXTRA_DISTANCES:
         p.add_argument(f"--a{k}", metavar="V[,V...]", help=argparse.SUPPRESS)
         p.add_argument(f"--b{k}", metavar="V[,V...]", help=argparse.SUPPRESS)
@@ -51,12 +52,16 @@ def _register_calibrate(subparsers) -> None:
     p.add_argument("--force", action="store_true",
                    help=f"accept a scale more than "
                         f"{100 * diff_ab.MAX_SCALE_CHANGE:g} %% from 1")
-    p.add_argument("--caliper-accuracy", type=float, default=0.02, metavar="MM",
-                   help="caliper trueness over --caliper-range (0.02)")
-    p.add_argument("--caliper-range", type=float, default=150.0, metavar="MM",
-                   help="length the caliper accuracy is stated for (150)")
-    p.add_argument("--reading-error", type=float, default=0.02, metavar="MM",
-                   help="3 sigma of one reading, used below 3 readings (0.02)")
+    b = diff_ab.ErrorBudget()
+    p.add_argument("--caliper-accuracy", type=float, default=b.caliper_accuracy_mm,
+                   metavar="MM", help=f"caliper trueness over --caliper-range "
+                                      f"({b.caliper_accuracy_mm:g})")
+    p.add_argument("--caliper-range", type=float, default=b.caliper_range_mm,
+                   metavar="MM", help=f"length the caliper accuracy is stated for "
+                                      f"({b.caliper_range_mm:g})")
+    p.add_argument("--reading-error", type=float, default=b.reading_error_mm,
+                   metavar="MM", help=f"3 sigma of one reading, used below 3 "
+                                      f"readings ({b.reading_error_mm:g})")
     p.add_argument("--history", type=Path, metavar="FILE",
                    help="JSON file of earlier iterations; this one is appended")
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -96,9 +101,7 @@ def _load_history(path: Path):
         history = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise FlowloopError(f"cannot read history {path}: {e}") from None
-    if not isinstance(history, list):
-        raise FlowloopError(f"history {path} is not a JSON list")
-    return history
+    return diff_ab.check_history(history, str(path))
 
 
 def run_calibrate(args) -> int:
@@ -156,7 +159,7 @@ def _register_pylons(subparsers) -> None:
         ("hotend-temp", "hotend_temp_c", "C"),
         ("bed-temp", "bed_temp_c", "C, kept on after the print"),
         ("speed", "print_speed_mm_s", "mm/s"),
-        ("first-layer-speed", "first_layer_speed_mm_s", "mm/s"),
+        ("first-layer-speed", "first_layer_speed_mm_s", "mm/s, at most --speed"),
         ("travel-speed", "travel_speed_mm_s", "mm/s"),
         ("accel", "accel_mm_s2", "mm/s^2"),
         ("retract", "retract_mm", "mm"),

@@ -22,7 +22,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import jinja2
 
-from . import __version__
+from . import __version__, diff_ab
 from .errors import FlowloopError
 
 TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
@@ -36,7 +36,7 @@ Point = Tuple[float, float]
 @dataclasses.dataclass(frozen=True)
 class PylonOptions:
     kinematics: str = "corexy"
-    distances_mm: Tuple[float, ...] = (10.0, 150.0)   # D1, D2[, D3...]
+    distances_mm: Tuple[float, ...] = diff_ab.NOMINAL_DISTANCES_MM  # D1, D2[, D3..]
     pylon_width_mm: float = 4.0      # W: along the row, the measured size
     pylon_depth_mm: float = 10.0     # across the row
     pylon_height_mm: float = 10.0
@@ -52,7 +52,7 @@ class PylonOptions:
     hotend_temp_c: float = 215.0
     bed_temp_c: float = 60.0
     print_speed_mm_s: float = 60.0
-    first_layer_speed_mm_s: float = 20.0
+    first_layer_speed_mm_s: float = 20.0   # capped at print_speed_mm_s
     travel_speed_mm_s: float = 150.0
     accel_mm_s2: float = 800.0
     retract_mm: float = 0.8
@@ -63,6 +63,11 @@ class PylonOptions:
 
     def __post_init__(self):
         validate(self)
+
+    @property
+    def first_layer_speed(self) -> float:
+        """First layer and prime line: never faster than the print speed."""
+        return min(self.first_layer_speed_mm_s, self.print_speed_mm_s)
 
     @property
     def centre(self) -> Point:
@@ -78,7 +83,7 @@ def _positive(name: str, value: float, maximum: float = math.inf) -> None:
 
 
 def validate(o: PylonOptions) -> None:
-    if o.kinematics not in ("corexy", "cartesian"):
+    if o.kinematics not in diff_ab.KINEMATICS:
         raise FlowloopError(
             f"kinematics must be corexy or cartesian, not '{o.kinematics}'")
     for name in ("pylon_width_mm", "pylon_depth_mm", "pylon_height_mm",
@@ -269,7 +274,7 @@ def render(o: PylonOptions) -> str:
         layers.append({
             "index": i,
             "z": (i + 1) * o.layer_height_mm,
-            "speed_mm_s": o.first_layer_speed_mm_s if i == 0 else o.print_speed_mm_s,
+            "speed_mm_s": o.first_layer_speed if i == 0 else o.print_speed_mm_s,
             "pylons": [{"name": p.name, "paths": layer_paths(o, p, i)} for p in placed],
         })
     measure = []

@@ -13,8 +13,9 @@ import re
 from flowloop import diff_ab
 from flowloop.errors import FlowloopError
 
-AXIS_STEPPER_RE = {'a': re.compile(r'^stepper_x\d*$'),
-                   'b': re.compile(r'^stepper_y\d*$')}
+# stepper_x, stepper_x1, ... all move with motor A (X on cartesian)
+AXIS_STEPPER_RE = {axis: re.compile(re.escape(name) + r'\d*$')
+                   for axis, name in diff_ab.AXIS_STEPPERS.items()}
 HISTORY_LENGTH = 10
 SAMPLE_PERIOD_S = 1.
 
@@ -26,19 +27,21 @@ class DiffABCalibrate:
         self.name = config.get_name()
         self.kinematics = config.getsection('printer').get(
             'kinematics', '').strip()
-        self.d1 = config.getfloat('d1', 10., above=0.)
-        self.d2 = config.getfloat('d2', 150., above=self.d1)
+        d1, d2 = diff_ab.NOMINAL_DISTANCES_MM
+        self.d1 = config.getfloat('d1', d1, above=0.)
+        self.d2 = config.getfloat('d2', d2, above=self.d1)
         self.max_scale_change = config.getfloat(
             'max_scale_change', 100. * diff_ab.MAX_SCALE_CHANGE,
             above=0., maxval=20.) / 100.
-        try:
+        default = diff_ab.ErrorBudget()
+        try:   # klippy's getfloat lets 'nan' through
             self.budget = diff_ab.ErrorBudget(
-                caliper_accuracy_mm=config.getfloat('caliper_accuracy', 0.02,
-                                                    minval=0.),
-                caliper_range_mm=config.getfloat('caliper_range', 150.,
-                                                 above=0.),
-                reading_error_mm=config.getfloat('reading_error', 0.02,
-                                                 minval=0.))
+                caliper_accuracy_mm=config.getfloat(
+                    'caliper_accuracy', default.caliper_accuracy_mm, minval=0.),
+                caliper_range_mm=config.getfloat(
+                    'caliper_range', default.caliper_range_mm, above=0.),
+                reading_error_mm=config.getfloat(
+                    'reading_error', default.reading_error_mm, minval=0.))
         except FlowloopError as e:
             raise config.error(f"[{self.name}]: {e}") from None
         self.bed_heater_name = config.get('bed_heater', 'heater_bed')
@@ -53,7 +56,7 @@ class DiffABCalibrate:
         self.history = []
         self.last_result = None
         self.bed_state = None
-        self.toolhead = self.configfile = None
+        self.toolhead = None
         self.gcode = self.printer.lookup_object('gcode')
         self.gcode.register_command('DIFF_AB_CALIBRATE',
                                     self.cmd_DIFF_AB_CALIBRATE,
@@ -66,7 +69,6 @@ class DiffABCalibrate:
 
     def _handle_connect(self):
         self.toolhead = self.printer.lookup_object('toolhead')
-        self.configfile = self.printer.lookup_object('configfile')
         for stepper in self.toolhead.get_kinematics().get_steppers():
             for axis, pattern in AXIS_STEPPER_RE.items():
                 if pattern.match(stepper.get_name()):
@@ -101,10 +103,8 @@ class DiffABCalibrate:
         """Everything decided and checked; nothing changed yet."""
         force = gcmd.get_int('FORCE', 0, minval=0, maxval=1)
         try:
+            # the kinematics first: no point asking for readings on a delta
             kin = diff_ab.check_kinematics(self.kinematics)
-        except FlowloopError as e:
-            raise gcmd.error(f"DIFF_AB_CALIBRATE: {e}") from None
-        try:
             sets_a, sets_b = self._reading_sets(gcmd)
             calibration = diff_ab.calibrate(
                 kin, self._rotation_distance('a'), self._rotation_distance('b'),
@@ -138,8 +138,8 @@ class DiffABCalibrate:
     def cmd_DIFF_AB_CALIBRATE(self, gcmd):
         calibration, changes = self._plan(gcmd)
         staged, paste = self._apply(changes)
-        self.history = diff_ab.append_history(
-            self.history, calibration)[-HISTORY_LENGTH:]
+        self.history = diff_ab.append_history(self.history, calibration,
+                                              keep=HISTORY_LENGTH)
         self.last_result = calibration.as_dict()
         lines = calibration.report_lines()
         for stepper, old, new in changes:
@@ -216,7 +216,8 @@ class DiffABCalibrate:
         return {'kinematics': self.kinematics,
                 'rotation_distance': rd,
                 'last_result': self.last_result,
-                'iterations': len(self.history),
+                'iterations': (self.history[-1]['iteration'] if self.history
+                               else 0),
                 'history': list(self.history),
                 'bed_state': self.bed_state}
 

@@ -190,8 +190,28 @@ def test_history_is_plain_json_data_numbered_by_iteration():
     assert json.loads(json.dumps(history)) == history
     assert [e["iteration"] for e in history] == [1, 2]
     assert [e["converged"] for e in history] == [False, True]
-    assert history[1]["a"]["old_rotation_distance"] == history[0]["a"][
-        "rotation_distance"]
+    assert history[0]["a"]["rotation_distance"] == pytest.approx(40 * 1.002)
+
+
+def test_a_trimmed_history_keeps_counting_iterations():
+    cal = diff_ab.calibrate("corexy", 40, 40, sets((10, 150), (10.0, 150.0)),
+                            sets((10, 150), (10.0, 150.0)))
+    history = []
+    for _ in range(13):
+        history = diff_ab.append_history(history, cal, keep=10)
+    assert [e["iteration"] for e in history] == list(range(4, 14))
+
+
+@pytest.mark.parametrize("data", [{}, [1], [{"iteration": 1}],
+                                  [{"iteration": "1", "converged": False,
+                                    "a": {}, "b": {}}]])
+def test_a_history_file_that_is_not_ours_is_one_line(tmp_path, capsys, data):
+    history = tmp_path / "ab.json"
+    history.write_text(json.dumps(data))
+    assert cli.main(ARGS + ["--history", str(history)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(history) in err, err
+    assert json.loads(history.read_text()) == data     # left as it was
 
 
 # --- parsing ---
@@ -353,11 +373,14 @@ def test_impossible_parts_are_refused(kwargs, message):
 
 
 def test_gcode_keeps_the_bed_hot_and_never_exceeds_the_asked_speeds():
-    o = pylons.PylonOptions(print_speed_mm_s=50, travel_speed_mm_s=120,
+    # a print speed below the default first-layer speed (20 mm/s)
+    o = pylons.PylonOptions(print_speed_mm_s=15, travel_speed_mm_s=120,
                             wait_bed_equilibrium=True, start_gcode="G28\\nBED_MESH")
     gcode = pylons.render(o)
     feeds = [float(m) for m in re.findall(r"^G[01] .*F(\d+(?:\.\d+)?)", gcode, re.M)]
     assert max(feeds) <= 120 * 60
+    extruding = [float(m) for m in re.findall(r"^G1 X.* E[\d.]+ F(\d+)", gcode, re.M)]
+    assert extruding and max(extruding) <= 15 * 60
     assert "M140 S0" not in gcode and "M190 S0" not in gcode
     assert gcode.index("M190 S60") < gcode.index("WAIT_BED_EQUILIBRIUM") \
         < gcode.index("M109 S215")
