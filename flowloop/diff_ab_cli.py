@@ -161,7 +161,8 @@ def _register_pylons(subparsers) -> None:
         ("speed", "print_speed_mm_s", "mm/s"),
         ("first-layer-speed", "first_layer_speed_mm_s", "mm/s, at most --speed"),
         ("travel-speed", "travel_speed_mm_s", "mm/s"),
-        ("accel", "accel_mm_s2", "mm/s^2"),
+        ("accel", "accel_mm_s2", "mm/s^2, left set after the print; default: the "
+                                 "printer's max_accel"),
         ("retract", "retract_mm", "mm"),
         ("z-hop", "z_hop_mm", "mm"),
     )

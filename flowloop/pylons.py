@@ -54,7 +54,9 @@ class PylonOptions:
     print_speed_mm_s: float = 60.0
     first_layer_speed_mm_s: float = 20.0   # capped at print_speed_mm_s
     travel_speed_mm_s: float = 150.0
-    accel_mm_s2: float = 800.0
+    # None: the printer's own max_accel. Klipper accepts a SET_VELOCITY_LIMIT
+    # above the configured max_accel, so the file sets one only when asked.
+    accel_mm_s2: Optional[float] = None
     retract_mm: float = 0.8
     retract_speed_mm_s: float = 35.0
     z_hop_mm: float = 0.4
@@ -90,8 +92,10 @@ def validate(o: PylonOptions) -> None:
                  "bed_size_x_mm", "bed_size_y_mm", "nozzle_diameter_mm",
                  "line_width_mm", "layer_height_mm", "filament_diameter_mm",
                  "print_speed_mm_s", "first_layer_speed_mm_s", "travel_speed_mm_s",
-                 "accel_mm_s2", "retract_speed_mm_s"):
+                 "retract_speed_mm_s"):
         _positive(name, getattr(o, name))
+    if o.accel_mm_s2 is not None:
+        _positive("accel_mm_s2", o.accel_mm_s2)
     _positive("extrusion_multiplier", o.extrusion_multiplier, 1.5)
     for name in ("retract_mm", "z_hop_mm"):
         value = getattr(o, name)

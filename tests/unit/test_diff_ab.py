@@ -492,3 +492,12 @@ def test_bed_equilibrium_states():
     assert detector.add(14.0, 0.3, 55.0, 60.0) == "heating"   # left the band
     with pytest.raises(FlowloopError, match="TOLERANCE"):
         diff_ab.BedEquilibrium(tolerance_pct_per_min=0)
+
+
+def test_pylon_gcode_keeps_the_printers_acceleration_unless_asked():
+    """Klipper accepts an ACCEL above max_accel: only the user may raise it."""
+    assert "SET_VELOCITY_LIMIT" not in pylons.render(pylons.PylonOptions())
+    gcode = pylons.render(pylons.PylonOptions(accel_mm_s2=1500))
+    assert "SET_VELOCITY_LIMIT ACCEL=1500" in gcode
+    with pytest.raises(FlowloopError, match="accel_mm_s2"):
+        pylons.render(pylons.PylonOptions(accel_mm_s2=-1))
