@@ -41,7 +41,8 @@ def demo(ctx) -> None:
     ctx.say(f"profile {name!r}: into air {profile.lines.into_air.temp_c:g} degC @ "
             f"{profile.lines.into_air.flow_mm3_s:g} mm^3/s, real print "
             f"{profile.lines.real_print.temp_c:g} degC @ "
-            f"{profile.lines.real_print.flow_mm3_s:g} mm^3/s, slope 0.146")
+            f"{profile.lines.real_print.flow_mm3_s:g} mm^3/s, slope "
+            f"{profile.lines.into_air.slope_mm3_s_per_c:g} mm^3/s per degC")
     for wp in (0.0, 0.5, 1.0):
         ctx.say(f"  12 mm^3/s at working point {wp:g} needs "
                 f"{fl_profile.temp_for_flow(profile, 12.0, wp):.1f} degC; at 230 degC "

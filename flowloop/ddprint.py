@@ -270,17 +270,6 @@ def export_text(profile: Profile) -> str:
     return "\n".join(header) + "\n" + json.dumps(to_ddprint(profile), indent=2) + "\n"
 
 
-def flatten_numbers(data: Dict[str, Any], prefix: str = "") -> Dict[str, float]:
-    """{"properties_80.Ktemp": 0.146, ...}: every number of a ddPrint dict."""
-    out: Dict[str, float] = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update(flatten_numbers(value, f"{prefix}{key}."))
-        elif _is_number(value):
-            out[f"{prefix}{key}"] = value
-    return out
-
-
 def import_paths(paths: List[Path], nozzle_mm: Optional[float] = None,
                  base: Optional[Path] = None,
                  printer: Optional[str] = None) -> Tuple[List[Profile], List[str]]:

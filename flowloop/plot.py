@@ -256,7 +256,7 @@ def png(profile: Profile, path: Path,
         ax.axvline(temp, color="grey", linestyle=":")
     ax.set_xlabel("hotend temperature [°C]")
     ax.set_ylabel("melt flow [mm³/s]")
-    ax.set_title(profile.identity.name)
+    ax.set_title(profile.identity.name.replace("$", r"\$"))  # no mathtext
     ax.set_ylim(bottom=0)
     ax.grid(True)
     ax.legend(loc="upper left")

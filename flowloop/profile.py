@@ -12,7 +12,9 @@ and the measurement commands use:
 
 - `working_line(into_air, real_print, wp)` -> a `Line` (slope, intercept),
 - `flow_at(profile, temp_c, wp)`, `temp_for_flow(profile, flow, wp)` (clamped
-  to the profile's bounds), `max_flow_at(profile, measured_temp_c, wp)`.
+  to the profile's bounds), `max_flow_at(profile, measured_temp_c, wp)`,
+- `capped_to_heater(profile, heater_max_temp_c)`: bounds within a heater's
+  max_temp, for klippy to keep.
 """
 
 from __future__ import annotations
@@ -33,6 +35,12 @@ MIN_TEMP_C = 0.0
 MAX_TEMP_C = 500.0
 MAX_NAME_CHARS = 128
 MAX_TEXT_CHARS = 256
+# Size limits: validation, encoding and storage stay cheap (Moonraker and
+# klippy validate on their event loops). A measurement has tens of points.
+MAX_POINTS = 1000
+MAX_DDPRINT_NUMBERS = 256
+# Characters XML 1.0 cannot carry even escaped; names end up in SVG plots.
+NON_XML_CHARS = "\ufffe\uffff"
 # Sanity limits far beyond any hotend (real ones: ~0.1-0.2 and < 100).
 MAX_SLOPE_MM3_S_PER_C = 10.0
 MAX_FLOW_MM3_S = 1000.0
@@ -176,6 +184,9 @@ def _walk_strings(obj: Any, path: str):
     if isinstance(obj, msgspec.Struct):
         for field in obj.__struct_fields__:
             yield from _walk_strings(getattr(obj, field), f"{path}.{field}")
+    elif isinstance(obj, dict):
+        for key in obj:
+            yield f"{path} key", key
     elif isinstance(obj, str):
         yield path, obj
 
@@ -185,7 +196,8 @@ def check_text(value: str, what: str, limit: int = MAX_TEXT_CHARS) -> str:
     if len(value) > limit:
         raise _bad(f"{what} is longer than {limit} characters")
     for ch in value:
-        if unicodedata.category(ch) in ("Cc", "Cs", "Zl", "Zp"):
+        if unicodedata.category(ch) in ("Cc", "Cs", "Zl", "Zp") \
+                or ch in NON_XML_CHARS:
             raise _bad(f"{what} contains the control character {ch!r}; "
                        f"use one line of printable text")
     return value
@@ -198,6 +210,11 @@ def check_name(name: str) -> str:
     if not name.strip():
         raise _bad("profile name is empty")
     return check_text(name, "profile name", MAX_NAME_CHARS)
+
+
+def is_extruder_name(name: Any) -> bool:
+    """Klipper's extruder sections: extruder, extruder1, extruder2, ..."""
+    return isinstance(name, str) and re.fullmatch(r"extruder\d*", name) is not None
 
 
 def check_working_point(wp: float) -> float:
@@ -223,6 +240,13 @@ def check_profile(p: Profile) -> None:
     if p.schema_version != SCHEMA_VERSION:
         raise _bad(f"schema_version {p.schema_version} is not supported "
                    f"(this flowloop {__version__} reads {SCHEMA_VERSION})")
+    if len(p.points) > MAX_POINTS:
+        raise _bad(f"points has {len(p.points)} entries, at most {MAX_POINTS}")
+    if p.ddprint is not None:
+        for part in ("top", "nozzle"):
+            if len(getattr(p.ddprint, part)) > MAX_DDPRINT_NUMBERS:
+                raise _bad(f"ddprint.{part} has more than {MAX_DDPRINT_NUMBERS} "
+                           f"entries")
     for path, value in _walk_numbers(p, "profile"):
         if not math.isfinite(value):
             raise _bad(f"{path[len('profile.'):]} must be a finite number, got {value}")
@@ -396,6 +420,21 @@ def max_flow_at(profile: Profile, measured_temp_c: float,
     """
     temp = min(_finite(measured_temp_c, "temperature"), profile.bounds.max_temp_c)
     return max(0.0, profile_line(profile, working_point).flow_mm3_s(temp))
+
+
+def capped_to_heater(profile: Profile, heater_max_temp_c: float) -> Profile:
+    """The profile with its bounds capped at a heater's max_temp, so that
+    temp_for_flow never asks for more than the heater allows; refused when
+    the heater cannot reach the profile's min_temp_c."""
+    b = profile.bounds
+    cap = _finite(heater_max_temp_c, "heater max_temp")
+    if cap >= b.max_temp_c:
+        return profile
+    if cap <= b.min_temp_c:
+        raise _bad(f"the heater's max_temp {cap:g} degC is not above the profile's "
+                   f"min_temp_c {b.min_temp_c:g} degC")
+    return msgspec.structs.replace(profile, bounds=msgspec.structs.replace(
+        b, max_temp_c=cap, recommended_temp_c=min(b.recommended_temp_c, cap)))
 
 
 def active_status(profile: Profile, working_point: float) -> Dict[str, Any]:

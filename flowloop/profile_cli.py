@@ -126,8 +126,14 @@ def cmd_import(args) -> int:
         raise FlowloopError(f"{out_dir}: no such directory")
     profiles, problems = ddprint.import_paths(args.files, args.nozzle, args.base,
                                               args.printer)
+    written = set()
     for profile in profiles:
         path = out_dir / (safe_file_stem(profile.identity.name) + ".json")
+        if path in written:
+            problems.append(f"{profile.provenance.source}: {path} was written above "
+                            f"from another file (import them one at a time)")
+            continue
+        written.add(path)
         path.write_bytes(encode_profile(profile))
         print(f"wrote {path} ({json.dumps(profile.identity.name)}, nozzle "
               f"{profile.identity.nozzle_diameter_mm:g} mm)")

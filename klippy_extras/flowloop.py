@@ -75,7 +75,9 @@ class FlowloopHost:
         try:
             wp = fl_profile.check_working_point(web_request.get(
                 'working_point', fl_profile.DEFAULT_WORKING_POINT))
-            profile = fl_profile.profile_from_dict(data)
+            # Whatever the profile says, never above the heater's limit.
+            profile = fl_profile.capped_to_heater(
+                fl_profile.profile_from_dict(data), heater.max_temp)
         except FlowloopError as e:
             raise web_request.error(f"flowloop: {e}") from None
         self.active_profiles[extruder] = (profile, wp)
@@ -85,22 +87,18 @@ class FlowloopHost:
         web_request.send({'extruder': extruder, 'name': profile.name})
 
     def _extruder_heater(self, name):
+        if not fl_profile.is_extruder_name(name):
+            return None
         extruder = self.printer.lookup_object(name, None)
-        if extruder is None or not hasattr(extruder, 'get_heater') \
-                or not name.startswith('extruder'):
+        if extruder is None or not hasattr(extruder, 'get_heater'):
             return None
         return extruder.get_heater()
 
     def _update_status(self):
         status = {}
         for extruder, (profile, wp) in sorted(self.active_profiles.items()):
-            entry = fl_profile.active_status(profile, wp)
-            # Safety: whatever the profile says, never above the heater's limit.
-            heater_max = getattr(self._extruder_heater(extruder), 'max_temp',
-                                 None)
-            if heater_max is not None:
-                entry['heater_max_temp_c'] = heater_max
-                entry['max_temp_c'] = min(entry['max_temp_c'], heater_max)
+            entry = fl_profile.active_status(profile, wp)  # capped bounds
+            entry['heater_max_temp_c'] = self._extruder_heater(extruder).max_temp
             status[extruder] = entry
         self.profile_status = status
 

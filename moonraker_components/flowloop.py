@@ -13,9 +13,9 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
-import re
 from typing import TYPE_CHECKING, Any, Dict, Optional
 
 import flowloop
@@ -34,7 +34,6 @@ NAMESPACE = "flowloop"
 PROFILE_PREFIX = "profile:"
 ACTIVE_KEY = "active"
 KLIPPY_ENDPOINT = "flowloop/set_active_profile"
-EXTRUDER_NAME = re.compile(r"^extruder\d*$")
 
 
 def profile_key(name: str) -> str:
@@ -52,7 +51,7 @@ class Flowloop:
         self.eventloop = self.server.get_event_loop()
         self.spoolman_link = config.getboolean("spoolman_link", False)
         self.spoolman_extruder = config.get("spoolman_extruder", "extruder")
-        if not EXTRUDER_NAME.match(self.spoolman_extruder):
+        if not fl_profile.is_extruder_name(self.spoolman_extruder):
             raise config.error(
                 f"[flowloop] spoolman_extruder: {self.spoolman_extruder!r} is not "
                 f"an extruder name (extruder, extruder1, ...)")
@@ -63,9 +62,13 @@ class Flowloop:
             "klippy_connection")
         database = self.server.lookup_component("database")
         self.db = database.register_local_namespace(NAMESPACE)
+        # The database's content, validated. Changed only under write_lock and
+        # only after the database write, so a write that raises changes
+        # nothing here and concurrent writes cannot interleave. (Moonraker
+        # logs an sqlite error on insert instead of raising it.)
         self.profiles: Dict[str, fl_profile.Profile] = {}
-        self.profile_dicts: Dict[str, Dict[str, Any]] = {}  # served as stored
         self.active: Dict[str, Dict[str, Any]] = {}  # extruder -> name, wp
+        self.write_lock = asyncio.Lock()
         for path, methods, handler in (
             ("/server/flowloop/info", RequestType.GET, self._handle_info),
             ("/server/flowloop/profile",
@@ -100,7 +103,7 @@ class Flowloop:
                     # Kept in the database untouched: a newer flowloop may read it.
                     logging.info(f"flowloop: stored profile {key} skipped: {e}")
                     continue
-                self._remember(profile)
+                self.profiles[profile.name] = profile
         if self.spoolman_link and \
                 self.server.lookup_component("spoolman", None) is None:
             self.server.add_warning(
@@ -113,10 +116,6 @@ class Flowloop:
         # One ASCII line: it becomes an HTTP reason phrase.
         text = " ".join(str(msg).split()).encode("ascii", "backslashreplace")
         return self.server.error(text.decode(), code)
-
-    def _remember(self, profile: fl_profile.Profile) -> None:
-        self.profiles[profile.name] = profile
-        self.profile_dicts[profile.name] = fl_profile.profile_to_dict(profile)
 
     def _name_arg(self, web_request: WebRequest) -> str:
         name = web_request.get("name", None)
@@ -166,9 +165,11 @@ class Flowloop:
     async def store_profile(self, profile: fl_profile.Profile,
                             source: str) -> Dict[str, Any]:
         name = profile.name
-        action = "updated" if name in self.profiles else "created"
-        self._remember(profile)
-        await self.db.insert(profile_key(name), self.profile_dicts[name])
+        async with self.write_lock:
+            action = "updated" if name in self.profiles else "created"
+            await self.db.insert(profile_key(name),
+                                 fl_profile.profile_to_dict(profile))
+            self.profiles[name] = profile
         self._notify(action, name, source=source,
                      profile=fl_profile.summary(profile))
         active_for = [ext for ext, entry in self.active.items()
@@ -176,6 +177,23 @@ class Flowloop:
         for extruder in active_for:  # klippy keeps a copy: send the new one
             await self._send_to_klippy(extruder, quiet=True)
         return {"name": name, "action": action}
+
+    async def delete_profile(self, name: str) -> Dict[str, Any]:
+        async with self.write_lock:
+            self._known(name)
+            stopped = sorted(ext for ext, entry in self.active.items()
+                             if entry.get("name") == name)
+            active = {ext: entry for ext, entry in self.active.items()
+                      if ext not in stopped}
+            await self.db.delete(profile_key(name))
+            if stopped:
+                await self.db.insert(ACTIVE_KEY, active)
+            del self.profiles[name]
+            self.active = active
+        for extruder in stopped:  # clears klippy's copy
+            await self._send_to_klippy(extruder, quiet=True)
+        self._notify("deleted", name, deactivated=stopped)
+        return {"name": name, "action": "deleted", "deactivated": stopped}
 
     async def _remote_store_profile(self, profile: Any = None,
                                     activate_extruder: Optional[str] = None,
@@ -193,39 +211,40 @@ class Flowloop:
             logging.info(f"flowloop_store_profile refused: {e}")
             self._notify("refused", "", source="klippy", reason=str(e))
 
-    async def activate(self, name: str, extruder: str,
+    async def activate(self, name: str, extruder: Any,
                        wp: float) -> Dict[str, Any]:
-        self._known(name)
-        if not EXTRUDER_NAME.match(extruder):
-            raise self._error(f"{quoted(extruder)} is not an extruder name "
+        if not fl_profile.is_extruder_name(extruder):
+            raise self._error(f"{quoted(str(extruder))} is not an extruder name "
                               f"(extruder, extruder1, ...)")
         try:
             wp = fl_profile.check_working_point(wp)
         except FlowloopError as e:
             raise self._error(str(e)) from None
-        previous = self.active.get(extruder)
-        self.active[extruder] = {"name": name, "working_point": wp}
-        try:
-            sent = await self._send_to_klippy(extruder)
-        except self.server.error:
-            if previous is None:
-                self.active.pop(extruder)
-            else:
-                self.active[extruder] = previous
-            raise
-        await self.db.insert(ACTIVE_KEY, self.active)
+        entry = {"name": name, "working_point": wp}
+        async with self.write_lock:
+            self._known(name)  # again under the lock: a delete may have run
+            sent = await self._send_to_klippy(extruder, entry)
+            active = {**self.active, extruder: entry}
+            await self.db.insert(ACTIVE_KEY, active)
+            self.active = active
         self._notify("activated", name, extruder=extruder, working_point=wp,
                      sent_to_klippy=sent)
         return {"extruder": extruder, "name": name, "working_point": wp,
                 "sent_to_klippy": sent}
 
-    async def _send_to_klippy(self, extruder: str, quiet: bool = False) -> bool:
-        """Send an extruder's active profile to klippy; False if not ready."""
+    async def _send_to_klippy(self, extruder: str,
+                              entry: Optional[Dict[str, Any]] = None,
+                              quiet: bool = False) -> bool:
+        """Send an extruder's activation (default: the stored one; none clears
+        it) to klippy; False if klippy is not ready."""
         if not self.klippy.is_ready():
             return False
-        entry = self.active.get(extruder) or {}
-        profile = self.profile_dicts.get(entry.get("name", ""))
-        params = {"extruder": extruder, "profile": profile,
+        if entry is None:
+            entry = self.active.get(extruder) or {}
+        profile = self.profiles.get(entry.get("name", ""))
+        params = {"extruder": extruder,
+                  "profile": None if profile is None
+                  else fl_profile.profile_to_dict(profile),
                   "working_point": entry.get("working_point", self.default_wp)}
         try:
             await self.klippy.request(WebRequest(KLIPPY_ENDPOINT, params))
@@ -278,21 +297,10 @@ class Flowloop:
             profile = self.parse_profile(web_request.get("profile", None))
             return await self.store_profile(profile, "api")
         name = self._name_arg(web_request)
-        self._known(name)
         if req_type == RequestType.DELETE:
-            del self.profiles[name]
-            del self.profile_dicts[name]
-            await self.db.delete(profile_key(name))
-            stopped = sorted(ext for ext, entry in self.active.items()
-                             if entry.get("name") == name)
-            for extruder in stopped:
-                del self.active[extruder]
-                await self._send_to_klippy(extruder, quiet=True)
-            if stopped:
-                await self.db.insert(ACTIVE_KEY, self.active)
-            self._notify("deleted", name, deactivated=stopped)
-            return {"name": name, "action": "deleted", "deactivated": stopped}
-        return {"name": name, "profile": self.profile_dicts[name]}
+            return await self.delete_profile(name)
+        return {"name": name,
+                "profile": fl_profile.profile_to_dict(self._known(name))}
 
     async def _handle_list(self, web_request: WebRequest) -> Dict[str, Any]:
         return {"profiles": [fl_profile.summary(self.profiles[name])
@@ -301,9 +309,7 @@ class Flowloop:
 
     async def _handle_activate(self, web_request: WebRequest) -> Dict[str, Any]:
         name = self._name_arg(web_request)
-        extruder = web_request.get("extruder", "extruder")
-        if not isinstance(extruder, str):
-            raise self._error("extruder must be a string")
+        extruder = web_request.get_str("extruder", "extruder")
         entry = self.active.get(extruder) or {}
         wp = self._wp_arg(web_request, entry.get("working_point", self.default_wp))
         return await self.activate(name, extruder, wp)

@@ -16,8 +16,10 @@ needs_data = pytest.mark.skipif(
 
 
 def make(air=(0.146, 171.6312, 7.5789), real=(0.146, 210.0, 10.1356),
-         bounds=(190.0, 210.0, 260.0), name="herz-pla-red_80", **extra):
-    """The UM2-1 herz-pla-red 0.8 mm numbers (ddPrint file), as a dict."""
+         bounds=(190.0, 210.0, 260.0), name="herz-pla-red_80", identity=None,
+         **extra):
+    """The UM2-1 herz-pla-red 0.8 mm numbers (ddPrint file), as a dict;
+    identity updates the identity fields, extra the top-level ones."""
     data = {
         "identity": {"name": name, "printer": "UM2-1", "nozzle_diameter_mm": 0.8,
                      "filament_name": "herz-pla-red", "filament_type": "PLA"},
@@ -30,5 +32,6 @@ def make(air=(0.146, 171.6312, 7.5789), real=(0.146, 210.0, 10.1356),
                            bounds)),
         "provenance": {"method": "manual"},
     }
+    data["identity"].update(identity or {})
     data.update(extra)
     return data

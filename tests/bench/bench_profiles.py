@@ -13,15 +13,11 @@ from __future__ import annotations
 import http.client
 import json
 import statistics
-import sys
 import threading
 import time
-from pathlib import Path
 
 from devtools import stack
-
-sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
-from test_profile import make  # noqa: E402
+from tests.samples import make
 
 ROUNDS = 6
 PER_ROUND = 150

@@ -4,7 +4,6 @@ the Spoolman link."""
 
 from __future__ import annotations
 
-import asyncio
 import http.server
 import json
 import re
@@ -19,9 +18,8 @@ from urllib.parse import quote
 import pytest
 
 from devtools import stack
+from flowloop.profile import MAX_POINTS
 from tests.samples import make
-
-tornado_websocket = pytest.importorskip("tornado.websocket")
 
 
 class Server:
@@ -51,9 +49,6 @@ class Server:
     def request(self, method, path, body=None):
         return self.mr.request(method, path, body)
 
-    def ws_url(self):
-        return f"ws://127.0.0.1:{self.port}/websocket"
-
 
 @pytest.fixture(scope="module")
 def server(moonraker_venv):
@@ -80,52 +75,6 @@ def get(srv, name):
     return srv.request("GET", "/server/flowloop/profile?name=" + quote(name, safe=""))
 
 
-class Rpc:
-    """A JSON-RPC websocket client that also collects notifications."""
-
-    def __init__(self, url):
-        self.url, self.next_id, self.notifications = url, 0, []
-
-    async def __aenter__(self):
-        self.ws = await tornado_websocket.websocket_connect(self.url)
-        return self
-
-    async def __aexit__(self, *exc):
-        self.ws.close()
-
-    async def _read(self, timeout):
-        msg = await asyncio.wait_for(self.ws.read_message(), timeout)
-        assert msg is not None, "websocket closed"
-        return json.loads(msg)
-
-    async def call(self, method, timeout=10.0, **params):
-        self.next_id += 1
-        await self.ws.write_message(json.dumps(
-            {"jsonrpc": "2.0", "method": method, "params": params, "id": self.next_id}))
-        while True:
-            msg = await self._read(timeout)
-            if msg.get("id") == self.next_id:
-                return msg
-            self.notifications.append(msg)
-
-    async def notification(self, method, timeout=10.0, where=lambda params: True):
-        deadline = time.monotonic() + timeout
-        while True:
-            for msg in self.notifications:
-                if msg.get("method") == method and where(msg.get("params")):
-                    self.notifications.remove(msg)
-                    return msg
-            msg = await self._read(max(0.01, deadline - time.monotonic()))
-            self.notifications.append(msg)
-
-
-def rpc(srv, coro_fn):
-    async def run():
-        async with Rpc(srv.ws_url()) as client:
-            return await coro_fn(client)
-    return asyncio.run(run())
-
-
 # --- CRUD over HTTP ---------------------------------------------------------
 
 
@@ -144,7 +93,7 @@ def test_crud_over_http(server):
     assert get(server, "crud-http")[0] == 404
 
 
-def test_crud_over_json_rpc(server):
+def test_crud_over_json_rpc(server, rpc):
     async def steps(client):
         created = await client.call("server.flowloop.post_profile",
                                     profile=make(name="crud-rpc"))
@@ -168,7 +117,7 @@ def test_crud_over_json_rpc(server):
                                 profile=make(name="x", bounds=(190, 210, 900)))
         assert bad["error"]["code"] == 400
         assert "bounds.max_temp_c must be in 0..500" in bad["error"]["message"]
-    rpc(server, steps)
+    rpc(server.port, steps)
 
 
 # --- errors -----------------------------------------------------------------
@@ -182,6 +131,10 @@ def test_crud_over_json_rpc(server):
     ({"profile": "{not json"}, "the profile is not valid JSON"),
     ({"profile": [1, 2]}, "must be a JSON object"),
     ({}, "the profile is missing (argument 'profile')"),
+    ({"profile": make(name="bad", points=[
+        {"kind": "into_air", "temp_c": 200.0, "flow_mm3_s": 5.0, "grip": 0.9}]
+        * (MAX_POINTS + 1))}, f"at most {MAX_POINTS}"),
+    ({"profile": make(name="plot\ufffebreaker")}, "profile name contains"),
 ])
 def test_bad_writes_answer_400_with_the_reason_and_change_nothing(server, body,
                                                                   message):
@@ -213,6 +166,10 @@ def test_bad_activation_arguments_answer_400(server):
                            "could not convert"),
                           ({"name": "act-args", "extruder": "heater_bed"},
                            "is not an extruder name"),
+                          ({"name": "act-args", "extruder": "extruder\n"},
+                           "is not an extruder name"),
+                          ({"name": "act-args", "extruder": ["extruder"]},
+                           "is not an extruder name"),
                           ({}, "the profile name is missing")):
         status, body = server.request("POST", "/server/flowloop/profile/activate",
                                       args)
@@ -225,7 +182,8 @@ ODD_NAMES = ["a.b.c", "x/y", "..", "../../etc/passwd", "semi;colon M112",
              'quote"s', "it's", "üñï 0.4 mm", "{printer}", "%2e%2e", "a" * 128]
 
 
-def test_odd_names_round_trip_over_http_and_rpc_and_never_become_key_paths(server):
+def test_odd_names_round_trip_over_http_and_rpc_and_never_become_key_paths(server,
+                                                                           rpc):
     for name in ODD_NAMES:
         assert store(server, name=name)["name"] == name
         status, body = get(server, name)
@@ -237,7 +195,7 @@ def test_odd_names_round_trip_over_http_and_rpc_and_never_become_key_paths(serve
         for name in ODD_NAMES:
             got = await client.call("server.flowloop.get_profile", name=name)
             assert got["result"]["name"] == name
-    rpc(server, over_rpc)
+    rpc(server.port, over_rpc)
     assert set(ODD_NAMES) <= listed_names(server)
     status, body = server.request("GET", "/server/database/item?namespace=flowloop")
     assert status == 200
@@ -272,14 +230,14 @@ def test_database_api_cannot_write_around_validation(server):
 # --- notifications, plot -----------------------------------------------------
 
 
-def test_every_change_is_notified(server):
+def test_every_change_is_notified(server, rpc):
     async def steps(client):
         await client.call("server.connection.identify", client_name="flowloop-test",
                           version="1", type="other", url="http://x")
         # written over HTTP by another client: the websocket client hears it
-        status, _ = await asyncio.get_running_loop().run_in_executor(
-            None, lambda: server.request("POST", "/server/flowloop/profile",
-                                         {"profile": make(name="notified")}))
+        status, _ = await client.in_thread(
+            lambda: server.request("POST", "/server/flowloop/profile",
+                                   {"profile": make(name="notified")}))
         assert status == 200
         msg = await client.notification("notify_flowloop_profile_changed",
                                         where=lambda p: p[0]["name"] == "notified")
@@ -294,7 +252,7 @@ def test_every_change_is_notified(server):
                                         where=lambda p: p[0]["action"] == "deleted")
         assert msg["params"][0] == {"action": "deleted", "name": "notified",
                                     "deactivated": ["extruder"]}
-    rpc(server, steps)
+    rpc(server.port, steps)
 
 
 def test_plot_is_valid_svg_of_the_stored_profile(server):
@@ -361,14 +319,14 @@ def test_an_untrusted_client_is_refused(untrusting_server, method, path, body):
     assert status == 401
 
 
-def test_an_untrusted_websocket_client_is_refused(untrusting_server):
+def test_an_untrusted_websocket_client_is_refused(untrusting_server, rpc):
     async def steps(client):
         answer = await client.call("server.flowloop.post_profile",
                                    profile=make(name="intruder"))
         # Moonraker's JSON-RPC reports a 401 as -32602
         assert answer["error"]["code"] == -32602
         assert "Unauthorized" in answer["error"]["message"]
-    rpc(untrusting_server, steps)
+    rpc(untrusting_server.port, steps)
 
 
 # --- Spoolman link --------------------------------------------------------------
@@ -414,20 +372,9 @@ def spoolman_server(moonraker_venv):
         shutil.rmtree(data_dir, ignore_errors=True)
 
 
-def wait_for(fn, timeout=10.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = fn()
-        if value:
-            return value
-        time.sleep(0.1)
-    return fn()
-
-
 def test_active_spool_activates_the_profile_of_its_filament(spoolman_server):
     store(spoolman_server, name="other pla")
-    data = make(name="spool pla")
-    data["identity"]["spoolman_filament_id"] = 3
+    data = make(name="spool pla", identity={"spoolman_filament_id": 3})
     assert spoolman_server.request("POST", "/server/flowloop/profile",
                                    {"profile": data})[0] == 200
 
@@ -438,7 +385,7 @@ def test_active_spool_activates_the_profile_of_its_filament(spoolman_server):
     status, _ = spoolman_server.request("POST", "/server/spoolman/spool_id",
                                         {"spool_id": 7})
     assert status == 200
-    assert wait_for(active) == {"name": "spool pla", "working_point": 0.5}
+    assert stack.wait_until(active, 10.0) == {"name": "spool pla", "working_point": 0.5}
     # a spool whose filament has no profile leaves the active one alone
     spoolman_server.request("POST", "/server/spoolman/spool_id", {"spool_id": 8})
     time.sleep(1.0)

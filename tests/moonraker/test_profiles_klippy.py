@@ -5,12 +5,12 @@ not G-code) and a klippy macro hands a profile over with flowloop_store_profile.
 from __future__ import annotations
 
 import shutil
-import time
 from urllib.parse import quote
 
 import pytest
 
 from devtools import stack
+from flowloop import profile as fl_profile
 from tests.samples import make
 
 MACRO_PROFILE = make(name="from-klippy", bounds=(200.0, 215.0, 250.0))
@@ -58,14 +58,7 @@ def klippy_profiles(ps):
     return ps.query("flowloop").get("profiles", {})
 
 
-def wait_for(fn, timeout=20.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = fn()
-        if value:
-            return value
-        time.sleep(0.2)
-    return fn()
+WAIT_S = 20.0
 
 
 def test_activation_reaches_klippy_and_shows_in_get_status(printer):
@@ -94,10 +87,21 @@ def test_klippy_refuses_an_extruder_it_does_not_have(printer):
     assert "extruder1" not in active
 
 
+def test_klippy_refuses_a_profile_its_heater_cannot_reach(printer):
+    # config/printer.cfg's extruder stops at 260 degC, this material needs 270+
+    store(printer, name="peek", bounds=(270.0, 380.0, 420.0),
+          real=(0.146, 390.0, 10.0), air=(0.146, 380.0, 12.0))
+    status, body = activate(printer, "peek")
+    assert status == 400
+    assert "max_temp 260 degC is not above the profile's min_temp_c 270" in (
+        body["error"]["message"])
+    assert klippy_profiles(printer).get("extruder", {}).get("name") != "peek"
+
+
 def test_storing_the_active_profile_again_updates_klippy(printer):
     store(printer, name="hot pla", bounds=(195.0, 215.0, 240.0))
-    assert wait_for(lambda: klippy_profiles(printer)["extruder"]["min_temp_c"]
-                    == 195.0)
+    assert stack.wait_until(
+        lambda: klippy_profiles(printer)["extruder"]["min_temp_c"] == 195.0, WAIT_S)
     assert klippy_profiles(printer)["extruder"]["max_temp_c"] == 240.0
 
 
@@ -120,8 +124,9 @@ def test_active_profile_is_sent_again_when_klippy_comes_back(printer):
     before = resent()
     request(printer, "POST", "/printer/restart")
     # klippy forgets on restart; Moonraker sends the stored activation on ready
-    assert wait_for(lambda: resent() > before, timeout=60)
-    assert wait_for(lambda: klippy_profiles_or_none(printer) == "after restart")
+    assert stack.wait_until(lambda: resent() > before, 60.0)
+    assert stack.wait_until(
+        lambda: klippy_profiles_or_none(printer) == "after restart", WAIT_S)
     assert klippy_profiles(printer)["extruder"]["working_point"] == 0.6
 
 
@@ -141,7 +146,7 @@ def test_deleting_the_active_profile_clears_it_in_klippy(printer):
     assert "extruder" not in klippy_profiles(printer)
 
 
-def test_a_klippy_macro_stores_a_profile_with_flowloop_store_profile(printer):
+def test_a_klippy_macro_stores_a_profile_with_flowloop_store_profile(printer, rpc):
     def run_macro():
         try:
             printer.gcode("FLOWLOOP_TEST_STORE")
@@ -150,17 +155,25 @@ def test_a_klippy_macro_stores_a_profile_with_flowloop_store_profile(printer):
                 return False
             raise
         return True
-    assert wait_for(run_macro, timeout=15)
 
-    def stored():
-        status, body = request(printer, "GET",
-                               "/server/flowloop/profile?name=" + quote("from-klippy"))
-        return body["result"]["profile"] if status == 200 else None
-    profile = wait_for(stored)
-    assert profile == request(printer, "GET", "/server/flowloop/profile?name="
-                              "from-klippy")[1]["result"]["profile"]
-    assert profile["bounds"]["max_temp_c"] == 250.0
-    assert profile["lines"]["real_print"]["flow_mm3_s"] == 10.1356
-    assert wait_for(lambda: klippy_profiles(printer).get("extruder", {}).get(
-        "name") == "from-klippy")
+    async def steps(client):
+        assert await client.in_thread(lambda: stack.wait_until(run_macro, 15.0))
+        stored = await client.notification(
+            "notify_flowloop_profile_changed",
+            where=lambda p: p[0]["name"] == "from-klippy")
+        activated = await client.notification(
+            "notify_flowloop_profile_changed",
+            where=lambda p: p[0]["action"] == "activated")
+        return stored["params"][0], activated["params"][0]
+    stored, activated = rpc(printer.moonraker.port, steps)
+    assert stored["source"] == "klippy" and stored["action"] in ("created", "updated")
+    assert activated["name"] == "from-klippy" and activated["working_point"] == 0.8
+    status, body = request(printer, "GET", "/server/flowloop/profile?name="
+                           + quote("from-klippy"))
+    assert status == 200
+    # every field the macro handed over, with the schema's defaults filled in
+    assert body["result"]["profile"] == fl_profile.profile_to_dict(
+        fl_profile.profile_from_dict(MACRO_PROFILE))
+    assert stack.wait_until(
+        lambda: klippy_profiles_or_none(printer) == "from-klippy", WAIT_S)
     assert klippy_profiles(printer)["extruder"]["working_point"] == 0.8

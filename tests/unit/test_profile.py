@@ -123,6 +123,15 @@ def test_round_trip_through_json_keeps_every_field(herz):
     (lambda d: d["lines"].update(into_air_power={
         "slope_mm3_s_per_pwm": 0.1, "pwm": 300, "flow_mm3_s": 5}),
      "lines.into_air_power.pwm must be in 0..255"),
+    # U+FFFE/U+FFFF cannot be written in XML (SVG plots) even escaped
+    (lambda d: d["identity"].update(name="PLA\ufffe"), "profile name contains"),
+    (lambda d: d["identity"].update(filament_vendor="\uffff"), "filament_vendor"),
+    (lambda d: d.update(ddprint={"top": {"bed\nTemp": 60}}), "ddprint.top key"),
+    (lambda d: d.update(points=[{"kind": "into_air", "temp_c": 200, "flow_mm3_s": 5,
+                                 "grip": 0.9}] * (P.MAX_POINTS + 1)),
+     f"points has {P.MAX_POINTS + 1} entries, at most {P.MAX_POINTS}"),
+    (lambda d: d.update(ddprint={"nozzle": {f"k{i}": i for i in range(
+        P.MAX_DDPRINT_NUMBERS + 1)}}), "ddprint.nozzle has more than"),
 ])
 def test_bad_profiles_are_refused_with_one_clear_line(change, message):
     data = make()
@@ -155,6 +164,33 @@ def test_lines_touching_at_a_bound_are_not_crossing():
     real = (0.2, 200.0, 4.0)
     p = P.profile_from_dict(make(air=air, real=real))
     assert P.flow_at(p, 260.0, 0.0) == pytest.approx(P.flow_at(p, 260.0, 1.0))
+
+
+def test_capped_to_a_heater_never_asks_for_more_than_its_max_temp(herz):
+    capped = P.capped_to_heater(herz, 235.0)
+    assert capped.bounds.max_temp_c == 235.0 and capped.bounds.min_temp_c == 190.0
+    assert P.temp_for_flow(capped, 30.0) == 235.0  # uncapped: 260
+    assert P.max_flow_at(capped, 250.0) == pytest.approx(0.146 * 235 - 19.0018276)
+    assert P.capped_to_heater(herz, 300.0) is herz
+    low = P.capped_to_heater(herz, 200.0)
+    assert low.bounds.recommended_temp_c == 200.0  # was 210
+    with pytest.raises(FlowloopError, match="max_temp 185 degC is not above"):
+        P.capped_to_heater(herz, 185.0)
+    with pytest.raises(FlowloopError, match="finite"):
+        P.capped_to_heater(herz, math.nan)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.floats(min_value=0.0, max_value=500.0), st.floats(min_value=0.0,
+                                                             max_value=1e6))
+def test_temperature_for_any_flow_never_exceeds_the_heater_cap(cap, flow):
+    herz = P.profile_from_dict(make())
+    try:
+        capped = P.capped_to_heater(herz, cap)
+    except FlowloopError:
+        assert cap <= herz.bounds.min_temp_c
+        return
+    assert P.temp_for_flow(capped, flow) <= min(cap, herz.bounds.max_temp_c)
 
 
 def test_active_status_is_small_and_json_able(herz):
@@ -248,7 +284,7 @@ def test_names_round_trip_or_are_refused(name):
     except FlowloopError as e:
         assert "profile name" in str(e)
         assert not name.strip() or any(ord(c) < 32 or 0x7f <= ord(c) <= 0x9f
-                                       or c in "\u2028\u2029" or
+                                       or c in "\u2028\u2029\ufffe\uffff" or
                                        0xd800 <= ord(c) <= 0xdfff for c in name)
         return
     assert P.decode_profile(P.encode_profile(p)).identity.name == name

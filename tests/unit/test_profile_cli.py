@@ -11,7 +11,7 @@ from flowloop import ddprint
 from flowloop import profile as P
 from flowloop.cli import main
 from flowloop.profile_cli import safe_file_stem
-from tests.samples import MAT, needs_data
+from tests.samples import MAT, make, needs_data
 
 
 def run(capsys, *argv):
@@ -131,16 +131,26 @@ def test_import_into_a_missing_directory_is_refused(tmp_path, capsys):
 
 def test_safe_file_stem_is_used_for_written_files(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    p = P.profile_from_dict({
-        "identity": {"name": "../evil", "nozzle_diameter_mm": 0.4},
-        "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 205,
-                               "flow_mm3_s": 2.5},
-                  "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 215,
-                                 "flow_mm3_s": 2}},
-        "bounds": {"min_temp_c": 190, "recommended_temp_c": 210, "max_temp_c": 260},
-        "provenance": {"method": "manual"}})
+    p = P.profile_from_dict(make(name="../evil"))
     src = tmp_path / "in.json"
     src.write_bytes(P.encode_profile(p))
     code, _, _ = run(capsys, "plot", src)
     assert code == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["evil.svg", "in.json"]
+
+
+@needs_data
+def test_import_never_overwrites_what_it_wrote_in_the_same_run(tmp_path, capsys):
+    for folder, base in (("a", 190), ("b", 185)):
+        (tmp_path / folder).mkdir()
+        text = (MAT / "pla.json").read_text()
+        data = ddprint.parse_text(text)
+        data["hotendBaseTemp"] = base
+        (tmp_path / folder / "pla.json").write_text(json.dumps(data))
+    out = tmp_path / "out"
+    out.mkdir()
+    code, text, err = run(capsys, "import", tmp_path / "a/pla.json",
+                          tmp_path / "b/pla.json", "-o", out)
+    assert code == 1
+    assert text.count("pla_40.json") == 1 and "was written above" in err
+    assert P.decode_profile((out / "pla_40.json").read_bytes()).bounds.min_temp_c == 190

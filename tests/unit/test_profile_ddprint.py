@@ -12,7 +12,19 @@ from hypothesis import strategies as st
 from flowloop import ddprint
 from flowloop import profile as P
 from flowloop.errors import FlowloopError
-from tests.samples import MAT, needs_data
+from tests.samples import MAT, make, needs_data
+
+
+def flatten_numbers(data, prefix=""):
+    """{"properties_80.Ktemp": 0.146, ...}: every number of a ddPrint dict."""
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(flatten_numbers(value, f"{prefix}{key}."))
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            out[f"{prefix}{key}"] = value
+    return out
+
 
 UM2 = sorted((MAT / "UM2-1").glob("*.json")) if MAT.is_dir() else []
 
@@ -86,10 +98,10 @@ def test_um2_profiles_round_trip_with_every_number_kept(path):
     base = ddprint.read_file(ddprint.find_generic_base(path))
     (profile,) = ddprint.import_file(path).profiles
     exported = ddprint.parse_text(ddprint.export_text(profile))
-    got = ddprint.flatten_numbers(exported)
-    want = ddprint.flatten_numbers(original)
+    got = flatten_numbers(exported)
+    want = flatten_numbers(original)
     # the printer file's own numbers, and the generic ones it did not replace
-    want.update({k: v for k, v in ddprint.flatten_numbers(base).items()
+    want.update({k: v for k, v in flatten_numbers(base).items()
                  if k.split(".")[0] not in original
                  and not k.startswith("properties_")})
     assert {k: got.get(k) for k in want} == want
@@ -152,19 +164,14 @@ def test_an_explicit_base_and_printer_are_used():
 
 
 def test_export_of_a_flowloop_profile_without_ddprint_extras():
-    p = P.profile_from_dict({
-        "identity": {"name": 'odd "name"; ../x', "nozzle_diameter_mm": 0.6},
-        "lines": {"into_air": {"slope_mm3_s_per_c": 0.2, "temp_c": 200,
-                               "flow_mm3_s": 10},
-                  "real_print": {"slope_mm3_s_per_c": 0.2, "temp_c": 220,
-                                 "flow_mm3_s": 9}},
-        "bounds": {"min_temp_c": 190, "recommended_temp_c": 210, "max_temp_c": 250},
-        "provenance": {"method": "into_air"}})
+    p = P.profile_from_dict(make(name='odd "name"; ../x', air=(0.2, 200.0, 10.0),
+                                 real=(0.2, 220.0, 9.0), bounds=(190.0, 210.0, 250.0),
+                                 provenance={"method": "into_air"}))
     text = ddprint.export_text(p)
     data = ddprint.parse_text(text)
-    assert data["properties_60"]["Ktemp"] == 0.2 and data["hotendMaxTemp"] == 250
+    assert data["properties_80"]["Ktemp"] == 0.2 and data["hotendMaxTemp"] == 250
     assert json.dumps(p.identity.name) in text.splitlines()[1]
-    assert ddprint.to_profile(data, 0.6, name="y").lines == p.lines
+    assert ddprint.to_profile(data, 0.8, name="y").lines == p.lines
 
 
 ddprint_numbers = st.floats(min_value=0.01, max_value=400, allow_nan=False)
@@ -184,4 +191,4 @@ def test_export_then_import_keeps_every_number(ktemp, p0temp, fr0, gap, extras):
                               "P0tempPrint": p0temp + gap, "FR0pwmPrint": fr0}}
     p = ddprint.to_profile(data, 0.4, name="h")
     again = ddprint.parse_text(ddprint.export_text(p))
-    assert ddprint.flatten_numbers(again) == ddprint.flatten_numbers(data)
+    assert flatten_numbers(again) == flatten_numbers(data)

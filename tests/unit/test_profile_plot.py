@@ -6,6 +6,8 @@ import importlib.util
 import xml.etree.ElementTree as ET
 
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from flowloop import plot
 from flowloop import profile as P
@@ -45,6 +47,21 @@ def test_svg_parses_and_escapes_the_name(measured):
     assert root.tag == SVG + "svg"
     assert root.get("data-profile") == '<PLA & "friends">'
     assert '<PLA & "friends">' in root.find(SVG + "title").text
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.text(min_size=1, max_size=30))
+@example("PLA\ufffe")
+@example("]]><script>alert(1)</script><!--")
+def test_every_accepted_name_gives_valid_svg_that_shows_it_verbatim(name):
+    try:
+        p = P.profile_from_dict(make(name=name))
+    except FlowloopError:
+        return  # refused names are the validators' test
+    root = parse(plot.svg(p))
+    assert root.get("data-profile") == name
+    assert root.find(SVG + "title").text.startswith(f"{name}: UM2-1, nozzle")
+    assert not [e for e in root.iter() if "script" in e.tag]
 
 
 def test_working_line_lies_between_the_two_lines(measured):

@@ -1,0 +1,68 @@
+"""Helpers for the Moonraker tier: a JSON-RPC websocket client that also
+collects notifications (polling is devtools.stack.wait_until)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+
+import pytest
+
+
+class Rpc:
+    """A JSON-RPC websocket client that also collects notifications."""
+
+    def __init__(self, url):
+        self.url, self.next_id, self.notifications = url, 0, []
+
+    async def __aenter__(self):
+        from tornado import websocket
+        self.ws = await websocket.websocket_connect(self.url)
+        return self
+
+    async def __aexit__(self, *exc):
+        self.ws.close()
+
+    async def _read(self, timeout):
+        msg = await asyncio.wait_for(self.ws.read_message(), timeout)
+        assert msg is not None, "websocket closed"
+        return json.loads(msg)
+
+    async def call(self, method, timeout=10.0, **params):
+        self.next_id += 1
+        await self.ws.write_message(json.dumps(
+            {"jsonrpc": "2.0", "method": method, "params": params, "id": self.next_id}))
+        while True:
+            msg = await self._read(timeout)
+            if msg.get("id") == self.next_id:
+                return msg
+            self.notifications.append(msg)
+
+    async def notification(self, method, timeout=10.0, where=lambda params: True):
+        deadline = time.monotonic() + timeout
+        while True:
+            for msg in self.notifications:
+                if msg.get("method") == method and where(msg.get("params")):
+                    self.notifications.remove(msg)
+                    return msg
+            msg = await self._read(max(0.01, deadline - time.monotonic()))
+            self.notifications.append(msg)
+
+    async def in_thread(self, fn):
+        """A blocking call (an HTTP request, G-code) while the socket listens."""
+        return await asyncio.get_running_loop().run_in_executor(None, fn)
+
+
+@pytest.fixture
+def rpc():
+    """rpc(port, steps): the result of `await steps(client)`, client an Rpc
+    connected to the Moonraker on 127.0.0.1:port."""
+    pytest.importorskip("tornado.websocket")
+
+    def run(port, steps):
+        async def main():
+            async with Rpc(f"ws://127.0.0.1:{port}/websocket") as client:
+                return await steps(client)
+        return asyncio.run(main())
+    return run
