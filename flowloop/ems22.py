@@ -41,6 +41,9 @@ RECORD_BYTES = 1 + READ_BYTES
 RECORDS_PER_MSG = 12
 TCODE_ERROR = 0xFF
 ERR_OVERFLOW, ERR_SCHEDULE, ERR_SPI_TIME = 1, 2, 3
+# The firmware's count of unread timer events stops here: a task that falls
+# further behind loses count of them (see Decoder, time_lost)
+MAX_PENDING = 255
 
 POSITION_SHIFT = 6
 POSITIONS = 1024
@@ -48,10 +51,10 @@ OCF, COF, LIN, MAGINC, MAGDEC = 1 << 5, 1 << 4, 1 << 3, 1 << 2, 1 << 1
 
 OK, MISSING, PARITY, NOT_READY, CORDIC, LINEARITY, MAGNET = range(7)
 # Host-only sample states (after the frame states of the header)
-MISALIGNED, OVERFLOW, SCHEDULE, SPI_TIME = 7, 8, 9, 10
+MISALIGNED, OVERFLOW, SCHEDULE, SPI_TIME, TIME_LOST = 7, 8, 9, 10, 11
 STATUS_NAMES = ("ok", "missing", "parity", "not_ready", "cordic_overflow",
                 "linearity", "magnet", "misaligned", "overflow", "schedule",
-                "spi_time")
+                "spi_time", "time_lost")
 _MCU_ERRORS = {ERR_OVERFLOW: OVERFLOW, ERR_SCHEDULE: SCHEDULE,
                ERR_SPI_TIME: SPI_TIME}
 
@@ -64,6 +67,14 @@ MAX_SPI_HZ = 1_000_000
 def parity_odd(frame: int) -> int:
     """1 when the 16-bit frame has an odd number of ones (parity error)."""
     return bin(frame & 0xFFFF).count("1") & 1
+
+
+def parity_bits(frames: np.ndarray) -> np.ndarray:
+    """parity_odd of each 16-bit frame of an integer array."""
+    parity = np.array(frames, dtype=np.int64)
+    for shift in (8, 4, 2, 1):
+        parity ^= parity >> shift
+    return parity & 1
 
 
 def make_frame(position: int, ocf: bool = True, cof: bool = False,
@@ -85,19 +96,25 @@ def frame_at(raw: Sequence[int], offset: int) -> int:
 
 
 def frame_status(frame: int) -> int:
-    if frame in (0x0000, 0xFFFF):
-        return MISSING
-    if parity_odd(frame):
-        return PARITY
-    if not frame & OCF:
-        return NOT_READY
-    if frame & COF:
-        return CORDIC
-    if frame & LIN:
-        return LINEARITY
-    if frame & (MAGINC | MAGDEC) == MAGINC | MAGDEC:
-        return MAGNET
-    return OK
+    """OK or the first failed check, in the order of ems22_frame_check()."""
+    return int(frame_statuses(np.array([frame], dtype=np.int64))[0])
+
+
+def frame_statuses(frames: np.ndarray) -> np.ndarray:
+    """frame_status of each frame of an integer array (what Decoder uses)."""
+    status = np.full(len(frames), OK, dtype=np.int64)
+    checks = (
+        ((frames & MAGINC) != 0) & ((frames & MAGDEC) != 0), MAGNET,
+        (frames & LIN) != 0, LINEARITY,
+        (frames & COF) != 0, CORDIC,
+        (frames & OCF) == 0, NOT_READY,
+        parity_bits(frames) != 0, PARITY,
+        (frames == 0) | (frames == 0xFFFF), MISSING,
+    )
+    # Later checks win, so apply them from the least to the most basic.
+    for i in range(0, len(checks), 2):
+        status[checks[i]] = checks[i + 1]
+    return status
 
 
 # --- bit-level model of the chip on the wire ---------------------------------
@@ -195,13 +212,22 @@ def _empty() -> Samples:
 
 @dataclass
 class Decoder:
-    """Turns sensor_bulk_data payloads into unwrapped counts, statefully."""
+    """Turns sensor_bulk_data payloads into unwrapped counts, statefully.
+
+    time_lost: the MCU sent MAX_PENDING - 1 overflow records in a row, so its
+    count of unread timer events may have stopped at MAX_PENDING: its next
+    read belongs to a later event than the record index says, and every
+    time from there on is off by the events it lost count of. Those samples
+    are TIME_LOST (never used) until reset(), after a new query.
+    """
     bit_offset: int = 1
     next_index: int = 0
     last_sequence: int = -1
     last_position: int = -1   # 10-bit raw position of the last good frame
     counts: int = 0           # unwrapped position of the last good frame
+    time_lost: bool = False
     _other: int = field(init=False, default=0)
+    _overflow_run: int = field(init=False, default=0)
 
     def __post_init__(self):
         if not 0 <= self.bit_offset <= 8:
@@ -209,8 +235,10 @@ class Decoder:
         self._other = 1 - self.bit_offset if self.bit_offset < 2 else -1
 
     def reset(self) -> None:
+        """A new query: the MCU counts records and messages from 0 again.
+        The position carries on (the encoder is absolute)."""
         self.next_index, self.last_sequence = 0, -1
-        self.last_position, self.counts = -1, 0
+        self.time_lost, self._overflow_run = False, 0
 
     def decode(self, messages: Sequence[Tuple[int, bytes]]) -> Samples:
         """Decode (sequence, payload) pairs, in arrival order."""
@@ -242,15 +270,16 @@ class Decoder:
         word = ((rec[:, 1].astype(np.int64) << 16) | (rec[:, 2].astype(np.int64) << 8)
                 | rec[:, 3])
         frame = (word >> (8 - self.bit_offset)) & 0xFFFF
-        status = _frame_status(frame)
+        status = frame_statuses(frame)
         if self._other >= 0:
             bad = status != OK
-            other = _frame_status((word >> (8 - self._other)) & 0xFFFF)
+            other = frame_statuses((word >> (8 - self._other)) & 0xFFFF)
             status[bad & (other == OK) & (status != MISSING)] = MISALIGNED
         is_error = tcode == TCODE_ERROR
         if is_error.any():
             codes = rec[is_error, 1]
             status[is_error] = [_MCU_ERRORS.get(int(c), SPI_TIME) for c in codes]
+        self._mark_time_lost(status)
         counts = np.zeros(len(index), dtype=np.int64)
         good = np.flatnonzero(status == OK)
         if len(good):
@@ -265,25 +294,20 @@ class Decoder:
             self.last_position = int(pos[-1])
         return Samples(index, tcode, status, counts)
 
-
-def _frame_status(frame: np.ndarray) -> np.ndarray:
-    """Vectorised frame_status (same order of checks)."""
-    status = np.full(len(frame), OK, dtype=np.int64)
-    parity = frame.copy()
-    for shift in (8, 4, 2, 1):
-        parity ^= parity >> shift
-    checks = (
-        ((frame & MAGINC) != 0) & ((frame & MAGDEC) != 0), MAGNET,
-        (frame & LIN) != 0, LINEARITY,
-        (frame & COF) != 0, CORDIC,
-        (frame & OCF) == 0, NOT_READY,
-        (parity & 1) != 0, PARITY,
-        (frame == 0) | (frame == 0xFFFF), MISSING,
-    )
-    # Later checks win, so apply them from the least to the most basic.
-    for i in range(0, len(checks), 2):
-        status[checks[i]] = checks[i + 1]
-    return status
+    def _mark_time_lost(self, status: np.ndarray) -> None:
+        start = 0 if self.time_lost else None
+        overflow = status == OVERFLOW
+        if start is None and (self._overflow_run or overflow.any()):
+            run = self._overflow_run
+            for i, is_overflow in enumerate(overflow.tolist()):
+                run = run + 1 if is_overflow else 0
+                if run >= MAX_PENDING - 1:
+                    start, self.time_lost = i + 1, True
+                    break
+            self._overflow_run = run
+        if start is not None:
+            tail = status[start:]
+            tail[tail == OK] = TIME_LOST
 
 
 def time_shift_for(mcu_freq: float, span_s: float = 0.002) -> int:
@@ -306,6 +330,15 @@ def sample_clocks(samples: Samples, start_clock: int, rest_ticks: int,
     centre = (1 << time_shift) / 2.0 if time_shift else 0.0
     return (start_clock + samples.index * rest_ticks
             + (tcode << time_shift) + centre).astype(np.float64)
+
+
+def print_times(clocks: np.ndarray, clock_to_print_time) -> np.ndarray:
+    """Print time of each MCU clock. clock_to_print_time (klippy's
+    mcu.clock_to_print_time) is linear over a batch: two calls, not one each."""
+    base = float(clocks[0])
+    t0 = clock_to_print_time(base)
+    per_clock = (clock_to_print_time(base + 1e6) - t0) / 1e6
+    return t0 + (clocks - base) * per_clock
 
 
 def check_spi_speed(speed_hz: int) -> None:

@@ -131,6 +131,32 @@ class GripEstimator:
         return (area * (m1 - m0) / (t1 - t0), area * (c1 - c0) / (t1 - t0))
 
 
+class SampleRate:
+    """Good samples since start, and per second over about the last second."""
+
+    def __init__(self, span_s: float = 1.0):
+        self.span_s = span_s
+        self.total = 0
+        # (time, total) at the first and last sample of each batch
+        self._marks: Deque[Tuple[float, int]] = collections.deque()
+
+    def add(self, times: Sequence[float]) -> None:
+        if not len(times):
+            return
+        marks = self._marks
+        marks.append((float(times[0]), self.total + 1))
+        self.total += len(times)
+        marks.append((float(times[-1]), self.total))
+        while len(marks) > 2 and marks[1][0] <= marks[-1][0] - self.span_s:
+            marks.popleft()
+
+    def per_second(self) -> float:
+        marks = self._marks
+        if len(marks) < 2 or marks[-1][0] <= marks[0][0]:
+            return 0.0
+        return (marks[-1][1] - marks[0][1]) / (marks[-1][0] - marks[0][0])
+
+
 # --- calibrations ------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -145,6 +171,22 @@ class CalibrationFit:
                               for s, r in zip(self.speeds, self.ratios))
         return (f"sensor mm per extruder mm at {per_speed}; "
                 f"spread {100 * self.spread:.2f}%")
+
+
+MAX_CALIBRATION_SPEED = 10.0
+
+
+def parse_speeds(text: str) -> List[float]:
+    """CALIBRATE_FLOW_SENSOR's SPEEDS: at least two, in 0..10 mm/s."""
+    try:
+        speeds = [float(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise FlowloopError(
+            f"SPEEDS must be comma separated mm/s, not '{text}'") from None
+    if len(speeds) < 2 or not all(0 < v <= MAX_CALIBRATION_SPEED for v in speeds):
+        raise FlowloopError(f"SPEEDS needs at least two speeds in "
+                            f"0..{MAX_CALIBRATION_SPEED:g} mm/s, not '{text}'")
+    return speeds
 
 
 def fit_calibration(speeds: Sequence[float], commanded_mm: Sequence[float],

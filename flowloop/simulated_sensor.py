@@ -109,10 +109,7 @@ class SimulatedEms22:
         frames = position << ems22.POSITION_SHIFT | ems22.OCF
         if self.fault == "magnet":
             frames |= ems22.MAGINC | ems22.MAGDEC
-        parity = frames.copy()
-        for shift in (8, 4, 2, 1):
-            parity ^= parity >> shift
-        frames |= parity & 1
+        frames |= ems22.parity_bits(frames)
         if self.fault == "parity":
             frames ^= 1 << 9
         if self.fault == "missing":

@@ -61,8 +61,8 @@ class FlowSensor:
         self.process_scheduled = False
         self.start_clock = None
         self.rest_ticks = self.time_shift = 0
-        self.total_samples = 0
-        self.rate_marks = []
+        self.rate = flow_grip.SampleRate()
+        self.restart_pending = False
         self.dump_samples = None
         self.extruder = self.toolhead = self.heater = None
         self.query_cmd = None
@@ -169,18 +169,33 @@ class FlowSensor:
 
     def _handle_ready(self):
         self.rest_ticks = self.mcu.seconds_to_clock(self.sample_period)
-        self.decoder.reset()
-        systime = self.reactor.monotonic()
-        print_time = self.mcu.estimated_print_time(systime)
         if self.sim is not None:
             # The twin samples from now on (no motion can be older)
+            print_time = self.mcu.estimated_print_time(self.reactor.monotonic())
             self.start_clock = self.mcu.print_time_to_clock(print_time)
         else:
-            self.start_clock = self.mcu.print_time_to_clock(print_time
-                                                            + MIN_MSG_TIME)
-            self.query_cmd.send([self.oid, self.start_clock & 0xffffffff,
-                                 self.rest_ticks, self.time_shift],
-                                reqclock=self.start_clock)
+            self._start_query()
+
+    def _start_query(self):
+        self.decoder.reset()
+        print_time = self.mcu.estimated_print_time(self.reactor.monotonic())
+        self.start_clock = self.mcu.print_time_to_clock(print_time + MIN_MSG_TIME)
+        self.query_cmd.send([self.oid, self.start_clock & 0xffffffff,
+                             self.rest_ticks, self.time_shift],
+                            reqclock=self.start_clock)
+
+    def _restart_query(self):
+        # Stop the MCU and drop what it sent before the stop (as angle.py
+        # does), so that no old record is timed against the new start
+        logging.warning("flow_sensor %s: MCU '%s' fell %d reads behind and"
+                        " lost count of them; restarting the sensor query",
+                        self.name, self.mcu.get_name(), ems22.MAX_PENDING)
+        self.restart_pending = True
+        self.query_cmd.send_wait_ack([self.oid, 0, 0, 0])
+        with self.lock:
+            self.raw_queue = []
+        self._start_query()
+        self.restart_pending = False
 
     # --- sample path (MCU messages and the twin's messages alike) -------------
     def _handle_bulk(self, params):
@@ -206,18 +221,13 @@ class FlowSensor:
         if valid.any():
             clocks = ems22.sample_clocks(samples, self.start_clock,
                                          self.rest_ticks, self.time_shift)[valid]
-            times = self._clocks_to_print_time(clocks)
+            times = ems22.print_times(clocks, self.mcu.clock_to_print_time)
             sensor_mm = samples.counts[valid] / self.counts_per_mm
             find = self.extruder.find_past_position
             commanded = [find(t) for t in times]
             for window in self.grip.add(times, sensor_mm, commanded):
                 started = self.faults.note_window(window.reason) or started
-            marks = self.rate_marks
-            marks.append((float(times[0]), self.total_samples + 1))
-            self.total_samples += len(times)
-            marks.append((float(times[-1]), self.total_samples))
-            while len(marks) > 2 and marks[1][0] <= marks[-1][0] - 1.:
-                marks.pop(0)
+            self.rate.add(times)
             if self.dump_samples is not None:
                 cal = self.grip.calibration
                 self.dump_samples.extend(
@@ -226,14 +236,9 @@ class FlowSensor:
                                        commanded))
         if started is not None:
             self._report_fault(started)
-
-    def _clocks_to_print_time(self, clocks):
-        # clock_to_print_time is linear over one batch: two calls, not one each
-        to_time = self.mcu.clock_to_print_time
-        base = float(clocks[0])
-        t0 = to_time(base)
-        per_clock = (to_time(base + 1e6) - t0) / 1e6
-        return t0 + (clocks - base) * per_clock
+        # After this batch's good samples are timed against the old start
+        if self.decoder.time_lost and not self.restart_pending:
+            self._restart_query()
 
     def _report_fault(self, fault):
         msg = (f"flow_sensor {self.name}: fault '{fault}' ({self.faults.limit}"
@@ -298,12 +303,6 @@ class FlowSensor:
         self._sim_catch_up(until)
 
     # --- status and dump endpoint ---------------------------------------------
-    def sample_rate(self):
-        marks = self.rate_marks
-        if len(marks) < 2 or marks[-1][0] <= marks[0][0]:
-            return 0.
-        return (marks[-1][1] - marks[0][1]) / (marks[-1][0] - marks[0][0])
-
     def get_status(self, eventtime=None):
         self._sim_catch_up()
         measured, commanded = self.grip.flows()
@@ -316,8 +315,8 @@ class FlowSensor:
             'measured_flow': round(float(measured), 3),
             'commanded_flow': round(float(commanded), 3),
             'filament_position': position,
-            'sample_rate': round(self.sample_rate(), 1),
-            'samples': self.total_samples,
+            'sample_rate': round(self.rate.per_second(), 1),
+            'samples': self.rate.total,
             'errors': dict(self.faults.errors),
             'fault': fault,
             'calibration': round(self.grip.calibration, 6),
@@ -366,16 +365,11 @@ class FlowSensor:
             raise gcmd.error(f"DATA must be hex bytes, not '{data}'") from None
         if len(payload) > bulk_sensor.MAX_BULK_MSG_SIZE:
             raise gcmd.error("DATA is longer than a sensor_bulk_data message")
-        # Encode and parse with the MCU's own dictionary: the handler gets
-        # exactly what the serial thread would hand it.
-        parser = self.mcu._serial.get_msgparser()
-        fmt = parser.lookup_command(ems22.BULK_DATA_MSG)
-        cmd = fmt.encode_by_name(oid=self.oid, sequence=sequence, data=payload)
-        block = []
-        for part in parser.encode_msgblock(0, cmd):  # its crc is a 2-byte list
-            block.extend(part if isinstance(part, list) else [part])
-        params = parser.parse(bytes(block))
-        self._handle_bulk(params)
+        # The params the serial thread hands the handler (msgproto parses
+        # %*s to bytes); the format is checked against the dictionaries in
+        # tests/c.
+        self._handle_bulk({'#name': 'sensor_bulk_data', 'oid': self.oid,
+                           'sequence': sequence, 'data': payload})
         self._process_queue()
 
     cmd_SET_FLOW_SENSOR_SIMULATION_help = "Make the simulated sensor misbehave"
@@ -434,7 +428,10 @@ class FlowSensor:
 
     def cmd_CALIBRATE_FLOW_SENSOR(self, gcmd):
         length = gcmd.get_float('LENGTH', 20., minval=1., maxval=200.)
-        speeds = self._parse_speeds(gcmd, gcmd.get('SPEEDS', '0.5,1,2'))
+        try:
+            speeds = flow_grip.parse_speeds(gcmd.get('SPEEDS', '0.5,1,2'))
+        except FlowloopError as e:
+            raise gcmd.error(str(e)) from None
         max_spread = gcmd.get_float('MAX_SPREAD', MAX_CALIBRATION_SPREAD,
                                     minval=0.001, maxval=0.2)
         self._check_extruder(gcmd)
@@ -500,16 +497,6 @@ class FlowSensor:
         return host.stage_for_save_config(
             [(self.section, 'calibration', f"{calibration:.6f}")]
             + list(also_stage))[1]
-
-    def _parse_speeds(self, gcmd, text):
-        try:
-            speeds = [float(s) for s in text.split(',') if s.strip()]
-        except ValueError:
-            raise gcmd.error(
-                f"SPEEDS must be comma separated mm/s, not '{text}'") from None
-        if len(speeds) < 2 or min(speeds) <= 0. or max(speeds) > 10.:
-            raise gcmd.error("SPEEDS needs at least two speeds in 0..10 mm/s")
-        return speeds
 
 
 def load_config_prefix(config):

@@ -34,7 +34,7 @@ struct ems22 {
 
 static struct task_wake ems22_wake;
 
-// Timer: only mark the poll pending (or count it as overrun) and wake the task
+// Timer: only count the poll as pending (up to 255) and wake the task
 static uint_fast8_t
 ems22_event(struct timer *timer)
 {
@@ -78,6 +78,8 @@ ems22_add(struct ems22 *e, uint8_t oid, uint_fast8_t tcode, uint_fast8_t r0
     // Send when full, or when the oldest record would be too old by next poll
     if (sb->data_count >= e->max_bytes) {
         sensor_bulk_report(sb, oid);
+        // sensor_bulk_report empties sb too, but without this line
+        // avr-gcc makes the firmware 8 bytes larger
         sb->data_count = 0;
     }
 }

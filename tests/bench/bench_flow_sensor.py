@@ -73,10 +73,7 @@ def test_flash_cost_on_atmega2560(klipper_build, bench, tmp_path):
 def _our_messages(n):
     positions = (np.arange(n) * 7) % 1024
     frames = (positions << 6) | ems22.OCF
-    parity = frames.copy()
-    for shift in (8, 4, 2, 1):
-        parity ^= parity >> shift
-    frames |= parity & 1
+    frames |= ems22.parity_bits(frames)
     word = frames << 7
     records = [(3, bytes(((w >> 16) & 0xFF, (w >> 8) & 0xFF, w & 0xFF)))
                for w in word.tolist()]
@@ -88,14 +85,9 @@ def _our_decode(messages):
     samples = decoder.decode(messages)
     valid = samples.valid
     clocks = ems22.sample_clocks(samples, 1000, 16000, 3)[valid]
-
-    def to_time(clock):  # what mcu.clock_to_print_time does
-        return clock / 16e6
-
-    base = float(clocks[0])
-    t0 = to_time(base)
-    per_clock = (to_time(base + 1e6) - t0) / 1e6
-    return t0 + (clocks - base) * per_clock, samples.counts[valid]
+    # lambda: what mcu.clock_to_print_time does
+    return (ems22.print_times(clocks, lambda clock: clock / 16e6),
+            samples.counts[valid])
 
 
 def _angle_setup(angle, n):

@@ -49,3 +49,35 @@ def test_calibration_with_slipping_speeds_changes_nothing(klipper_build,
     log = run_file(test, klipper_build, klippy_venv, short_tmp)
     assert "the speeds disagree by more than 2.00%; calibration unchanged" in log
     assert "save_config: set [flow_sensor sim]" not in log
+
+
+def _feed(messages):
+    return "".join(f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE={seq}"
+                   f" DATA={payload.hex()}\n" for seq, payload in messages)
+
+
+def _reads(positions):
+    return [(3, ems22.spi_read_model(ems22.make_frame(p), 2)) for p in positions]
+
+
+def test_time_lost_by_the_mcu_restarts_the_query(klipper_build, klippy_venv,
+                                                 short_tmp):
+    # The MCU's task fell so far behind that its pending count saturated:
+    # the 9 reads after its 254 overflow records are timed wrongly, never used
+    records = (_reads([100]) + [ems22.error_record(ems22.ERR_OVERFLOW)]
+               * (ems22.MAX_PENDING - 1) + _reads(range(101, 110)))
+    lost = list(enumerate(ems22.pack_messages(0, records)))
+    assert len(records) % ems22.RECORDS_PER_MSG == 0
+    # the host restarts the query at once: the MCU counts from 0 again
+    fresh = list(enumerate(ems22.pack_messages(0, _reads([140]))))
+    test = short_tmp / "time_lost.test"
+    test.write_text(
+        f"DICTIONARY atmega2560.dict\nCONFIG {HERE / 'flow_sensor.cfg'}\n"
+        + _feed(lost)
+        + "ASSERT_FLOW SAMPLES=1 POSITION=0 ERROR_KIND=time_lost ERRORS=9"
+          " FAULT=overflow\n"
+        + _feed(fresh)
+        + "ASSERT_FLOW SAMPLES=2 POSITION=0.3890 ERROR_KIND=lost_messages"
+          " ERRORS=0 FAULT=none\n")
+    log = run_file(test, klipper_build, klippy_venv, short_tmp)
+    assert "fell 255 reads behind and lost count of them" in log

@@ -44,7 +44,10 @@ class ApiClient:
             for raw in whole:
                 yield json.loads(raw)
 
-    def close(self):
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
         self.sock.close()
 
 
@@ -55,8 +58,7 @@ def printer(klipper_build, klippy_venv, moonraker_venv):
 
 
 def test_dump_flow_streams_sensor_and_commanded_filament(printer):
-    client = ApiClient(printer.klippy.api_socket)
-    try:
+    with ApiClient(printer.klippy.api_socket) as client:
         client.send("flow_sensor/dump_flow", sensor="sim",
                     response_template={"key": "flow"})
         first = next(client.messages(5))
@@ -70,8 +72,6 @@ def test_dump_flow_streams_sensor_and_commanded_filament(printer):
         for msg in client.messages(3):
             if msg.get("key") == "flow":  # the template, merged at top level
                 rows += msg["params"].get("data", [])
-    finally:
-        client.close()
     times = [r[0] for r in rows]
     assert times == sorted(times)
     moving = [r for r in rows if r[2] > rows[0][2]]
@@ -84,11 +84,8 @@ def test_dump_flow_streams_sensor_and_commanded_filament(printer):
 
 
 def test_dump_flow_names_an_unknown_sensor(printer):
-    client = ApiClient(printer.klippy.api_socket)
-    try:
+    with ApiClient(printer.klippy.api_socket) as client:
         client.send("flow_sensor/dump_flow", sensor="nope",
                     response_template={"key": "x"})
         reply = next(client.messages(5))
-    finally:
-        client.close()
     assert "nope" in reply["error"]["message"]

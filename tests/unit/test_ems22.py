@@ -125,14 +125,17 @@ def test_bad_frames_are_counted_and_skipped_without_losing_position():
     frames = [ems22.make_frame(10), ems22.make_frame(20), 0x0000,
               ems22.make_frame(30) ^ 0x0040, ems22.make_frame(40, mag_inc=True,
                                                             mag_dec=True),
-              ems22.make_frame(50, ocf=False), ems22.make_frame(60)]
+              ems22.make_frame(50, ocf=False), ems22.make_frame(55, cof=True),
+              ems22.make_frame(57, lin=True), ems22.make_frame(60)]
     decoder = ems22.Decoder(bit_offset=1)
     s = decoder.decode(_messages(frames))
     assert s.status.tolist() == [ems22.OK, ems22.OK, ems22.MISSING, ems22.PARITY,
-                                 ems22.MAGNET, ems22.NOT_READY, ems22.OK]
+                                 ems22.MAGNET, ems22.NOT_READY, ems22.CORDIC,
+                                 ems22.LINEARITY, ems22.OK]
     assert s.counts[s.valid].tolist() == [0, 10, 50]
     assert s.error_counts() == {"missing": 1, "parity": 1, "magnet": 1,
-                                "not_ready": 1}
+                                "not_ready": 1, "cordic_overflow": 1,
+                                "linearity": 1}
 
 
 def test_a_wrong_spi_mode_is_reported_as_misaligned():
@@ -144,10 +147,49 @@ def test_a_wrong_spi_mode_is_reported_as_misaligned():
 def test_mcu_error_records_keep_their_time_slot():
     good = (3, ems22.spi_read_model(ems22.make_frame(5), 2))
     records = [good, ems22.error_record(ems22.ERR_OVERFLOW), good,
-               ems22.error_record(ems22.ERR_SPI_TIME)]
+               ems22.error_record(ems22.ERR_SPI_TIME),
+               ems22.error_record(ems22.ERR_SCHEDULE), good]
     s = ems22.Decoder().decode([(0, p) for p in ems22.pack_messages(0, records)])
-    assert s.index.tolist() == [0, 1, 2, 3]
-    assert s.status.tolist() == [ems22.OK, ems22.OVERFLOW, ems22.OK, ems22.SPI_TIME]
+    assert s.index.tolist() == [0, 1, 2, 3, 4, 5]
+    assert s.status.tolist() == [ems22.OK, ems22.OVERFLOW, ems22.OK, ems22.SPI_TIME,
+                                 ems22.SCHEDULE, ems22.OK]
+    assert s.error_counts() == {"overflow": 1, "spi_time": 1, "schedule": 1}
+
+
+def _saturation(overflows, first_index=0):
+    """What the MCU sends when its task falls behind after one read:
+    `overflows` overflow records, then the read, then 14 more reads."""
+    read = (3, ems22.spi_read_model(ems22.make_frame(5), 2))
+    records = ([read] + [ems22.error_record(ems22.ERR_OVERFLOW)] * overflows
+               + [read] * 15)
+    return list(enumerate(ems22.pack_messages(first_index, records)))
+
+
+def test_a_saturated_overflow_run_loses_time_until_a_new_query():
+    # 254 overflow records: the MCU's pending count stopped at 255, so the
+    # read after them may belong to any later timer event
+    decoder = ems22.Decoder()
+    messages = _saturation(ems22.MAX_PENDING - 1)
+    s = decoder.decode(messages[:5])   # the run spans messages
+    assert not decoder.time_lost and s.valid.sum() == 1
+    s = decoder.decode(messages[5:])
+    assert decoder.time_lost
+    assert s.error_counts()["time_lost"] == 15 and not s.valid.any()
+    assert (s.status[s.tcode != ems22.TCODE_ERROR] == ems22.TIME_LOST).all()
+    counts = decoder.counts
+    decoder.reset()                    # a new query starts counting at 0
+    frame = ems22.make_frame(9)
+    s = decoder.decode(_messages([frame], tcode=3))
+    assert not decoder.time_lost and s.valid.all() and s.index.tolist() == [0]
+    # the absolute position carries on across the new query
+    assert s.counts.tolist() == [counts + 4]
+
+
+def test_fewer_overflows_keep_their_time():
+    decoder = ems22.Decoder()
+    s = decoder.decode(_saturation(ems22.MAX_PENDING - 2))
+    assert not decoder.time_lost and s.valid.sum() == 16
+    assert s.index[s.valid][1] == 1 + ems22.MAX_PENDING - 2
 
 
 def test_time_is_rebuilt_exactly_after_a_lost_message():
@@ -156,7 +198,7 @@ def test_time_is_rebuilt_exactly_after_a_lost_message():
     decoder = ems22.Decoder()
     decoder.next_index = 65530
     s = decoder.decode([msgs[0], msgs[2], msgs[3]])  # msgs[1] dropped by the MCU
-    assert s.lost_messages == 1
+    assert s.lost_messages == 1 and s.error_counts() == {"lost_messages": 1}
     expect = list(range(65530, 65542)) + list(range(65554, 65570))
     assert s.index.tolist() == expect
     clocks = ems22.sample_clocks(s, start_clock=1000, rest_ticks=16000, time_shift=2)
@@ -164,6 +206,12 @@ def test_time_is_rebuilt_exactly_after_a_lost_message():
     assert clocks[0] == 1000 + 65530 * 16000 + (3 << 2) + 2
     # the absolute encoder loses nothing across the gap
     assert s.counts[12] - s.counts[11] == 24 - 11
+
+
+def test_print_times_follow_a_linear_clock_conversion():
+    clocks = np.array([16000.0, 32000.0, 1e9])
+    times = ems22.print_times(clocks, lambda clock: 0.5 + clock / 16e6)
+    assert times == pytest.approx([0.501, 0.502, 0.5 + 1e9 / 16e6])
 
 
 def test_time_shift_covers_two_milliseconds_of_ticks():
@@ -201,6 +249,13 @@ def test_two_stuck_windows_make_a_stuck_fault_a_judged_one_clears_it():
     assert monitor.fault == "stuck"
     monitor.note_window("judged")
     assert monitor.fault is None and monitor.errors == {"stuck": 2}
+
+
+def test_the_docs_name_every_error_kind():
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "flow_sensor.md").read_text()
+    row = next(line for line in doc.splitlines() if line.startswith("| `errors` |"))
+    named = row.split("by kind:")[1].strip(" |").split(", ")
+    assert named == [*ems22.STATUS_NAMES[1:], "stuck", "lost_messages"]
 
 
 def test_default_counts_per_mm_is_the_3_17mm_axle():

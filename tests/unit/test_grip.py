@@ -8,7 +8,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from flowloop.errors import FlowloopError
-from flowloop.grip import GripEstimator, fit_calibration, rotation_distance_correction
+from flowloop.grip import (
+    GripEstimator,
+    SampleRate,
+    fit_calibration,
+    parse_speeds,
+    rotation_distance_correction,
+)
 
 
 def _run(est, t, measured, commanded):
@@ -86,6 +92,22 @@ def test_flows_are_volumetric():
     assert est.filament_position == pytest.approx(2.5 * t[-1])
 
 
+def test_sample_rate_counts_good_samples_over_the_last_second():
+    rate = SampleRate()
+    assert rate.per_second() == 0.0
+    t = np.arange(0, 3.0, 0.001)
+    for start in range(0, len(t), 12):      # batches as the MCU sends them
+        rate.add(t[start:start + 12])
+    assert rate.total == len(t)
+    assert rate.per_second() == pytest.approx(1000, rel=1e-6)
+    slow = np.arange(3.0, 5.0, 0.004)       # three of four samples bad
+    for start in range(0, len(slow), 3):
+        rate.add(slow[start:start + 3])
+    assert rate.per_second() == pytest.approx(250, rel=1e-6)
+    rate.add([])
+    assert rate.total == len(t) + len(slow)
+
+
 def test_bad_settings_are_refused():
     with pytest.raises(FlowloopError, match="grip_window"):
         GripEstimator(window_mm=0)
@@ -94,6 +116,15 @@ def test_bad_settings_are_refused():
 
 
 # --- calibration fits ---------------------------------------------------------
+
+
+def test_calibration_speeds_are_parsed_and_bounded():
+    assert parse_speeds("0.5, 1,2,") == [0.5, 1.0, 2.0]
+    for text, message in (("1;2", "comma separated"), ("1", "at least two"),
+                          ("0,1", "at least two"), ("1,12", "0..10 mm/s"),
+                          ("1,nan", "at least two")):
+        with pytest.raises(FlowloopError, match=message):
+            parse_speeds(text)
 
 
 @given(st.floats(0.7, 1.4), st.lists(st.floats(0.2, 5.0), min_size=2, max_size=6,

@@ -1,0 +1,141 @@
+"""mcu_sensor/sensor_ems22.c itself, run on the host (ems22_firmware_test.c
+with stand-ins for the Klipper calls it makes), its messages decoded by
+flowloop.ems22: the host's decoder models exactly what the firmware sends,
+and rebuilds each read's time from it."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flowloop import ems22
+
+HERE = Path(__file__).resolve().parent
+PROJECT = HERE.parents[1]
+CFLAGS = ["-std=gnu11", "-O2", "-Wall", "-Wextra", "-Werror"]
+TICKS_PER_US = 16                     # klipper_stubs/board/misc.h
+REST = 1000 * TICKS_PER_US            # 1 ms
+SHIFT = ems22.time_shift_for(TICKS_PER_US * 1e6)
+START = 1000
+SPI_TICKS = 24 * TICKS_PER_US         # 24 clocks at 1 MHz
+
+
+@pytest.fixture(scope="module")
+def firmware(tmp_path_factory):
+    cc = shutil.which("gcc") or shutil.which("cc")
+    if cc is None:
+        pytest.skip("no host C compiler")
+    exe = tmp_path_factory.mktemp("fw") / "ems22_firmware_test"
+    proc = subprocess.run([cc, *CFLAGS, "-I", str(HERE / "klipper_stubs"),
+                           "-I", str(PROJECT / "mcu_sensor"),
+                           str(HERE / "ems22_firmware_test.c"), "-o", str(exe)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+
+    def run(script):
+        out = subprocess.run([str(exe)], input=script, capture_output=True,
+                             text=True)
+        assert out.returncode == 0, out.stdout
+        return [(int(seq), bytes.fromhex(data)) for _, seq, data in
+                (line.split() for line in out.stdout.splitlines())]
+    return run
+
+
+def _raw(position):
+    return ems22.spi_read_model(ems22.make_frame(position), 2).hex()
+
+
+def _reads(delays, positions=None, spi_ticks=SPI_TICKS):
+    positions = positions or range(len(delays))
+    return "".join(f"t 1\nr {d} {spi_ticks} {_raw(p)}\n"
+                   for d, p in zip(delays, positions))
+
+
+def _decode(messages, decoder=None):
+    decoder = decoder or ems22.Decoder(bit_offset=ems22.bit_offset_for_mode(2))
+    return decoder.decode(messages)
+
+
+def test_reads_are_timed_within_half_a_tcode_step(firmware):
+    # the MCU truncates the delay to tcode << SHIFT; the host takes the middle
+    delays = np.random.default_rng(5).integers(0, REST - SPI_TICKS, 36)
+    messages = firmware(f"q {START} {REST} {SHIFT}\n"
+                        + _reads(delays.tolist(), range(0, 36 * 30, 30)))
+    assert [seq for seq, _ in messages] == [0, 1, 2]
+    s = _decode(messages)
+    assert s.valid.all() and s.index.tolist() == list(range(36))
+    assert s.counts.tolist() == list(range(0, 36 * 30, 30))
+    clocks = ems22.sample_clocks(s, START, REST, SHIFT)
+    truth = START + np.arange(36) * REST + delays
+    assert np.abs(clocks - truth).max() <= (1 << SHIFT) / 2
+
+
+@pytest.mark.parametrize("period_us", [200, 1000, 3000, 7000, 25000])
+def test_a_batch_is_sent_before_its_first_read_waits_20ms(firmware, period_us):
+    rest = period_us * TICKS_PER_US
+    messages = firmware(f"q {START} {rest} {SHIFT}\n" + _reads([50] * 120))
+    counts = [(len(p) - ems22.HEADER_BYTES) // ems22.RECORD_BYTES
+              for _, p in messages]
+    assert sum(counts) == 120 - 120 % counts[0]
+    for n in counts:
+        assert (n - 1) * period_us < 20000
+        assert n == ems22.RECORDS_PER_MSG or n * period_us >= 20000
+
+
+def test_missed_timer_events_keep_their_slots_as_overflow_records(firmware):
+    script = (f"q {START} {REST} {SHIFT}\n" + _reads([100], [7])
+              + f"t 3\nr 900 {SPI_TICKS} {_raw(9)}\n" + _reads([100] * 8))
+    s = _decode(firmware(script))
+    assert s.status[:4].tolist() == [ems22.OK, ems22.OVERFLOW, ems22.OVERFLOW,
+                                     ems22.OK]
+    # the read after the overflows belongs to the latest of the three events
+    clock = ems22.sample_clocks(s, START, REST, SHIFT)[3]
+    assert abs(clock - (START + 3 * REST + 900)) <= (1 << SHIFT) / 2
+
+
+def test_slow_spi_and_late_reads_become_error_records(firmware):
+    slow = 200 * TICKS_PER_US + 1          # MAX_SPI_READ_US
+    late = ems22.TCODE_ERROR << SHIFT      # no tcode left to say when
+    script = (f"q {START} {REST} {SHIFT}\n"
+              + _reads([0, 0, late - 1, late, 0], spi_ticks=SPI_TICKS)
+              .replace(f"r 0 {SPI_TICKS} ", f"r 0 {slow} ", 1)
+              + _reads([0] * 7))
+    s = _decode(firmware(script))
+    assert s.status[:5].tolist() == [ems22.SPI_TIME, ems22.OK, ems22.OK,
+                                     ems22.SCHEDULE, ems22.OK]
+    assert s.tcode[2] == ems22.TCODE_ERROR - 1
+
+
+def test_a_task_too_far_behind_loses_time_until_the_query_restarts(firmware):
+    # 300 timer events before the task runs: the pending count stops at 255,
+    # so the firmware sends 254 overflow records for 299 missed events
+    behind = 300
+    script = (f"q {START} {REST} {SHIFT}\n" + _reads([100])
+              + f"t {behind}\nr 100 {SPI_TICKS} {_raw(3)}\n" + _reads([100] * 9))
+    decoder = ems22.Decoder(bit_offset=1)
+    s = _decode(firmware(script), decoder)
+    assert s.error_counts()["overflow"] == ems22.MAX_PENDING - 1
+    # the read after the run is record 255 but was made for timer event 300
+    assert s.status[ems22.MAX_PENDING - 1] == ems22.OVERFLOW
+    assert s.index[ems22.MAX_PENDING] == ems22.MAX_PENDING < behind
+    # the host knows the times after the run are lost, and never uses them
+    assert decoder.time_lost and s.valid.sum() == 1
+    assert (s.status[ems22.MAX_PENDING:] == ems22.TIME_LOST).all()
+    # a new query starts the MCU's count again: times are right from there
+    decoder.reset()
+    s = _decode(firmware(f"q {START} {REST} {SHIFT}\n" + _reads([100] * 12)),
+                decoder)
+    assert s.valid.all() and not decoder.time_lost
+    truth = START + np.arange(12) * REST + 100
+    assert np.abs(ems22.sample_clocks(s, START, REST, SHIFT) - truth).max() <= (
+        1 << SHIFT) / 2
+
+
+def test_rest_ticks_zero_stops_the_reads(firmware):
+    script = (f"q {START} {REST} {SHIFT}\n" + _reads([0] * 5)
+              + "q 0 0 0\n" + _reads([0] * 20))
+    assert firmware(script) == []
