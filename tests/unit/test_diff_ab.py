@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flowloop import cli, diff_ab, klipper_config, pylons
+from flowloop import cli, diff_ab, pylons
 from flowloop.errors import FlowloopError
 
 W = 4.0   # nominal pylon width of the default part
@@ -242,23 +242,6 @@ def test_bad_readings_are_refused(text):
 
 
 # --- where rotation_distance lives ---
-
-def test_included_definitions_follow_includes_and_skip_the_save_config_block(tmp_path):
-    (tmp_path / "hw").mkdir()
-    (tmp_path / "hw" / "steppers.cfg").write_text(
-        "[stepper_x]\nrotation_distance: 40 # belt\n[stepper_y]\nmicrosteps: 16\n")
-    main = tmp_path / "printer.cfg"
-    main.write_text(
-        "[include hw/*.cfg]\n[printer]\nkinematics: corexy\n\n"
-        "#*# <---------------------- SAVE_CONFIG ---------------------->\n"
-        "#*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.\n"
-        "#*#\n#*# [stepper_y]\n#*# rotation_distance = 40\n")
-    where = klipper_config.included_definitions
-    assert where(str(main), "stepper_x", "rotation_distance") \
-        == [str((tmp_path / "hw" / "steppers.cfg").resolve())]
-    assert where(str(main), "stepper_y", "rotation_distance") \
-        == []
-
 
 # --- the pylon G-code, parsed back ---
 

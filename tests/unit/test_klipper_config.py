@@ -181,3 +181,20 @@ def test_an_included_file_with_indented_options_is_seen_setting_them(tmp_path):
     items = [("stepper_a", "position_endstop", "300.5")]
     staged, paste = klipper_config.save_plan(str(main), items)
     assert staged == [] and paste[-1] == "  position_endstop: 300.5"
+
+
+def test_included_definitions_follow_includes_and_skip_the_save_config_block(tmp_path):
+    (tmp_path / "hw").mkdir()
+    (tmp_path / "hw" / "steppers.cfg").write_text(
+        "[stepper_x]\nrotation_distance: 40 # belt\n[stepper_y]\nmicrosteps: 16\n")
+    main = tmp_path / "printer.cfg"
+    main.write_text(
+        "[include hw/*.cfg]\n[printer]\nkinematics: corexy\n\n"
+        "#*# <---------------------- SAVE_CONFIG ---------------------->\n"
+        "#*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.\n"
+        "#*#\n#*# [stepper_y]\n#*# rotation_distance = 40\n")
+    where = klipper_config.included_definitions
+    assert where(str(main), "stepper_x", "rotation_distance") \
+        == [str((tmp_path / "hw" / "steppers.cfg").resolve())]
+    assert where(str(main), "stepper_y", "rotation_distance") \
+        == []
