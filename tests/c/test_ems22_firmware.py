@@ -5,7 +5,6 @@ and rebuilds each read's time from it."""
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -15,8 +14,6 @@ import pytest
 from flowloop import ems22
 
 HERE = Path(__file__).resolve().parent
-PROJECT = HERE.parents[1]
-CFLAGS = ["-std=gnu11", "-O2", "-Wall", "-Wextra", "-Werror"]
 TICKS_PER_US = 16                     # klipper_stubs/board/misc.h
 REST = 1000 * TICKS_PER_US            # 1 ms
 SHIFT = ems22.time_shift_for(TICKS_PER_US * 1e6)
@@ -25,16 +22,8 @@ SPI_TICKS = 24 * TICKS_PER_US         # 24 clocks at 1 MHz
 
 
 @pytest.fixture(scope="module")
-def firmware(tmp_path_factory):
-    cc = shutil.which("gcc") or shutil.which("cc")
-    if cc is None:
-        pytest.skip("no host C compiler")
-    exe = tmp_path_factory.mktemp("fw") / "ems22_firmware_test"
-    proc = subprocess.run([cc, *CFLAGS, "-I", str(HERE / "klipper_stubs"),
-                           "-I", str(PROJECT / "mcu_sensor"),
-                           str(HERE / "ems22_firmware_test.c"), "-o", str(exe)],
-                          capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
+def firmware(compile_c):
+    exe = compile_c("ems22_firmware_test.c", HERE / "klipper_stubs")
 
     def run(script):
         out = subprocess.run([str(exe)], input=script, capture_output=True,

@@ -15,20 +15,11 @@ from flowloop import ems22
 PROJECT = Path(__file__).resolve().parents[2]
 VECTORS = PROJECT / "tests" / "data" / "ems22_vectors.json"
 STATUS_CODES = {name: code for code, name in enumerate(ems22.STATUS_NAMES)}
-CFLAGS = ["-std=gnu11", "-O2", "-Wall", "-Wextra", "-Werror"]
 
 
 @pytest.fixture(scope="module")
-def frame_test(tmp_path_factory):
-    cc = shutil.which("gcc") or shutil.which("cc")
-    if cc is None:
-        pytest.skip("no host C compiler")
-    exe = tmp_path_factory.mktemp("c") / "ems22_frame_test"
-    proc = subprocess.run([cc, *CFLAGS, "-I", str(PROJECT / "mcu_sensor"),
-                           str(Path(__file__).with_name("ems22_frame_test.c")),
-                           "-o", str(exe)], capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
-    return exe
+def frame_test(compile_c):
+    return compile_c("ems22_frame_test.c")
 
 
 def _vector_lines(vectors) -> str:
