@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Optional
 
 from devtools import stack
-from flowloop.info import describe
+from flowloop.host.info import describe
 
 
 class DemoContext:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flowloop import pylons
+from flowloop.calibrate import pylons
 from flowloop.cli import main as flowloop_main
 
 TRUE_BELT_SCALE = {"a": 1.00221, "b": 0.99843}   # actual mm per commanded mm

@@ -13,7 +13,7 @@ import contextlib
 import io
 from pathlib import Path
 
-from flowloop import delta
+from flowloop.calibrate import delta
 from flowloop.cli import main as flowloop_main
 
 TRUE_ENDSTOPS = (301.2, 298.8, 300.5)
@@ -38,7 +38,7 @@ def _naive_rounds(believed, true, points, limit_mm=0.01):
 
 
 def offline(ctx, cfg: Path) -> None:
-    from flowloop.klipper_config import read_config
+    from flowloop.host.klipper_config import read_config
     believed = delta.geometry_from_config(read_config(cfg))
     true = believed.with_endstops(TRUE_ENDSTOPS)
     points = _points(believed, 100.0)

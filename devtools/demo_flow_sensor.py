@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from flowloop import ems22
-from flowloop.grip import GripEstimator
-from flowloop.simulated_sensor import MeltModel, SimulatedEms22
+from flowloop.sensor import ems22
+from flowloop.sensor.grip import GripEstimator
+from flowloop.sensor.twin import MeltModel, SimulatedEms22
 
 SENSOR = "flow_sensor sim"
 AREA = 2.405  # 1.75 mm filament

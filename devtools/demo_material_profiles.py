@@ -6,9 +6,9 @@ import tempfile
 from pathlib import Path
 from urllib.parse import quote
 
-from flowloop import ddprint, plot
-from flowloop import profile as fl_profile
 from flowloop.cli import main as flowloop_cli
+from flowloop.material import ddprint, plot
+from flowloop.material import profile as fl_profile
 
 SAMPLE = "shared/data/ddprint-profiles/mat-profiles/UM2-1/herz-pla-red.json"
 

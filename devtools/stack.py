@@ -3,7 +3,7 @@ virtualenvs, and klippy/Moonraker processes on loopback.
 
 - The user's Klipper checkout (KLIPPER_PATH, default ~/klipper) is copied into
   a cache keyed by its commit, its local changes and flowloop's patch inputs,
-  patched with flowloop.install (the code `flowloop install` runs), and
+  patched with flowloop.host.install (the code `flowloop install` runs), and
   Klipper's own `make` builds the MCU data dictionaries for the targets below.
 - Host virtualenvs are built as users build them: the host's pinned
   requirements first, then flowloop; the freeze before and after is kept so a
@@ -34,7 +34,7 @@ from urllib.parse import quote
 PROJECT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(PROJECT))
 
-from flowloop import install  # noqa: E402
+from flowloop.host import install  # noqa: E402
 
 TARGETS = ("linuxprocess", "atmega2560")
 MOONRAKER_REQUIREMENT = "moonraker==0.11.0"
@@ -126,7 +126,8 @@ def klipper_key(source: Path = PROJECT) -> str:
     h.update(_run(["git", "-C", str(kp), "diff"]).encode())
     h.update(str(source).encode())  # the symlinks point into this checkout
     _hash_files(h, source,
-                [source / "flowloop" / "install.py"] + install.mcu_sources(source))
+                [source / "flowloop" / "host" / "install.py"]
+                + install.mcu_sources(source))
     # klippy modules are links: their names shape the tree, their text does not.
     h.update(" ".join(p.name for p in install.klippy_modules(source)).encode())
     return h.hexdigest()[:16]

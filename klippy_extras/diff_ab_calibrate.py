@@ -2,7 +2,7 @@
 # WAIT_BED_EQUILIBRIUM.
 #
 # From caliper readings of the pylon print (flowloop ab-pylons), the core
-# (flowloop.diff_ab) computes the scale of motor A (stepper_x) and motor B
+# (flowloop.calibrate.diff_ab) computes the scale of motor A (stepper_x) and motor B
 # (stepper_y) on CoreXY, or of X and Y on a cartesian printer. Both axes are
 # validated before either stepper changes; the new rotation_distance is
 # applied at runtime and staged for SAVE_CONFIG.
@@ -10,7 +10,7 @@
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import re
 
-from flowloop import diff_ab
+from flowloop.calibrate import diff_ab
 from flowloop.errors import FlowloopError
 
 # stepper_x, stepper_x1, ... all move with motor A (X on cartesian)

@@ -2,14 +2,14 @@
 #
 # Probes near each tower (and the centre, and by default opposite each tower)
 # through Klipper's probe helpers, then solves the three position_endstop
-# values exactly (flowloop.delta) and stages them for SAVE_CONFIG. Delta
+# values exactly (flowloop.calibrate.delta) and stages them for SAVE_CONFIG. Delta
 # geometry is only read at startup: a second call after the restart checks
 # the result (within tolerance, nothing is staged).
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import logging
 
-from flowloop import delta
+from flowloop.calibrate import delta
 from flowloop.errors import FlowloopError
 
 from . import probe

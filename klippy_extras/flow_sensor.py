@@ -10,9 +10,10 @@
 import logging
 import threading
 
-from flowloop import ems22, simulated_sensor
-from flowloop import grip as flow_grip
 from flowloop.errors import FlowloopError
+from flowloop.sensor import ems22
+from flowloop.sensor import grip as flow_grip
+from flowloop.sensor import twin as simulated_sensor
 
 from . import bulk_sensor, bus
 

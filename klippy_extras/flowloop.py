@@ -10,9 +10,10 @@
 import logging
 
 import flowloop
-from flowloop import ems22, klipper_config
-from flowloop import profile as fl_profile
 from flowloop.errors import FlowloopError
+from flowloop.host import klipper_config
+from flowloop.material import profile as fl_profile
+from flowloop.sensor import ems22
 
 SECTIONS = ('flow_sensor', 'flowrate_limiter', 'autotemp',
             'diff_ab_calibrate', 'endstop_calibrate')

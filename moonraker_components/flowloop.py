@@ -19,9 +19,9 @@ import logging
 from typing import TYPE_CHECKING, Any, Dict, Optional
 
 import flowloop
-from flowloop import plot
-from flowloop import profile as fl_profile
 from flowloop.errors import FlowloopError
+from flowloop.material import plot
+from flowloop.material import profile as fl_profile
 
 from ..common import RequestType, WebRequest
 

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from flowloop import diff_ab, pylons
+from flowloop.calibrate import diff_ab, pylons
 
 PRINTERS = 300
 DISTANCES = (10.0, 150.0)

@@ -1,7 +1,7 @@
 """Probe rounds and points to a flat delta bed from +-1.5 mm endstop errors.
 
 Three ways to use the same probes, on the same synthetic printers, in one run:
-- this solver (exact endstop fit, flowloop.delta.solve_endstops), 4 points;
+- this solver (exact endstop fit, flowloop.calibrate.delta.solve_endstops), 4 points;
 - the per-tower loop (lower each endstop by its tower's height), 3 points;
 - a 6-parameter coordinate-descent fit (radius, two angles, three endstops,
   as DELTA_CALIBRATE does) of the same 4 points, and of 7 points.
@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from flowloop import delta
+from flowloop.calibrate import delta
 from flowloop.errors import FlowloopError
 
 FLAT_MM = 0.01

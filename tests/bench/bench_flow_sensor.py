@@ -30,7 +30,7 @@ try:
 except ImportError:  # the angle.py comparison runs in klippy's venv
     pytest = None
 
-from flowloop import ems22
+from flowloop.sensor import ems22
 
 SAMPLES = 120_000
 

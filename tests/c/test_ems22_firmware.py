@@ -1,6 +1,6 @@
 """mcu_sensor/sensor_ems22.c itself, run on the host (ems22_firmware_test.c
 with stand-ins for the Klipper calls it makes), its messages decoded by
-flowloop.ems22: the host's decoder models exactly what the firmware sends,
+flowloop.sensor.ems22: the host's decoder models exactly what the firmware sends,
 and rebuilds each read's time from it."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flowloop import ems22
+from flowloop.sensor import ems22
 
 HERE = Path(__file__).resolve().parent
 TICKS_PER_US = 16                     # klipper_stubs/board/misc.h

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from flowloop import ems22
+from flowloop.sensor import ems22
 
 PROJECT = Path(__file__).resolve().parents[2]
 VECTORS = PROJECT / "tests" / "data" / "ems22_vectors.json"

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from devtools.klippy_test import run_file
-from flowloop import pylons
+from flowloop.calibrate import pylons
 
 HERE = Path(__file__).resolve().parent
 
@@ -34,7 +34,7 @@ def test_refusals_name_their_reason_and_change_nothing(
 
 
 def test_pylon_template_renders_the_same_under_klippers_jinja2(klippy_venv, tmp_path):
-    code = ("import jinja2, sys; from flowloop import pylons; "
+    code = ("import jinja2, sys; from flowloop.calibrate import pylons; "
             "sys.stdout.write(jinja2.__version__ + '\\n' + "
             "pylons.render(pylons.PylonOptions(kinematics='cartesian')))")
     proc = subprocess.run([str(klippy_venv.python), "-c", code], capture_output=True,

@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 
 from devtools.klippy_test import run_file
-from flowloop import ems22
+from flowloop.sensor import ems22
 
 HERE = Path(__file__).resolve().parent
 

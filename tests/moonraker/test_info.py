@@ -43,7 +43,7 @@ def test_info_reports_what_klippy_loaded(full_stack):
 
 
 def test_sensor_firmware_check_matches_the_built_dictionary(full_stack, klipper_build):
-    from flowloop import ems22
+    from flowloop.sensor import ems22
     has_command = ems22.QUERY_CMD.split()[0] in klipper_build.dictionary(
         "atmega2560").read_text()
     info = full_stack.moonraker.request("GET", "/server/flowloop/info")[1]["result"]
@@ -61,7 +61,7 @@ def test_installing_flowloop_moved_no_pinned_moonraker_package(moonraker_venv):
 
 
 def test_component_is_linked_the_way_flowloop_install_links_it(moonraker_venv):
-    from flowloop import install
+    from flowloop.host import install
     components = install.moonraker_components_dir(moonraker_venv.path)
     link = components / "flowloop.py"
     assert link.is_symlink()

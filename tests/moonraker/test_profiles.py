@@ -18,7 +18,7 @@ from urllib.parse import quote
 import pytest
 
 from devtools import stack
-from flowloop.profile import MAX_POINTS
+from flowloop.material.profile import MAX_POINTS
 from tests.samples import make
 
 

@@ -10,7 +10,7 @@ from urllib.parse import quote
 import pytest
 
 from devtools import stack
-from flowloop import profile as fl_profile
+from flowloop.material import profile as fl_profile
 from tests.samples import make
 
 MACRO_PROFILE = make(name="from-klippy", bounds=(200.0, 215.0, 250.0))

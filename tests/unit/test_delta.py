@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flowloop.delta import (
+from flowloop.calibrate.delta import (
     DEFAULT_ANGLES_DEG,
     DeltaGeometry,
     check_flatness,
@@ -23,7 +23,7 @@ from flowloop.delta import (
     tower_probe_points,
 )
 from flowloop.errors import FlowloopError
-from flowloop.klipper_config import parse_config
+from flowloop.host.klipper_config import parse_config
 
 finite = dict(allow_nan=False, allow_infinity=False)
 

@@ -11,7 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flowloop import cli, diff_ab, pylons
+from flowloop import cli
+from flowloop.calibrate import diff_ab, pylons
 from flowloop.errors import FlowloopError
 
 W = 4.0   # nominal pylon width of the default part

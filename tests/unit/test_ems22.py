@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flowloop import ems22
 from flowloop.errors import FlowloopError
+from flowloop.sensor import ems22
 
 VECTORS = Path(__file__).resolve().parents[1] / "data" / "ems22_vectors.json"
 

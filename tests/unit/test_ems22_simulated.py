@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from flowloop import ems22
 from flowloop.errors import FlowloopError
-from flowloop.grip import GripEstimator
-from flowloop.simulated_sensor import MeltModel, SimulatedEms22, raw_reads
+from flowloop.sensor import ems22
+from flowloop.sensor.grip import GripEstimator
+from flowloop.sensor.twin import MeltModel, SimulatedEms22, raw_reads
 
 
 def test_melt_capacity_is_a_line_through_the_profile_point():

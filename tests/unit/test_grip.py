@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from flowloop.errors import FlowloopError
-from flowloop.grip import (
+from flowloop.sensor.grip import (
     GripEstimator,
     SampleRate,
     fit_calibration,

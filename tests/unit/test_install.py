@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from devtools import stack
-from flowloop import cli, install
+from flowloop import cli
+from flowloop.host import install
 
 PROJECT = stack.PROJECT
 

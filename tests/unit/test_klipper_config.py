@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from flowloop import klipper_config
 from flowloop.errors import FlowloopError
-from flowloop.klipper_config import AUTOSAVE_HEADER, parse_config, read_config
+from flowloop.host import klipper_config
+from flowloop.host.klipper_config import AUTOSAVE_HEADER, parse_config, read_config
 
 
 def with_block(regular: str, *block_lines: str) -> str:

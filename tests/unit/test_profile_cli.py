@@ -7,10 +7,10 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from flowloop import ddprint
-from flowloop import profile as P
 from flowloop.cli import main
-from flowloop.profile_cli import safe_file_stem
+from flowloop.cli.profile import safe_file_stem
+from flowloop.material import ddprint
+from flowloop.material import profile as P
 from tests.samples import MAT, make, needs_data
 
 

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flowloop import ddprint
-from flowloop import profile as P
 from flowloop.errors import FlowloopError
+from flowloop.material import ddprint
+from flowloop.material import profile as P
 from tests.samples import MAT, make, needs_data
 
 

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from flowloop import plot
-from flowloop import profile as P
 from flowloop.errors import FlowloopError
+from flowloop.material import plot
+from flowloop.material import profile as P
 from tests.samples import make
 
 SVG = "{http://www.w3.org/2000/svg}"

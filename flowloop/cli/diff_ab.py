@@ -10,8 +10,8 @@ import json
 import sys
 from pathlib import Path
 
-from . import diff_ab, pylons
-from .errors import FlowloopError
+from ..calibrate import diff_ab, pylons
+from ..errors import FlowloopError
 
 # --a3/--b3/--d3 ... for rows of more pylons
 EXTRA_DISTANCES = tuple(range(3, diff_ab.MAX_DISTANCES + 1))

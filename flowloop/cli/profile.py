@@ -8,9 +8,9 @@ import re
 import sys
 from pathlib import Path
 
-from . import ddprint, plot
-from .errors import FlowloopError
-from .profile import (
+from ..errors import FlowloopError
+from ..material import ddprint, plot
+from ..material.profile import (
     DEFAULT_WORKING_POINT,
     Profile,
     check_working_point,

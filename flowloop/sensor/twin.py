@@ -20,8 +20,8 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..errors import FlowloopError
 from . import ems22
-from .errors import FlowloopError
 
 
 @dataclass(frozen=True)

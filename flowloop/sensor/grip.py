@@ -21,7 +21,7 @@ import collections
 from dataclasses import dataclass
 from typing import Deque, List, Optional, Sequence, Tuple
 
-from .errors import FlowloopError
+from ..errors import FlowloopError
 
 FLOW_PERIOD_S = 0.25
 

@@ -28,7 +28,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .errors import FlowloopError
+from ..errors import FlowloopError
 
 CONFIG_CMD = "config_ems22 oid=%c spi_oid=%c"
 QUERY_CMD = "query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c"

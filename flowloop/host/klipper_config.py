@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Set, Tuple, Union
 
-from .errors import FlowloopError
+from ..errors import FlowloopError
 
 AUTOSAVE_HEADER = (
     "\n#*# <---------------------- SAVE_CONFIG ---------------------->\n"

@@ -12,15 +12,15 @@ import importlib
 import sys
 from typing import List, Optional
 
-from . import __version__
-from .errors import FlowloopError
+from .. import __version__
+from ..errors import FlowloopError
 
 COMMAND_MODULES = (
-    "flowloop.install",
-    "flowloop.info",
-    "flowloop.diff_ab_cli",
-    "flowloop.profile_cli",
-    "flowloop.delta_cli",
+    "flowloop.cli.install",
+    "flowloop.cli.info",
+    "flowloop.cli.diff_ab",
+    "flowloop.cli.profile",
+    "flowloop.cli.delta",
 )
 
 

@@ -20,8 +20,8 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .errors import FlowloopError
-from .klipper_config import KlipperConfig
+from ..errors import FlowloopError
+from ..host.klipper_config import KlipperConfig
 
 TOWERS = ("stepper_a", "stepper_b", "stepper_c")
 DEFAULT_ANGLES_DEG = (210.0, 330.0, 90.0)

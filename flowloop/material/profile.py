@@ -26,8 +26,8 @@ from typing import Any, Dict, List, Literal, NamedTuple, Optional, Union
 
 import msgspec
 
-from . import __version__
-from .errors import FlowloopError
+from .. import __version__
+from ..errors import FlowloopError
 
 SCHEMA_VERSION = 1
 DEFAULT_WORKING_POINT = 0.5

@@ -6,8 +6,7 @@ import json
 import urllib.error
 import urllib.request
 
-from . import __version__
-from .errors import FlowloopError
+from ..errors import FlowloopError
 
 
 def fetch_info(url: str, timeout: float = 5.0) -> dict:
@@ -37,19 +36,3 @@ def describe(info: dict) -> str:
         lines.append(f"{mcu}: EMS22 sensor command "
                      f"{'present' if has else 'missing (rebuild the firmware)'}")
     return "\n".join(lines)
-
-
-def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "info", help="show what flowloop has loaded in a running Moonraker/klippy",
-        description=f"flowloop {__version__}: query GET /server/flowloop/info.")
-    p.add_argument("--moonraker", default="http://127.0.0.1:7125",
-                   help="Moonraker URL (default: http://127.0.0.1:7125)")
-    p.add_argument("--json", action="store_true", help="print the raw JSON")
-    p.set_defaults(func=run)
-
-
-def run(args) -> int:
-    info = fetch_info(args.moonraker)
-    print(json.dumps(info, indent=2) if args.json else describe(info))
-    return 0

@@ -2,7 +2,7 @@
 
 Reads the delta geometry from printer.cfg the way klippy does (SAVE_CONFIG
 block included) and solves the three position_endstop values that put every
-probed point on the bed (flowloop.delta.solve_endstops).
+probed point on the bed (flowloop.calibrate.delta.solve_endstops).
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import sys
 from pathlib import Path
 from typing import List, Tuple
 
-from . import delta
-from .errors import FlowloopError
-from .klipper_config import read_config
+from ..calibrate import delta
+from ..errors import FlowloopError
+from ..host.klipper_config import read_config
 
 
 def register(subparsers) -> None:

@@ -19,7 +19,7 @@ import subprocess
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence
 
-from .errors import FlowloopError
+from ..errors import FlowloopError
 
 PROJECT_URL = "https://github.com/flowloop/klipper-flowloop"
 SENSOR_C = "sensor_ems22.c"
@@ -231,7 +231,7 @@ def _link(changes: List[Change], path: Path, target: Path, uninstall: bool) -> N
 
 def source_tree() -> Path:
     """The flowloop checkout this package was installed from."""
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     if not (root / "klippy_extras").is_dir():
         raise InstallError(f"{root} is not a flowloop checkout (no klippy_extras/); "
                            f"run 'flowloop install' from the git checkout's venv")
@@ -405,68 +405,3 @@ def plan_moonraker_conf(config_dir: Path, source: Path,
     _edit(changes, conf, "moonraker.conf",
           lambda t: put_block(t, "update-manager", "\n" + update_manager_block(source)))
     return changes
-
-
-# ---------------------------------------------------------------------------
-# The command
-
-
-def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "install", help="link flowloop into Klipper and Moonraker",
-        description="Link flowloop's klippy modules, MCU sensor source and Moonraker "
-                    "component into the user's trees. Idempotent; --uninstall "
-                    "restores every file as it was.")
-    home = Path("~")
-    p.add_argument("--klipper", type=Path,
-                   default=Path(os.environ.get("KLIPPER_PATH", home / "klipper")),
-                   help="Klipper checkout (default: $KLIPPER_PATH or ~/klipper)")
-    p.add_argument("--moonraker", type=Path, default=None,
-                   help="Moonraker checkout or virtualenv (default: ~/moonraker, "
-                        "else ~/moonraker-env)")
-    p.add_argument("--config-dir", type=Path, default=home / "printer_data" / "config",
-                   help="folder with moonraker.conf (default: ~/printer_data/config)")
-    p.add_argument("--no-moonraker", action="store_true",
-                   help="only patch Klipper")
-    p.add_argument("--dry-run", action="store_true", help="print what would change")
-    p.add_argument("--uninstall", action="store_true", help="take flowloop out again")
-    p.set_defaults(func=run)
-
-
-def _default_moonraker() -> Path:
-    for candidate in (Path("~/moonraker"), Path("~/moonraker-env")):
-        if candidate.expanduser().exists():
-            return candidate
-    raise InstallError("no Moonraker at ~/moonraker or ~/moonraker-env; "
-                       "pass --moonraker or --no-moonraker")
-
-
-def plan(args, source: Path) -> List[Change]:
-    changes = plan_klipper(args.klipper, source, args.uninstall)
-    if not args.no_moonraker:
-        moonraker = args.moonraker or _default_moonraker()
-        changes += plan_moonraker(moonraker, source, args.uninstall)
-        changes += plan_moonraker_conf(args.config_dir, source, args.uninstall)
-    return changes
-
-
-def run(args) -> int:
-    source = source_tree()
-    changes = plan(args, source)
-    if not changes:
-        print("nothing to do: " + ("flowloop is not installed" if args.uninstall
-                                   else "flowloop is installed"))
-        return 0
-    if args.dry_run:
-        for change in changes:
-            change.check()
-            print(f"would {change.what}: {change.path}")
-        return 0
-    apply(changes)  # checks everything first; prints only what was done
-    for change in changes:
-        print(f"{change.what}: {change.path}")
-    if not args.uninstall and mcu_sources(source):
-        print("MCU: rebuild and flash Klipper's firmware to get the EMS22 sensor "
-              "command (cd ~/klipper; make menuconfig; make flash)")
-    print("restart klipper and moonraker to load the change")
-    return 0

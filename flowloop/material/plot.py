@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
 from xml.sax.saxutils import escape, quoteattr
 
-from .errors import FlowloopError
+from ..errors import FlowloopError
 from .profile import DEFAULT_WORKING_POINT, Profile, check_working_point, profile_line
 
 WIDTH = 760

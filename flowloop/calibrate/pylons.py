@@ -9,7 +9,7 @@ lie along X and Y. A pylon is a rectangle W (along the row) by depth
 seams on the side faces (never on the measured faces), alternating side
 every layer so the pylon stays symmetric.
 
-The geometry is computed here; flowloop/templates/ab_pylons.gcode.j2 lays
+The geometry is computed here; flowloop/calibrate/templates/ab_pylons.gcode.j2 lays
 out the G-code.
 """
 
@@ -22,8 +22,9 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import jinja2
 
-from . import __version__, diff_ab
-from .errors import FlowloopError
+from .. import __version__
+from ..errors import FlowloopError
+from . import diff_ab
 
 TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
 TEMPLATE_NAME = "ab_pylons.gcode.j2"

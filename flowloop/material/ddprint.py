@@ -19,8 +19,8 @@ import math
 from pathlib import Path
 from typing import Any, Dict, List, NamedTuple, Optional, Tuple
 
-from . import __version__
-from .errors import FlowloopError
+from .. import __version__
+from ..errors import FlowloopError
 from .profile import (
     Bounds,
     DdprintExtras,

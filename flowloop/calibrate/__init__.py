@@ -1,0 +1,1 @@
+"""Calibrations: CoreXY A/B from printed pylons, delta tower endstops."""

@@ -1,0 +1,1 @@
+"""The printer host: reading printer.cfg, installing into Klipper and Moonraker."""

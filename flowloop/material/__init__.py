@@ -1,0 +1,1 @@
+"""Material profiles: the schema and its lines, ddPrint's format, plots."""

@@ -1,0 +1,63 @@
+"""The core's layout: domains import each other and errors, never the CLI or a host."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.unit
+
+CORE = Path(__file__).resolve().parents[2] / "flowloop"
+HOSTS = ("klippy", "extras", "moonraker", "configfile", "gcode", "reactor")
+
+
+def imported_modules(path: Path):
+    """Absolute names of what one core file imports (relative imports resolved)."""
+    package = ".".join(path.relative_to(CORE.parent).with_suffix("").parts[:-1])
+    if path.name == "__init__.py":
+        package = ".".join(path.relative_to(CORE.parent).parts[:-1])
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            yield from (alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - node.level + 1]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            yield module
+            yield from (f"{module}.{alias.name}" for alias in node.names)
+
+
+def domain_files():
+    return [p for p in CORE.rglob("*.py") if "cli" not in p.relative_to(CORE).parts]
+
+
+def test_the_core_is_grouped_into_domain_folders():
+    flat = sorted(p.name for p in CORE.glob("*.py"))
+    assert flat == ["__init__.py", "__main__.py", "errors.py"]
+    for folder in ("sensor", "material", "calibrate", "host", "cli"):
+        assert (CORE / folder / "__init__.py").is_file(), folder
+
+
+def test_no_domain_imports_the_cli():
+    offenders = [f"{p.relative_to(CORE)} imports {m}" for p in domain_files()
+                 if p.name != "__main__.py"
+                 for m in imported_modules(p) if m.startswith("flowloop.cli")]
+    assert offenders == []
+
+
+def test_the_core_imports_no_host():
+    offenders = [f"{p.relative_to(CORE)} imports {m}" for p in CORE.rglob("*.py")
+                 for m in imported_modules(p) if m.split(".")[0] in HOSTS]
+    assert offenders == []
+
+
+def test_relative_imports_are_resolved_against_the_package():
+    # The check above is only as good as this resolution.
+    mods = set(imported_modules(CORE / "cli" / "delta.py"))
+    assert "flowloop.calibrate.delta" in mods
+    assert "flowloop.errors.FlowloopError" in mods
