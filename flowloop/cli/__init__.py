@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 from typing import List, Optional
 
@@ -24,8 +25,31 @@ COMMAND_MODULES = (
 )
 
 
+_UNSIGNED = r"(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|inf|nan"
+# A negative number, or a list of numbers starting with one: "-86.6,-50,0.3",
+# "-1e-3", "-150.1 150.2". Such a word is an option's value, never an option.
+SIGNED_VALUE = re.compile(rf"^-(?:{_UNSIGNED})(?:[,\s]+[-+]?(?:{_UNSIGNED}))*,?$",
+                          re.IGNORECASE)
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse that takes `--probe -86.6,-50,0.3` as it is typed.
+
+    argparse only lets a plain negative number ("-5", "-0.5") follow an
+    option; anything else starting with '-' is taken for an option and
+    fails with "expected one argument". Every flowloop parser is this class
+    (subparsers inherit their parent's class), so coordinates and signed
+    lists work for every option of every command.
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        # argparse's own hook for this: the pattern of "looks like a negative number".
+        self._negative_number_matcher = SIGNED_VALUE
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="flowloop",
         description="Closed-loop extrusion and precision calibration for Klipper.")
     parser.add_argument("--version", action="version",

@@ -38,3 +38,64 @@ def test_info_names_an_unreachable_moonraker_in_one_line(capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("flowloop info: error: http://127.0.0.1:9: cannot reach")
     assert "\n" not in err
+
+
+# --- negative numbers are typed as they read --------------------------------------
+
+DELTA_CFG = Path(__file__).parents[1] / "klippy" / "endstop_calibrate.cfg"
+PROBES = ("0,0,0.1", "-86.6,-50,0.3", "86.6,-50,-0.2", "0,100,0.0")
+
+
+def value_options():
+    """(command words, option) for every option of every command that takes a value."""
+    def walk(parser, words):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    yield from walk(sub, words + [name])
+            elif action.option_strings and action.nargs != 0 and action.choices is None:
+                yield words, action.option_strings[-1]
+    return list(walk(cli.build_parser(), []))
+
+
+def test_no_option_mistakes_a_signed_list_for_an_option(capsys):
+    # Whatever else is wrong with the command line, the value is the option's.
+    options = value_options()
+    assert (["delta-endstops"], "--probe") in options
+    offenders = []
+    for words, option in options:
+        with pytest.raises(SystemExit):
+            cli.build_parser().parse_args(words + [option, "-86.6,-5e1,0.3", "-h"])
+        if "expected one argument" in capsys.readouterr().err:
+            offenders.append(" ".join(words + [option]))
+    assert offenders == []
+
+
+def test_a_probe_near_tower_a_is_typed_as_it_reads(capsys):
+    def run(args):
+        code = cli.main(["delta-endstops", "--printer-cfg", str(DELTA_CFG), *args])
+        out, err = capsys.readouterr()
+        assert code == 0, err
+        return out
+
+    natural = run([w for p in PROBES for w in ("--probe", p)] + ["--z-offset", "-0.1"])
+    with_equals = run([f"--probe={p}" for p in PROBES] + ["--z-offset=-0.1"])
+    assert natural == with_equals
+    assert "[stepper_a] position_endstop:" in natural
+
+
+def test_a_negative_reading_gets_the_calibrations_own_one_line_error(capsys):
+    code = cli.main(["ab-calibrate", "--rotation-distance-a", "40",
+                     "--rotation-distance-b", "40", "--a1", "-13.9,13.95",
+                     "--a2", "153.9", "--b1", "13.9", "--b2", "153.9"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err == "flowloop ab-calibrate: error: A1: reading -13.9 must be positive\n"
+
+
+def test_pylons_take_a_centre_written_with_an_exponent(tmp_path, capsys):
+    out = tmp_path / "p.gcode"
+    assert cli.main(["ab-pylons", "-o", str(out), "--bed-x", "300", "--bed-y", "300",
+                     "--centre-x", "1.5e2", "--centre-y", "-1e1"]) == 2
+    # The value reached the pylon check (a centre at y = -10 does not fit).
+    assert "does not fit" in capsys.readouterr().err
