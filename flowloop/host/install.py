@@ -238,11 +238,23 @@ def source_tree() -> Path:
     return root
 
 
-def klippy_modules(source: Path) -> List[Path]:
-    extras = source / "klippy_extras"
-    return sorted(p for p in extras.iterdir()
+def _modules(folder: Path) -> List[Path]:
+    """The modules and packages in a folder: what a host imports by name."""
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir()
                   if (p.suffix == ".py" or (p / "__init__.py").is_file())
                   and not p.name.startswith(("_", ".")))
+
+
+def klippy_modules(source: Path) -> List[Path]:
+    return _modules(source / "klippy_extras")
+
+
+def moonraker_components(source: Path) -> List[Path]:
+    """Moonraker components: a module, or a package like Moonraker's own
+    update_manager/; each is linked whole into moonraker/components/."""
+    return _modules(source / "moonraker_components")
 
 
 def mcu_sources(source: Path) -> List[Path]:
@@ -355,8 +367,7 @@ def plan_moonraker(moonraker: Path, source: Path,
                    uninstall: bool = False) -> List[Change]:
     components = moonraker_components_dir(moonraker)
     changes: List[Change] = []
-    comps = [comp for comp in sorted((source / "moonraker_components").glob("*.py"))
-             if not comp.name.startswith("_")]
+    comps = moonraker_components(source)
     for comp in comps:
         _link(changes, components / comp.name, comp, uninstall)
     _stale_links(changes, components, source, comps)

@@ -63,6 +63,17 @@ def test_installing_flowloop_moved_no_pinned_moonraker_package(moonraker_venv):
 def test_component_is_linked_the_way_flowloop_install_links_it(moonraker_venv):
     from flowloop.host import install
     components = install.moonraker_components_dir(moonraker_venv.path)
-    link = components / "flowloop.py"
+    link = components / "flowloop"
     assert link.is_symlink()
-    assert link.resolve() == stack.PROJECT / "moonraker_components" / "flowloop.py"
+    assert link.resolve() == stack.PROJECT / "moonraker_components" / "flowloop"
+    assert not (components / "flowloop.py").exists()  # an older install's module
+
+
+def test_moonraker_loads_the_component_package(moonraker_only):
+    status, body = moonraker_only.moonraker.request("GET", "/server/info")
+    assert status == 200
+    result = body["result"]
+    assert "flowloop" in result["components"]
+    assert "flowloop" not in result["failed_components"]
+    log = (moonraker_only.data_dir / "moonraker.log").read_text()
+    assert "moonraker.components.flowloop" not in log  # no import traceback

@@ -63,7 +63,8 @@ def _moonraker_package(dest: Path) -> None:
                                           "site-packages/moonraker"))
     if built:
         shutil.copytree(built[-1], dest, symlinks=True,
-                        ignore=shutil.ignore_patterns("__pycache__", "flowloop.py"))
+                        ignore=shutil.ignore_patterns("__pycache__", "flowloop.py",
+                                                      "flowloop"))
     else:
         (dest / "components").mkdir(parents=True)
         (dest / "__init__.py").write_text("")
@@ -125,8 +126,10 @@ def test_dry_run_then_install_then_uninstall_restores_every_byte(
     extras = klipper_tree / "klippy" / "extras" / "flowloop.py"
     assert extras.is_symlink()
     assert extras.resolve() == PROJECT / "klippy_extras" / "flowloop.py"
-    comp = install.moonraker_components_dir(moonraker) / "flowloop.py"
-    assert comp.resolve() == PROJECT / "moonraker_components" / "flowloop.py"
+    comp = install.moonraker_components_dir(moonraker) / "flowloop"
+    assert comp.is_symlink()  # the package is linked whole, like a module
+    assert comp.resolve() == PROJECT / "moonraker_components" / "flowloop"
+    assert (comp / "__init__.py").is_file()
     conf = (config_dir / "moonraker.conf").read_text()
     assert "[update_manager flowloop]" in conf
     assert "managed_services: klipper moonraker" in conf
@@ -325,3 +328,38 @@ def test_install_reports_what_it_did_only_after_doing_it(
     assert run_install(*args_for(klipper_tree, moonraker_checkout, config_dir)) == 2
     out = capsys.readouterr().out
     assert "link" not in out
+
+
+def test_a_component_module_an_older_flowloop_linked_becomes_the_package(
+        moonraker_checkout, tmp_path):
+    """Upgrade path: flowloop.py (one module) was split into flowloop/."""
+    source = (tmp_path / "source").resolve()
+    shutil.copytree(PROJECT / "moonraker_components", source / "moonraker_components",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    (source / "moonraker_components" / "flowloop.py").write_text("# old\n")
+    components = install.moonraker_components_dir(moonraker_checkout)
+    before = snapshot(moonraker_checkout)
+    # what the older flowloop left: a link to its module, excluded from git
+    (components / "flowloop.py").symlink_to(source / "moonraker_components"
+                                            / "flowloop.py")
+    (source / "moonraker_components" / "flowloop.py").unlink()
+    install.apply(install.plan_moonraker(moonraker_checkout, source))
+    assert not (components / "flowloop.py").is_symlink()
+    assert os.readlink(components / "flowloop") == str(
+        source / "moonraker_components" / "flowloop")
+    exclude = (moonraker_checkout / ".git" / "info" / "exclude").read_text()
+    assert "/moonraker/components/flowloop\n" in exclude
+    install.apply(install.plan_moonraker(moonraker_checkout, source, uninstall=True))
+    assert snapshot(moonraker_checkout) == before
+
+
+def test_both_forms_of_component_are_found(tmp_path):
+    comps = tmp_path / "moonraker_components"
+    (comps / "pkg").mkdir(parents=True)
+    (comps / "pkg" / "__init__.py").write_text("")
+    (comps / "module.py").write_text("")
+    (comps / "data").mkdir()  # no __init__.py: not a package
+    (comps / "__pycache__").mkdir()
+    (comps / "_private.py").write_text("")
+    assert [p.name for p in install.moonraker_components(tmp_path)] == [
+        "module.py", "pkg"]

@@ -1,0 +1,129 @@
+"""Which profile is active on each extruder, and the rules that change it.
+
+Moonraker stores one `ActiveProfile` per extruder (name and working point)
+and klippy keeps an `Activation` (the profile itself and its working point).
+Both are typed records; nothing reads them as loose dicts.
+
+The Spoolman link's rule lives here too (`follow_spool`): when the active spool
+changes, the profile whose identity names that spool's Spoolman filament
+becomes active on the linked extruder, keeping that extruder's working point.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Dict, Mapping, NamedTuple, Optional
+
+import msgspec
+
+from ..errors import FlowloopError
+from .profile import (
+    DEFAULT_WORKING_POINT,
+    Profile,
+    check_name,
+    check_working_point,
+    is_extruder_name,
+)
+
+WORKING_POINT_ACCEPTS = "a number from 0 (real print) to 1 (into air)"
+
+
+class ActiveProfile(msgspec.Struct, frozen=True, kw_only=True,
+                    forbid_unknown_fields=True):
+    """What Moonraker stores for one extruder: which profile, at which WP."""
+
+    name: str
+    working_point: float = DEFAULT_WORKING_POINT
+
+    def __post_init__(self) -> None:
+        check_name(self.name)
+        check_working_point(self.working_point)
+
+
+class Activation(NamedTuple):
+    """What klippy keeps for one extruder: the profile (capped to the heater)
+    and the working point."""
+
+    profile: Profile
+    working_point: float
+
+
+def active_from_stored(value: Any) -> Dict[str, ActiveProfile]:
+    """The stored {extruder: {name, working_point}} record, validated."""
+    try:
+        active = msgspec.convert(value, Dict[str, ActiveProfile])
+    except msgspec.ValidationError as e:
+        raise FlowloopError(f"the active profiles record is invalid: {e}") from None
+    for extruder in active:
+        if not is_extruder_name(extruder):
+            raise FlowloopError(f"the active profiles record names {extruder!r}, "
+                                f"which is not an extruder")
+    return active
+
+
+def active_to_stored(active: Mapping[str, ActiveProfile]) -> Dict[str, Any]:
+    return {extruder: msgspec.to_builtins(entry)
+            for extruder, entry in sorted(active.items())}
+
+
+def number_arg(parameter: str, value: Any, accepts: str,
+               lo: float = -math.inf, hi: float = math.inf) -> float:
+    """A numeric request parameter (a JSON number or its text) within lo..hi.
+
+    The refusal names the parameter, what it got and what it accepts, in one
+    line: "working_point: got 'abc'; accepts a number from 0 ... to 1 ...".
+    """
+    number = value
+    if isinstance(value, str):
+        try:
+            number = float(value)
+        except ValueError:
+            number = None
+    if isinstance(number, bool) or not isinstance(number, (int, float)) \
+            or not lo <= number <= hi:  # also refuses NaN
+        got = repr(value) if isinstance(value, str) else _json_text(value)
+        raise FlowloopError(f"{parameter}: got {got}; accepts {accepts}")
+    return float(number)
+
+
+def _json_text(value: Any) -> str:
+    try:
+        text = msgspec.json.encode(value).decode()
+    except (TypeError, ValueError, OverflowError):
+        text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def working_point_arg(value: Any, parameter: str = "working_point") -> float:
+    return number_arg(parameter, value, WORKING_POINT_ACCEPTS, 0.0, 1.0)
+
+
+def spool_filament_id(spool: Any) -> Optional[int]:
+    """The Spoolman filament id of a spool record (GET /v1/spool/<id>)."""
+    filament = spool.get("filament") if isinstance(spool, dict) else None
+    fid = filament.get("id") if isinstance(filament, dict) else None
+    return fid if isinstance(fid, int) and not isinstance(fid, bool) else None
+
+
+def profile_for_filament(profiles: Mapping[str, Profile],
+                         filament_id: Optional[int]) -> Optional[str]:
+    """The profile that names this Spoolman filament; of several, the first
+    by name (so the choice does not depend on the order they were stored)."""
+    if filament_id is None:
+        return None
+    matches = sorted(name for name, p in profiles.items()
+                     if p.identity.spoolman_filament_id == filament_id)
+    return matches[0] if matches else None
+
+
+def follow_spool(spool: Any, profiles: Mapping[str, Profile],
+                 current: Optional[ActiveProfile],
+                 default_wp: float = DEFAULT_WORKING_POINT
+                 ) -> Optional[ActiveProfile]:
+    """What the linked extruder should run for a newly active spool, or None
+    to leave it as it is (no profile names the spool's filament)."""
+    name = profile_for_filament(profiles, spool_filament_id(spool))
+    if name is None:
+        return None
+    wp = current.working_point if current is not None else default_wp
+    return ActiveProfile(name=name, working_point=wp)

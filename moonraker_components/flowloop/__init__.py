@@ -1,0 +1,63 @@
+# flowloop: material profiles and flowloop status for Moonraker clients.
+#
+# Section [flowloop] in moonraker.conf. Installed by `flowloop install` as a
+# link to this package in moonraker/components/ (Moonraker loads a component
+# package like its own update_manager/). The thinking is in the flowloop
+# package; the parts here each have one job:
+#
+#   store.py          profiles and active profiles in Moonraker's database
+#   profiles.py       store, delete, activate: write, tell klippy, notify
+#   klippy_sync.py    klippy's copy of each extruder's active profile
+#   spoolman_link.py  the active Spoolman spool chooses the active profile
+#   info.py           what flowloop has loaded in Moonraker and klippy
+#   api.py            the HTTP/JSON-RPC endpoints and klippy's remote method
+#
+# This file may be distributed under the terms of the GNU GPLv3 license.
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from flowloop.material import profile as fl_profile
+
+from .api import Api
+from .info import Info
+from .klippy_sync import KlippySync
+from .profiles import Profiles
+from .spoolman_link import SpoolmanLink
+from .store import ProfileStore
+
+if TYPE_CHECKING:
+    from ...confighelper import ConfigHelper
+
+
+class Flowloop:
+    def __init__(self, config: ConfigHelper) -> None:
+        self.server = config.get_server()
+        spoolman_link = config.getboolean("spoolman_link", False)
+        spoolman_extruder = config.get("spoolman_extruder", "extruder")
+        if not fl_profile.is_extruder_name(spoolman_extruder):
+            raise config.error(
+                f"Section [flowloop], option spoolman_extruder: "
+                f"{spoolman_extruder!r} is not an extruder name "
+                f"(extruder, extruder1, ...)")
+        default_wp = config.getfloat(
+            "working_point", fl_profile.DEFAULT_WORKING_POINT, minval=0.0, maxval=1.0)
+        self.store = ProfileStore(self.server.lookup_component("database"))
+        self.klippy = KlippySync(self.server, self.store)
+        self.profiles = Profiles(self.server, self.store, self.klippy)
+        self.spoolman = None
+        if spoolman_link:
+            self.spoolman = SpoolmanLink(self.server, spoolman_extruder, default_wp,
+                                         self.store, self.profiles)
+        self.info = Info(self.server, self.store, spoolman_link)
+        self.api = Api(self.server, self.store, self.profiles, self.info, default_wp)
+
+    async def component_init(self) -> None:
+        await self.store.load()
+        if self.spoolman is not None:
+            self.spoolman.check_spoolman()
+
+
+def load_component(config: ConfigHelper) -> Flowloop:
+    return Flowloop(config)
