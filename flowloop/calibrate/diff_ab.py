@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from ..errors import FlowloopError
+from .numbers import parse_numbers
 
 # The paper's convergence target: 0.025 % (25 um per 100 mm).
 CONVERGENCE_LIMIT = 2.5e-4
@@ -49,31 +49,6 @@ AXIS_STEPPERS = {"a": "stepper_x", "b": "stepper_y"}
 
 
 # --- readings ------------------------------------------------------------
-
-def parse_readings(text, name: str = "readings") -> Tuple[float, ...]:
-    """'150.12, 150.14,150.1' -> floats; one-line FlowloopError otherwise.
-
-    Accepts a string (commas and/or spaces) or a sequence of numbers.
-    """
-    if isinstance(text, str):
-        parts = [p for p in re.split(r"[,\s]+", text.strip()) if p]
-    else:
-        parts = list(text)
-    if not parts:
-        raise FlowloopError(f"{name}: no readings given")
-    values = []
-    for part in parts:
-        try:
-            value = float(part)
-        except (TypeError, ValueError):
-            raise FlowloopError(f"{name}: '{part}' is not a number") from None
-        if not math.isfinite(value):
-            raise FlowloopError(f"{name}: '{part}' is not a finite number")
-        if value <= 0.0:
-            raise FlowloopError(f"{name}: reading {part} must be positive")
-        values.append(value)
-    return tuple(values)
-
 
 @dataclasses.dataclass(frozen=True)
 class ReadingSet:
@@ -399,7 +374,9 @@ def reading_sets(nominals: Sequence[float], readings: Sequence, axis: str,
         if not high > low:
             raise FlowloopError(f"D{numbers[i]} ({high:g} mm) must be greater than "
                                 f"D{numbers[i - 1]} ({low:g} mm)")
-    return [ReadingSet(float(nominal), parse_readings(values, f"{axis.upper()}{k}"))
+    return [ReadingSet(float(nominal),
+                       parse_numbers(values, f"{axis.upper()}{k}", what="reading",
+                                     positive=True))
             for k, nominal, values in zip(numbers, nominals, readings)]
 
 

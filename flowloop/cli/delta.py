@@ -8,12 +8,12 @@ probed point on the bed (flowloop.calibrate.delta.solve_endstops).
 from __future__ import annotations
 
 import json
-import math
 import sys
 from pathlib import Path
-from typing import List, Tuple
+from typing import List
 
 from ..calibrate import delta
+from ..calibrate.numbers import parse_numbers
 from ..errors import FlowloopError
 from ..host.klipper_config import read_config
 
@@ -41,32 +41,10 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def parse_probe(text: str) -> Tuple[float, float, float]:
-    parts = text.split(",")
-    try:
-        values = tuple(float(v) for v in parts)
-    except ValueError:
-        values = ()
-    if len(values) != 3:
-        raise FlowloopError(f"--probe {text!r} must be X,Y,Z in mm")
-    if not all(math.isfinite(v) for v in values):
-        raise FlowloopError(f"--probe {text!r} is not finite")
-    return values  # type: ignore[return-value]
-
-
-def parse_mm(text: str, option: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise FlowloopError(f"{option} {text!r} is not a number") from None
-    if not math.isfinite(value):
-        raise FlowloopError(f"{option} {text!r} is not finite")
-    return value
-
-
 def run(args) -> int:
-    probes = [parse_probe(text) for text in args.probe]
-    z_offset = parse_mm(args.z_offset, "--z-offset")
+    probes = [parse_numbers(text, f"--probe {text}", what="coordinate", count=3)
+              for text in args.probe]
+    z_offset, = parse_numbers(args.z_offset, "--z-offset", count=1)
     if len(probes) < 3:
         raise FlowloopError(f"need at least 3 --probe points (near each tower),"
                             f" got {len(probes)}")

@@ -355,8 +355,10 @@ def test_cli_prints_a_per_tower_report(capsys):
 @pytest.mark.parametrize("cfg, probes, message", [
     ("endstop_calibrate_cartesian.cfg", ["0,0,0"] * 3, "not a delta printer config"),
     ("endstop_calibrate.cfg", ["0,0,0", "10,0,0"], "at least 3 --probe"),
-    ("endstop_calibrate.cfg", ["0,0,0", "10,0,inf", "0,10,0"], "not finite"),
-    ("endstop_calibrate.cfg", ["0,0", "10,0,0", "0,10,0"], "must be X,Y,Z"),
+    ("endstop_calibrate.cfg", ["0,0,0", "10,0,inf", "0,10,0"],
+     "--probe 10,0,inf: 'inf' is not a finite number"),
+    ("endstop_calibrate.cfg", ["0,0", "10,0,0", "0,10,0"],
+     "--probe 0,0: needs 3 coordinates, got 2"),
     ("absent.cfg", ["0,0,0"] * 3, "cannot read config file"),
 ])
 def test_cli_errors_are_one_line_and_exit_non_zero(capsys, cfg, probes, message):

@@ -215,33 +215,6 @@ def test_a_history_file_that_is_not_ours_is_one_line(tmp_path, capsys, data):
     assert json.loads(history.read_text()) == data     # left as it was
 
 
-# --- parsing ---
-
-finite_positive = st.floats(min_value=1e-3, max_value=1e4, allow_nan=False)
-
-
-@given(st.lists(finite_positive, min_size=1, max_size=9),
-       st.sampled_from([",", ", ", " ", " , "]))
-def test_readings_round_trip_through_text(values, sep):
-    assert diff_ab.parse_readings(sep.join(repr(v) for v in values)) == tuple(values)
-
-
-@given(st.text(max_size=40))
-def test_any_text_parses_to_finite_positive_readings_or_one_line_error(text):
-    try:
-        values = diff_ab.parse_readings(text, "A1")
-    except FlowloopError as e:
-        assert "\n" not in str(e) and str(e).startswith("A1: ")
-    else:
-        assert values and all(math.isfinite(v) and v > 0 for v in values)
-
-
-@pytest.mark.parametrize("text", ["", "nan", "10,inf", "10,,x", "-1", "0"])
-def test_bad_readings_are_refused(text):
-    with pytest.raises(FlowloopError):
-        diff_ab.parse_readings(text)
-
-
 # --- where rotation_distance lives ---
 
 # --- the pylon G-code, parsed back ---
