@@ -1,10 +1,14 @@
 """docs/reference.md names everything the code offers, and nothing it lacks.
 
-The facts come from the code itself: the klippy_extras modules and the
-Moonraker component are parsed (ast), the CLI parser is built and walked. The
-page is then read as markdown tables under fixed headings, so a name counts
-only where a user would look for it (an option in its section's Options
-table, a parameter in its command's row).
+The facts come from the code itself: the klippy_extras modules (a module or a
+package of them) and the Moonraker component are parsed (ast), following a
+G-code command's `gcmd` into every helper it is handed to, and the CLI parser
+is built and walked. Status fields are what `get_status` really returns: the
+klippy tier (tests/klippy/test_reference_status.py) loads every section in
+klippy and checks them, with the options Klipper's configfile saw read. The
+page is read as markdown tables under fixed headings, so a name counts only
+where a user would look for it (an option in its section's Options table, a
+parameter in its command's row).
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ PROJECT = Path(__file__).resolve().parents[2]
 DOCS = PROJECT / "docs"
 REFERENCE = DOCS / "reference.md"
 EXTRAS = PROJECT / "klippy_extras"
-COMPONENT = PROJECT / "moonraker_components" / "flowloop.py"
+COMPONENT = PROJECT / "moonraker_components" / "flowloop"   # a package, or .py
 MACROS = PROJECT / "macros"
 
 CONFIG_GETTER = re.compile(r"^get(int|float|boolean|choice|list|lists|intlist|"
@@ -58,8 +62,8 @@ class KlippySection:
     prefix: bool                       # load_config_prefix: [module NAME]
     options: Set[str]
     commands: Dict[str, Command]
-    status: Set[str]
     endpoints: Set[str]
+    status: Optional[Set[str]] = None  # known only from a running klippy
 
 
 def _str(node: ast.AST) -> Optional[str]:
@@ -108,45 +112,60 @@ def _functions(tree: ast.AST) -> Iterator[ast.FunctionDef]:
 
 def _registrations(tree: ast.AST, method: str) -> Iterator[Tuple[ast.Call, list]]:
     """Calls of `method`, each with its argument lists: the call's own, or,
-    when its first argument is a variable, every tuple literal in the enclosing
-    function that starts with a string (the `for name, ... in (...)` idiom)."""
-    for func in _functions(tree):
-        for node in ast.walk(func):
-            if not (isinstance(node, ast.Call) and _called_name(node) == method):
-                continue
-            if node.args and _str(node.args[0]) is not None:
-                yield node, [node.args]
-            else:
-                rows = [list(t.elts) for t in ast.walk(func)
-                        if isinstance(t, ast.Tuple) and t.elts
-                        and _str(t.elts[0]) is not None]
-                yield node, rows
+    when its first argument is a variable, every tuple literal of the adapter
+    that starts with a string (the `for name, func, desc in table` idiom, the
+    table built wherever the adapter builds it)."""
+    tables = [list(t.elts) for t in ast.walk(tree)
+              if isinstance(t, ast.Tuple) and t.elts and _str(t.elts[0]) is not None]
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Call) and _called_name(node) == method):
+            continue
+        if node.args and _str(node.args[0]) is not None:
+            yield node, [node.args]
+        else:
+            yield node, tables
 
 
-def _methods(tree: ast.AST) -> Dict[str, ast.FunctionDef]:
-    return {f.name: f for f in _functions(tree)}
+def _methods(tree: ast.AST) -> Dict[str, List[ast.FunctionDef]]:
+    """Every function and method of the adapter, by name (helpers included)."""
+    out: Dict[str, List[ast.FunctionDef]] = {}
+    for f in _functions(tree):
+        out.setdefault(f.name, []).append(f)
+    return out
 
 
-def _gcmd_params(methods: Dict[str, ast.FunctionDef], name: str,
+def _hands_on_gcmd(call: ast.Call) -> bool:
+    values = list(call.args) + [k.value for k in call.keywords]
+    return any(isinstance(v, ast.Name) and v.id == "gcmd" for v in values)
+
+
+def _gcmd_params(methods: Dict[str, List[ast.FunctionDef]], name: str,
                  seen: Optional[Set[str]] = None) -> Set[str]:
-    """gcmd.get*('NAME') in a handler and in the self.methods it calls."""
+    """gcmd.get*('NAME') in a handler and in every function it hands gcmd to,
+    or calls on self: by name, across all the adapter's classes and files."""
     seen = set() if seen is None else seen
     if name in seen or name not in methods:
         return set()
     seen.add(name)
     params: Set[str] = set()
-    for node in ast.walk(methods[name]):
-        if not isinstance(node, ast.Call) or not isinstance(node.func, ast.Attribute):
-            continue
-        func = node.func
-        params.update(HELPER_PARAMS.get(func.attr, ()))
-        if isinstance(func.value, ast.Name) and func.value.id == "gcmd" \
-                and GCMD_GETTER.match(func.attr) and node.args:
-            param = _str(node.args[0])
-            if param is not None:      # f-string families (A1..A9) are not checked
-                params.add(param)
-        if isinstance(func.value, ast.Name) and func.value.id == "self":
-            params |= _gcmd_params(methods, func.attr, seen)
+    for func_def in methods[name]:
+        for node in ast.walk(func_def):
+            if not isinstance(node, ast.Call):
+                continue
+            called = _called_name(node)
+            params.update(HELPER_PARAMS.get(called or "", ()))
+            func = node.func
+            if isinstance(func, ast.Attribute) and isinstance(func.value, ast.Name) \
+                    and func.value.id == "gcmd" and GCMD_GETTER.match(func.attr) \
+                    and node.args:
+                param = _str(node.args[0])
+                if param is not None:      # f-string families (A1..A9) unchecked
+                    params.add(param)
+            elif called and (_hands_on_gcmd(node) or (
+                    isinstance(func, ast.Attribute)
+                    and isinstance(func.value, ast.Name)
+                    and func.value.id == "self")):
+                params |= _gcmd_params(methods, called, seen)
     return params
 
 
@@ -173,28 +192,23 @@ def gcode_commands(path: Path, tree: ast.AST) -> Dict[str, Command]:
                 name = _str(args[0])
                 if not COMMAND_NAME.match(name or ""):
                     continue
-                handler = args[handler_index if direct else 1]
+                handler = args[handler_index if direct else 1] \
+                    if len(args) > 1 else None
+                if not direct and not isinstance(handler, ast.Attribute):
+                    continue          # a table row that is not (name, handler, ...)
                 assert isinstance(handler, ast.Attribute), _where(path, call)
                 params = _gcmd_params(methods, handler.attr)
                 if mux_key:
                     params.add(mux_key)
-                commands[name] = Command(name, helps[handler.attr + "_help"], params)
+                help_text = helps.get(handler.attr + "_help")
+                assert help_text is not None, f"{name}: no {handler.attr}_help"
+                commands[name] = Command(name, help_text, params)
     # Every cmd_X_help belongs to a command found above: nothing registered in
     # a way this parser does not understand slips past it.
     found = {"cmd_" + name + "_help" for name in commands}
     missed = {h for h in helps if h.startswith("cmd_")} - found
     assert not missed, f"{path.name}: commands not understood: {sorted(missed)}"
     return commands
-
-
-def status_fields(path: Path, tree: ast.AST) -> Set[str]:
-    get_status = _methods(tree).get("get_status")
-    if get_status is None:
-        return set()
-    returns = [n for n in ast.walk(get_status) if isinstance(n, ast.Return)]
-    assert returns and all(isinstance(r.value, ast.Dict) for r in returns), (
-        f"{_where(path, get_status)}: get_status must return a dict literal")
-    return {_str(k) for r in returns for k in r.value.keys}
 
 
 def webhooks_endpoints(tree: ast.AST) -> Set[str]:
@@ -205,18 +219,34 @@ def webhooks_endpoints(tree: ast.AST) -> Set[str]:
     return paths
 
 
+def adapter_sources() -> Dict[str, List[Path]]:
+    """klippy module name -> its files: a module, or a package's modules."""
+    out = {}
+    for path in sorted(EXTRAS.iterdir()):
+        if path.suffix == ".py" and path.name != "__init__.py":
+            out[path.stem] = [path]
+        elif (path / "__init__.py").is_file():
+            out[path.name] = sorted(path.rglob("*.py"))
+    return out
+
+
+def _parse_all(paths: List[Path]) -> ast.Module:
+    body: list = []
+    for path in paths:
+        body += ast.parse(path.read_text(), str(path)).body
+    return ast.Module(body=body, type_ignores=[])
+
+
 def klippy_sections() -> List[KlippySection]:
     sections = []
-    for path in sorted(EXTRAS.glob("*.py")):
-        if path.name == "__init__.py":
-            continue
-        tree = ast.parse(path.read_text(), str(path))
+    for module, paths in adapter_sources().items():
+        tree = _parse_all(paths)
+        where = paths[0] if len(paths) == 1 else paths[0].parent
         sections.append(KlippySection(
-            module=path.stem,
+            module=module,
             prefix="load_config_prefix" in _methods(tree),
-            options=config_options(path, tree),
-            commands=gcode_commands(path, tree),
-            status=status_fields(path, tree),
+            options=config_options(where, tree),
+            commands=gcode_commands(where, tree),
             endpoints=webhooks_endpoints(tree)))
     return sections
 
@@ -235,8 +265,14 @@ class Component:
     remote_methods: Set[str]
 
 
+def component_sources() -> List[Path]:
+    module = COMPONENT.with_suffix(".py")
+    return [module] if module.is_file() else sorted(COMPONENT.rglob("*.py"))
+
+
 def moonraker_component() -> Component:
-    tree = ast.parse(COMPONENT.read_text(), str(COMPONENT))
+    sources = component_sources()
+    tree = _parse_all(sources)
     endpoints = set()
     for _call, rows in _registrations(tree, "register_endpoint"):
         for args in rows:
@@ -262,7 +298,7 @@ def moonraker_component() -> Component:
         notifications.add("notify_" + name)
     remote = {_str(call.args[0])
               for call, _rows in _registrations(tree, "register_remote_method")}
-    return Component(config_options(COMPONENT, tree), endpoints, notifications,
+    return Component(config_options(sources[0], tree), endpoints, notifications,
                      remote)
 
 
@@ -395,11 +431,12 @@ def klippy_problems(doc: str, sec: KlippySection) -> List[str]:
     for command in sorted(set(commands) - set(sec.commands)):
         problems.append(f"{where} G-code table has `{command}`, the code has no such "
                         "command")
-    status = first_cell_names(subsection(body, "Status"))
-    for field in sorted(sec.status - set(status)):
-        problems.append(f"{where} status field `{field}` not in its Status table")
-    for field in sorted(set(status) - sec.status):
-        problems.append(f"{where} Status table has `{field}`, get_status has not")
+    if sec.status is not None:
+        status = first_cell_names(subsection(body, "Status"))
+        for field in sorted(sec.status - set(status)):
+            problems.append(f"{where} status field `{field}` not in its Status table")
+        for field in sorted(set(status) - sec.status):
+            problems.append(f"{where} Status table has `{field}`, get_status has not")
     endpoints = first_cell_names(subsection(body, "API"))
     for endpoint in sorted(sec.endpoints - set(endpoints)):
         problems.append(f"{where} endpoint `{endpoint}` not in its API table")
@@ -537,7 +574,6 @@ def test_the_code_facts_are_found(facts):
     assert "kinematics" not in by_module["diff_ab_calibrate"].options
     assert "FORCE" in by_module["diff_ab_calibrate"].commands[
         "DIFF_AB_CALIBRATE"].params
-    assert {"grip", "fault"} <= sensor.status
     assert sensor.endpoints == {"flow_sensor/dump_flow"}
     assert by_module["flowloop"].endpoints == {"flowloop/set_active_profile"}
     assert ("DELETE", "/server/flowloop/profile",
@@ -553,15 +589,24 @@ def test_the_reference_names_everything_the_code_offers(facts):
     assert not found, "docs/reference.md is out of date:\n" + "\n".join(found)
 
 
-def table_rows(doc: str) -> List[int]:
-    """Indexes of table body rows, except the contents table at the top."""
+def table_rows(doc: str, only_status: bool = False) -> List[int]:
+    """Indexes of table body rows, except the contents table at the top; rows
+    of the Status tables (checked against a running klippy in the klippy tier)
+    only, or all others."""
     lines = doc.splitlines()
     first_section = next(i for i, line in enumerate(lines) if line.startswith("## "))
-    return [i for i, line in enumerate(lines)
-            if i > first_section and line.startswith("| ")
-            and not re.match(r"^\|[\s|:-]+\|$", line)
-            and not re.match(r"^\|[\s|:-]+\|$", lines[i + 1] if i + 1 < len(lines)
-                             else "")]
+    out, heading = [], ""
+    for i, line in enumerate(lines):
+        head = HEADING.match(line)
+        if head:
+            heading = head.group(2).strip()
+        if i > first_section and line.startswith("| ") \
+                and not re.match(r"^\|[\s|:-]+\|$", line) \
+                and not re.match(r"^\|[\s|:-]+\|$", lines[i + 1] if i + 1 < len(lines)
+                                 else "") \
+                and (heading == "Status") == only_status:
+            out.append(i)
+    return out
 
 
 def test_deleting_any_row_of_the_reference_is_caught(facts):
@@ -592,3 +637,35 @@ def test_a_changed_help_text_is_caught(facts):
     assert problems(changed, facts) == [
         "[flow_sensor NAME]: QUERY_FLOW_SENSOR: help text 'Report grip, flows and "
         "errors of a flow sensor' not in its row"]
+
+
+ADAPTER_WITH_HELPERS = """
+class Source:
+    def calibrate(self, gcmd, length):
+        speeds = gcmd.get('SPEEDS', '1,2')
+        return self._finish(gcmd)
+    def _finish(self, gcmd):
+        return gcmd.get_float('MAX_SPREAD', 2.)
+
+def parse_wait(cmd):
+    return cmd.get_int('IGNORED', 0)
+
+class Sensor:
+    def __init__(self, config):
+        self.source = Source()
+        gcode.register_mux_command('CALIBRATE_IT', 'SENSOR', 'x',
+                                   self.cmd_CALIBRATE_IT,
+                                   desc=self.cmd_CALIBRATE_IT_help)
+    cmd_CALIBRATE_IT_help = "Calibrate it"
+    def cmd_CALIBRATE_IT(self, gcmd):
+        length = gcmd.get_float('LENGTH', 10.)
+        self.source.calibrate(gcmd, length)
+"""
+
+
+def test_parameters_are_followed_into_the_helpers_a_command_hands_gcmd_to():
+    tree = ast.parse(ADAPTER_WITH_HELPERS)
+    commands = gcode_commands(PROJECT / "adapter.py", tree)
+    assert commands["CALIBRATE_IT"].params == {"SENSOR", "LENGTH", "SPEEDS",
+                                               "MAX_SPREAD"}
+    assert commands["CALIBRATE_IT"].help == "Calibrate it"
