@@ -19,12 +19,6 @@ from flowloop.cli import main as flowloop_main
 TRUE_ENDSTOPS = (301.2, 298.8, 300.5)
 
 
-def _points(geometry: delta.DeltaGeometry, radius: float):
-    return (delta.tower_probe_points(geometry.angles_deg, radius)
-            + delta.tower_probe_points([a + 180.0 for a in geometry.angles_deg],
-                                       radius, centre=False))
-
-
 def _naive_rounds(believed, true, points, limit_mm=0.01):
     for rounds in range(1, 50):
         z = delta.simulate_probe_z(believed, true, points)
@@ -41,7 +35,7 @@ def offline(ctx, cfg: Path) -> None:
     from flowloop.host.klipper_config import read_config
     believed = delta.geometry_from_config(read_config(cfg))
     true = believed.with_endstops(TRUE_ENDSTOPS)
-    points = _points(believed, 100.0)
+    points = delta.probe_points(believed.angles_deg, 100.0)
     z = delta.simulate_probe_z(believed, true, points)
     probes = [(x, y, round(float(h), 3)) for (x, y), h in zip(points, z)]
     ctx.say(f"A delta believing endstops {believed.position_endstops}; really "

@@ -39,7 +39,8 @@ class EndstopCalibrate:
         has_points = config.get('points', None) is not None
         self.probe_helper = probe.ProbePointsHelper(
             config, self.probe_finalize,
-            default_points=self._points(delta.DEFAULT_ANGLES_DEG, self.radius))
+            default_points=delta.probe_points(
+                delta.DEFAULT_ANGLES_DEG, self.radius, self.opposite_points))
         self.probe_helper.minimum_points(3)
         # Points from the config, or None to place them from RADIUS.
         self.fixed_points = None
@@ -58,13 +59,6 @@ class EndstopCalibrate:
         self.toolhead = self.printer.lookup_object('toolhead')
         if self.fixed_points is None:
             self._check_radius(self.radius, self.printer.config_error)
-
-    def _points(self, angles, radius):
-        points = delta.tower_probe_points(angles, radius)
-        if self.opposite_points:
-            points += delta.tower_probe_points(
-                [a + 180. for a in angles], radius, centre=False)
-        return points
 
     def _max_radius(self):
         kin = self.toolhead.get_kinematics()
@@ -102,7 +96,8 @@ class EndstopCalibrate:
             if radius is None:
                 radius = self.radius
             self._check_radius(radius, gcmd.error)
-            points = self._points(self._geometry().angles_deg, radius)
+            points = delta.probe_points(self._geometry().angles_deg, radius,
+                                        self.opposite_points)
         self.active = {'samples': samples, 'tolerance': tolerance}
         # Each point repeated SAMPLES times in a row; the median is ours.
         self.probe_helper.update_probe_points(

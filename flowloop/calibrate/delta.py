@@ -137,11 +137,16 @@ class DeltaGeometry:
         return dp_dc[2]
 
 
-def tower_probe_points(angles_deg: Sequence[float], radius: float,
-                       centre: bool = True) -> List[Tuple[float, float]]:
-    """Probe XY points at `radius` from the centre towards each tower."""
+def probe_points(angles_deg: Sequence[float], radius: float, opposite: bool = True,
+                 centre: bool = True) -> List[Tuple[float, float]]:
+    """ENDSTOP_CALIBRATE's probe XY points, in this order: the centre, then
+    `radius` from it towards each tower, then (opposite) `radius` away from
+    each tower, where a wrong tower angle shows."""
+    directions = list(angles_deg)
+    if opposite:
+        directions += [a + 180.0 for a in angles_deg]
     points = [(0.0, 0.0)] if centre else []
-    for angle in angles_deg:
+    for angle in directions:
         a = math.radians(angle)
         points.append((radius * math.cos(a), radius * math.sin(a)))
     return points

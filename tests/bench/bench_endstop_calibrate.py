@@ -117,10 +117,9 @@ def run(method, believed, true, points, counted, checks) -> Outcome:
 def test_probe_rounds_to_a_flat_bed(bench):
     rng = np.random.default_rng(6)
     base = delta.DeltaGeometry(140.0, (300.0, 300.0, 300.0), (300.0, 300.0, 300.0))
-    four = delta.tower_probe_points(base.angles_deg, PROBE_RADIUS)
+    four = delta.probe_points(base.angles_deg, PROBE_RADIUS, opposite=False)
     three = four  # the per-tower loop reads the three tower points only
-    seven = four + delta.tower_probe_points([a + 180 for a in base.angles_deg],
-                                            PROBE_RADIUS, centre=False)
+    seven = delta.probe_points(base.angles_deg, PROBE_RADIUS)
     checks = check_points(PROBE_RADIUS)
     methods = {
         "solver, 4 points": (solver, four, 4),

@@ -18,9 +18,9 @@ from flowloop.calibrate.delta import (
     geometry_from_config,
     median_of_samples,
     naive_endstop_update,
+    probe_points,
     simulate_probe_z,
     solve_endstops,
-    tower_probe_points,
 )
 from flowloop.errors import FlowloopError
 from flowloop.host.klipper_config import parse_config
@@ -48,10 +48,17 @@ def probes_on(believed, true, points, bed_z=0.0):
 
 
 def seven_points(geometry, fraction=0.7):
-    r = geometry.radius * fraction
-    opposite = [a + 180.0 for a in geometry.angles_deg]
-    return (tower_probe_points(geometry.angles_deg, r)
-            + tower_probe_points(opposite, r, centre=False))
+    return probe_points(geometry.angles_deg, geometry.radius * fraction)
+
+
+def test_probe_points_are_the_centre_then_near_then_opposite_each_tower():
+    points = probe_points((210.0, 329.8, 90.0), 100.0)
+    assert points[0] == (0.0, 0.0)
+    angles = [math.degrees(math.atan2(y, x)) % 360 for x, y in points[1:]]
+    assert angles == pytest.approx([210.0, 329.8, 90.0, 30.0, 149.8, 270.0])
+    assert [math.hypot(*p) for p in points[1:]] == pytest.approx([100.0] * 6)
+    assert probe_points((210.0, 329.8, 90.0), 100.0, opposite=False) == points[:4]
+    assert probe_points((210.0, 329.8, 90.0), 100.0, False, False) == points[1:4]
 
 
 # --- kinematics --------------------------------------------------------------
@@ -110,7 +117,7 @@ def test_arms_shorter_than_the_radius_are_refused():
 def test_known_endstop_errors_are_recovered_to_well_under_a_micron(geometry, errors,
                                                                    four_points):
     true = geometry.with_endstops(np.add(geometry.position_endstops, errors))
-    points = (tower_probe_points(geometry.angles_deg, 0.7 * geometry.radius)
+    points = (probe_points(geometry.angles_deg, 0.7 * geometry.radius, opposite=False)
               if four_points else seven_points(geometry))
     result = solve_endstops(geometry, probes_on(geometry, true, points))
     assert np.allclose(result.position_endstop, true.position_endstops, atol=1e-6)
@@ -121,7 +128,7 @@ def test_known_endstop_errors_are_recovered_to_well_under_a_micron(geometry, err
 def test_three_tower_points_without_the_centre_are_enough():
     g = DeltaGeometry(120.0, (250.0, 251.0, 249.5), (280.0, 280.0, 280.0))
     true = g.with_endstops((281.3, 278.9, 280.4))
-    points = tower_probe_points(g.angles_deg, 90.0, centre=False)
+    points = probe_points(g.angles_deg, 90.0, opposite=False, centre=False)
     result = solve_endstops(g, probes_on(g, true, points))
     assert np.allclose(result.position_endstop, true.position_endstops, atol=1e-9)
 
@@ -139,7 +146,7 @@ def test_a_probe_z_offset_is_the_height_each_probe_should_read():
 def test_report_names_each_towers_probe_and_predicts_a_flat_bed():
     g = DeltaGeometry(140.0, (300.0, 300.0, 300.0), (300.0, 300.0, 300.0))
     true = g.with_endstops((301.5, 298.5, 300.0))
-    points = tower_probe_points(g.angles_deg, 100.0)
+    points = probe_points(g.angles_deg, 100.0, opposite=False)
     result = solve_endstops(g, probes_on(g, true, points))
     assert result.tower_probe_index == (1, 2, 3)
     # Tower A really homes 1.5 mm higher than believed: near it the nozzle is
@@ -175,7 +182,7 @@ def test_residual_warning_fires_when_the_radius_is_off_even_with_four_points(
         radius_error):
     g = DeltaGeometry(140.0, (300.0, 300.0, 300.0), (300.0, 300.0, 300.0))
     true = DeltaGeometry(140.0 + radius_error, g.arm_lengths, (300.7, 299.4, 300.1))
-    points = tower_probe_points(g.angles_deg, 100.0)
+    points = probe_points(g.angles_deg, 100.0, opposite=False)
     result = solve_endstops(g, probes_on(g, true, points))
     assert result.geometry_warning is not None
     assert result.residual_mm > 0.01
@@ -187,7 +194,8 @@ def test_four_points_cannot_see_an_angle_error_so_the_docs_ask_for_seven():
     g = DeltaGeometry(140.0, (300.0, 300.0, 300.0), (300.0, 300.0, 300.0))
     true = DeltaGeometry(140.0, g.arm_lengths, (300.0, 300.0, 300.0),
                          (210.5, 330.0, 90.0))
-    four = solve_endstops(g, probes_on(g, true, tower_probe_points(g.angles_deg, 100)))
+    four_points = probe_points(g.angles_deg, 100, opposite=False)
+    four = solve_endstops(g, probes_on(g, true, four_points))
     seven = solve_endstops(g, probes_on(g, true, seven_points(g, 100 / 140)))
     assert four.residual_mm < 0.005
     assert seven.residual_mm > 0.03
@@ -242,7 +250,7 @@ def rounds_to_flat(update, believed, true, points, limit_mm=0.01, max_rounds=100
 def test_the_solver_needs_one_round_where_the_per_tower_loop_needs_many():
     believed = DeltaGeometry(140.0, (300.0,) * 3, (300.0,) * 3)
     true = believed.with_endstops((301.5, 298.5, 300.8))
-    points = tower_probe_points(believed.angles_deg, 100.0)
+    points = probe_points(believed.angles_deg, 100.0, opposite=False)
 
     def solver(g, probes):
         return solve_endstops(g, probes).position_endstop
@@ -256,7 +264,7 @@ def test_the_solver_needs_one_round_where_the_per_tower_loop_needs_many():
     # docs/endstop_calibrate.md quotes this count (4 rounds at 100/140 of the radius,
     # 7 at half the radius, where a point near a tower hangs more on the others).
     assert naive_rounds == 4
-    inner = tower_probe_points(believed.angles_deg, 70.0)
+    inner = probe_points(believed.angles_deg, 70.0, opposite=False)
     assert rounds_to_flat(naive, believed, true, inner) == 7
     assert rounds_to_flat(solver, believed, true, inner) == 1
 
@@ -324,7 +332,7 @@ def test_cli_json_uses_the_save_config_block_of_printer_cfg(capsys, tmp_path):
     believed = geometry_from_config(saved)
     assert believed.position_endstops == (301.2, 298.8, 300.5)
     true = believed.with_endstops((301.0, 299.1, 300.5))
-    points = tower_probe_points(believed.angles_deg, 100.0)
+    points = probe_points(believed.angles_deg, 100.0, opposite=False)
     args = []
     for x, y, z in probes_on(believed, true, points, bed_z=0.4):
         args.append(f"--probe={x:.9f},{y:.9f},{z:.9f}")
