@@ -12,7 +12,7 @@ import numpy as np
 
 from flowloop.sensor import ems22
 from flowloop.sensor.grip import GripEstimator
-from flowloop.sensor.twin import MeltModel, SimulatedEms22
+from flowloop.sensor.twin import DEFAULT_MELT_LINE, SimulatedEms22
 
 SENSOR = "flow_sensor sim"
 AREA = 2.405  # 1.75 mm filament
@@ -53,7 +53,7 @@ def with_klippy(ctx) -> None:
 def offline(ctx) -> None:
     ctx.say("No klippy: the same twin, decoder and grip estimator in-process.")
     for flow, temp_c in ((5, 200), (8, 200), (16, 200), (20, 200), (20, 250)):
-        sim = SimulatedEms22(MeltModel(0.2, 200, 10), seed=1)
+        sim = SimulatedEms22(DEFAULT_MELT_LINE, seed=1)
         decoder = ems22.Decoder(bit_offset=sim.bit_offset)
         times = np.arange(0, 3.0, 0.001)
         commanded = (flow / AREA) * times

@@ -4,24 +4,26 @@
 #
 # The decoding, grip windows, fault counting and the simulated sensor live
 # in flowloop (pure Python); this module reads config, talks to the MCU and
-# the toolhead, and reports.
+# the toolhead, and reports. Each sensor_type is one source object (SOURCES
+# at the end): both hand sensor_bulk_data payloads to the same decoder and
+# grip code, on the reactor, in batches.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
+import dataclasses
 import logging
 import threading
 
 from flowloop.errors import FlowloopError
-from flowloop.sensor import ems22
+from flowloop.material.profile import FlowLine
+from flowloop.sensor import ems22, twin
 from flowloop.sensor import grip as flow_grip
-from flowloop.sensor import twin as simulated_sensor
 
 from . import bulk_sensor, bus
 
-SAMPLE_PERIOD = 0.001
 MIN_MSG_TIME = 0.100
+BATCH_INTERVAL = 0.100
 DUMP_INTERVAL = 0.100
 SAMPLE_WAIT_TIMEOUT = 2.0
-MAX_CALIBRATION_SPREAD = 0.02
 REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: install "
                "flowloop ('flowloop install'), then rebuild and flash Klipper "
                "(cd ~/klipper; make menuconfig; make flash)")
@@ -33,6 +35,11 @@ def _staged_note(paste):
     return " (applied and staged: SAVE_CONFIG to keep)"
 
 
+def option_error(config, option, message):
+    return config.error(
+        f"Section [{config.get_name()}], option {option}: {message}")
+
+
 class FlowSensor:
     def __init__(self, config):
         self.printer = printer = config.get_printer()
@@ -40,67 +47,38 @@ class FlowSensor:
         self.reactor = printer.get_reactor()
         self.section = config.get_name()
         self.name = self.section.split()[-1]
-        self.sensor_type = config.getchoice(
-            'sensor_type', {'ems22': 'ems22', 'simulated': 'simulated'})
-        self.sample_period = config.getfloat('sample_period', SAMPLE_PERIOD,
-                                             minval=0.0002, maxval=0.1)
+        source_class = config.getchoice('sensor_type', SOURCES)
+        self.spi_mode = config.getint('spi_mode', ems22.DEFAULT_SPI_MODE,
+                                      minval=0, maxval=3)
+        low, high = ems22.SAMPLE_PERIOD_RANGE_S
+        self.sample_period = config.getfloat(
+            'sample_period', ems22.DEFAULT_SAMPLE_PERIOD_S, minval=low,
+            maxval=high)
         self.extruder_name = config.get('extruder', 'extruder')
         self.counts_per_mm = config.getfloat(
             'counts_per_mm', ems22.DEFAULT_COUNTS_PER_MM, above=0.)
-        calibration = config.getfloat('calibration', 1., minval=0.5, maxval=2.)
-        grip_window = config.getfloat('grip_window', 1.25, minval=0.1, maxval=50.)
-        fault_samples = config.getint('fault_samples', 100, minval=1)
+        low, high = flow_grip.CALIBRATION_RANGE
+        calibration = config.getfloat('calibration', 1., minval=low,
+                                      maxval=high)
+        low, high = flow_grip.WINDOW_MM_RANGE
+        grip_window = config.getfloat('grip_window', flow_grip.DEFAULT_WINDOW_MM,
+                                      minval=low, maxval=high)
+        fault_samples = config.getint('fault_samples',
+                                      ems22.DEFAULT_FAULT_SAMPLES, minval=1)
         self.on_fault = config.getchoice('on_fault', {'warn': 'warn',
                                                       'pause': 'pause'}, 'warn')
-        spi_mode = config.getint('spi_mode', 2, minval=0, maxval=3)
         self.grip = flow_grip.GripEstimator(window_mm=grip_window,
                                             calibration=calibration)
         self.faults = ems22.FaultMonitor(fault_samples)
-        self.decoder = ems22.Decoder(bit_offset=ems22.bit_offset_for_mode(spi_mode))
-        self.lock = threading.Lock()
-        self.raw_queue = []
-        self.process_scheduled = False
-        self.start_clock = None
-        self.rest_ticks = self.time_shift = 0
+        self.decoder = ems22.Decoder(
+            bit_offset=ems22.bit_offset_for_mode(self.spi_mode))
         self.rate = flow_grip.SampleRate()
-        self.restart_pending = False
+        self.window_callbacks = []
         self.dump_samples = None
         self.extruder = self.toolhead = self.heater = None
-        self.query_cmd = None
-        self.oid = None
-        if self.sensor_type == 'ems22':
-            speed = config.getint('spi_speed', ems22.MAX_SPI_HZ, minval=100000,
-                                  maxval=ems22.MAX_SPI_HZ)
-            self.spi = bus.MCU_SPI_from_config(config, spi_mode,
-                                               default_speed=speed)
-            self.mcu = mcu = self.spi.get_mcu()
-            self.oid = mcu.create_oid()
-            mcu.add_config_cmd(
-                f"config_ems22 oid={self.oid} spi_oid={self.spi.get_oid()}")
-            mcu.add_config_cmd(f"query_ems22 oid={self.oid} clock=0 rest_ticks=0"
-                               " time_shift=0", on_restart=True)
-            mcu.register_config_callback(self._build_config)
-            mcu.register_serial_response(self._handle_bulk, ems22.BULK_DATA_MSG,
-                                         self.oid)
-            self.sim = None
-        else:
-            self.mcu = printer.lookup_object('mcu')
-            try:
-                melt = simulated_sensor.MeltModel(
-                    slope_mm3_s_per_c=config.getfloat('melt_slope', 0.2, above=0.),
-                    temp_c=config.getfloat('melt_temp', 200.),
-                    flow_mm3_s=config.getfloat('melt_flow', 10., above=0.))
-            except FlowloopError as e:
-                raise config.error(f"{self.section}: {e}") from None
-            self.sim = simulated_sensor.SimulatedEms22(
-                melt, counts_per_mm=self.counts_per_mm,
-                sensor_scale=config.getfloat('sensor_scale', 1., minval=0.5,
-                                             maxval=2.),
-                noise_counts=config.getfloat('noise_counts', 0.34, minval=0.),
-                spi_mode=spi_mode, seed=config.getint('seed', 0))
-            # The extruder's real rotation_distance (default: as configured)
-            self.sim_rotation_distance = config.getfloat(
-                'true_rotation_distance', None, above=0.)
+        self.status = {}
+        self._update_status()
+        self.source = source_class(config, self)
         self.batch_bulk = bulk_sensor.BatchBulkHelper(
             printer, self._dump_batch, self._dump_start, self._dump_stop,
             DUMP_INTERVAL)
@@ -120,14 +98,7 @@ class FlowSensor:
                     ('CALIBRATE_EXTRUDER_ROTATION_DISTANCE',
                      self.cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE,
                      self.cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE_help)]
-        if self.sim is not None:
-            commands.append(('SET_FLOW_SENSOR_SIMULATION',
-                             self.cmd_SET_FLOW_SENSOR_SIMULATION,
-                             self.cmd_SET_FLOW_SENSOR_SIMULATION_help))
-        else:
-            commands.append(('FLOW_SENSOR_FEED', self.cmd_FLOW_SENSOR_FEED,
-                             self.cmd_FLOW_SENSOR_FEED_help))
-        for cmd, func, desc in commands:
+        for cmd, func, desc in commands + self.source.commands():
             gcode.register_mux_command(cmd, 'SENSOR', self.name, func, desc=desc)
             try:
                 # The first sensor also answers commands without SENSOR=
@@ -136,98 +107,55 @@ class FlowSensor:
                 pass
 
     # --- setup ---------------------------------------------------------------
-    def _build_config(self):
-        if not self.mcu.check_valid_response(ems22.QUERY_CMD):
-            raise self.printer.config_error(
-                f"[{self.section}] " + REBUILD_MSG.format(self.mcu.get_name()))
-        self.time_shift = ems22.time_shift_for(self.mcu.seconds_to_clock(1.))
-        self.query_cmd = self.mcu.lookup_command(
-            ems22.QUERY_CMD, cq=self.spi.get_command_queue())
-
     def _handle_connect(self):
         self.extruder = self.printer.lookup_object(self.extruder_name, None)
         if self.extruder is None or not hasattr(self.extruder,
                                                 'find_past_position'):
             raise self.printer.config_error(
-                f"[{self.section}] extruder '{self.extruder_name}' not found")
+                f"Section [{self.section}], option extruder:"
+                f" '{self.extruder_name}' is not an extruder")
         self.toolhead = self.printer.lookup_object('toolhead')
         self.heater = self.extruder.get_heater()
         area = getattr(self.extruder, 'filament_area', None)
         if area:
             self.grip.filament_area_mm2 = area
-            if self.sim is not None:
-                self.sim.filament_area_mm2 = area
-        if self.sim is not None:
-            self.time_shift = 0
-            self.motion_queuing = self.printer.lookup_object('motion_queuing')
-            self.motion_queuing.register_flush_callback(self._sim_flush)
-            stepper = self.extruder.extruder_stepper.stepper
-            rotation_distance, steps_per_rotation = stepper.get_rotation_distance()
-            if self.sim_rotation_distance is None:
-                self.sim_rotation_distance = rotation_distance
-            self.sim_mm_per_step = self.sim_rotation_distance / steps_per_rotation
-            self.sim_stepper = stepper
+        self.source.connect(self)
 
     def _handle_ready(self):
-        self.rest_ticks = self.mcu.seconds_to_clock(self.sample_period)
-        if self.sim is not None:
-            # The twin samples from now on (no motion can be older)
-            print_time = self.mcu.estimated_print_time(self.reactor.monotonic())
-            self.start_clock = self.mcu.print_time_to_clock(print_time)
-        else:
-            self._start_query()
+        self.source.start()
+        self.reactor.register_timer(self._batch_timer, self.reactor.NOW)
 
-    def _start_query(self):
-        self.decoder.reset()
-        print_time = self.mcu.estimated_print_time(self.reactor.monotonic())
-        self.start_clock = self.mcu.print_time_to_clock(print_time + MIN_MSG_TIME)
-        self.query_cmd.send([self.oid, self.start_clock & 0xffffffff,
-                             self.rest_ticks, self.time_shift],
-                            reqclock=self.start_clock)
+    def _batch_timer(self, eventtime):
+        self.source.catch_up()
+        return eventtime + BATCH_INTERVAL
 
-    def _restart_query(self):
-        # Stop the MCU and drop what it sent before the stop (as angle.py
-        # does), so that no old record is timed against the new start
-        logging.warning("flow_sensor %s: MCU '%s' fell %d reads behind and"
-                        " lost count of them; restarting the sensor query",
-                        self.name, self.mcu.get_name(), ems22.MAX_PENDING)
-        self.restart_pending = True
-        self.query_cmd.send_wait_ack([self.oid, 0, 0, 0])
-        with self.lock:
-            self.raw_queue = []
-        self._start_query()
-        self.restart_pending = False
+    # --- the public interface for other flowloop sections ---------------------
+    def subscribe_grip_windows(self, callback):
+        """callback(window) runs in the reactor for every closed grip window
+        (a frozen flowloop.sensor.grip.Window); while the sensor is faulted
+        windows come unjudged (grip None, reason 'fault'). It must not pause
+        the reactor (it may run inside motion_queuing's flush)."""
+        self.window_callbacks.append(callback)
 
-    # --- sample path (MCU messages and the twin's messages alike) -------------
-    def _handle_bulk(self, params):
-        # Runs in the serial thread: queue, and process on the reactor.
-        with self.lock:
-            self.raw_queue.append((params['sequence'], params['data']))
-            if self.process_scheduled:
-                return
-            self.process_scheduled = True
-        self.reactor.register_async_callback(self._process_queue)
-
-    def _process_queue(self, eventtime=None):
-        with self.lock:
-            messages, self.raw_queue = self.raw_queue, []
-            self.process_scheduled = False
-        if messages:
-            self._process(messages)
-
-    def _process(self, messages):
+    # --- sample path (both sources, on the reactor) --------------------------
+    def process(self, messages):
+        """Decode (sequence, payload) pairs from the source and judge them."""
         samples = self.decoder.decode(messages)
         started = self.faults.update(samples)
         valid = samples.valid
         if valid.any():
-            clocks = ems22.sample_clocks(samples, self.start_clock,
-                                         self.rest_ticks, self.time_shift)[valid]
-            times = ems22.print_times(clocks, self.mcu.clock_to_print_time)
+            source = self.source
+            clocks = ems22.sample_clocks(samples, source.start_clock,
+                                         source.rest_ticks,
+                                         source.time_shift)[valid]
+            times = ems22.print_times(clocks, source.mcu.clock_to_print_time)
             sensor_mm = samples.counts[valid] / self.counts_per_mm
             find = self.extruder.find_past_position
             commanded = [find(t) for t in times]
-            for window in self.grip.add(times, sensor_mm, commanded):
+            temp_c = source.temp_c(self.reactor.monotonic())
+            for window in self.grip.add(times, sensor_mm, commanded, temp_c):
                 started = self.faults.note_window(window.reason) or started
+                self._deliver(window)
             self.rate.add(times)
             if self.dump_samples is not None:
                 cal = self.grip.calibration
@@ -235,11 +163,33 @@ class FlowSensor:
                     (round(t, 6), round(s / cal, 5), round(c, 5))
                     for t, s, c in zip(times.tolist(), sensor_mm.tolist(),
                                        commanded))
+        self._update_status()
         if started is not None:
             self._report_fault(started)
-        # After this batch's good samples are timed against the old start
-        if self.decoder.time_lost and not self.restart_pending:
-            self._restart_query()
+
+    def _deliver(self, window):
+        if self.faults.fault is not None:
+            window = dataclasses.replace(window, grip=None, reason='fault')
+        for callback in self.window_callbacks:
+            callback(window)
+
+    def _update_status(self):
+        measured, commanded = self.grip.flows()
+        position = self.grip.filament_position
+        position = None if position is None else round(float(position), 4)
+        grip = self.grip.grip
+        fault = self.faults.fault
+        self.status = {
+            'grip': None if grip is None or fault else round(float(grip), 4),
+            'measured_flow': round(float(measured), 3),
+            'commanded_flow': round(float(commanded), 3),
+            'filament_position': position,
+            'sample_rate': round(self.rate.per_second(), 1),
+            'samples': self.rate.total,
+            'errors': dict(self.faults.errors),
+            'fault': fault,
+            'calibration': round(self.grip.calibration, 6),
+        }
 
     def _report_fault(self, fault):
         msg = (f"flow_sensor {self.name}: fault '{fault}' ({self.faults.limit}"
@@ -261,67 +211,9 @@ class FlowSensor:
             return
         gcode.respond_info(msg)
 
-    # --- simulated sensor ------------------------------------------------------
-    def _sim_flush(self, flush_time, step_gen_time):
-        # Steps up to motion_queuing's last_step_gen_time exist already (it is
-        # updated after the callbacks), so the twin can read the extruder there.
-        self._sim_catch_up()
-
-    def _sim_catch_up(self, until=None):
-        # Samples up to `until` (inclusive) are valid only if no motion is
-        # queued beyond the generated steps (the caller waited for moves).
-        if self.sim is None or not self.rest_ticks:
-            return
-        done_time = self.motion_queuing.last_step_gen_time
-        if until is not None:
-            done_time = max(done_time, until + 1e-9)
-        if self.start_clock is None:
-            return
-        to_time = self.mcu.clock_to_print_time
-        index = self.sim.next_index
-        times = []
-        while True:
-            t = to_time(self.start_clock + (index + len(times)) * self.rest_ticks)
-            if t >= done_time:
-                break
-            times.append(t)
-        if not times:
-            return
-        # Filament the stepper really fed: its steps times the true mm/step
-        steps = self.sim_stepper.get_past_mcu_position
-        fed = [steps(t) * self.sim_mm_per_step for t in times]
-        temp_c = self.heater.get_status(0.)['target']
-        for sequence, payload in self.sim.messages(times, fed, temp_c):
-            self._handle_bulk({'sequence': sequence, 'data': payload})
-        self._process_queue()
-
-    def _sim_sync(self, until=None):
-        # In batch mode steps are generated only when the reactor gets to
-        # its flush timer, which a G-code batch never yields to: generate
-        # them now so the twin can follow the motion queued so far.
-        if self.sim is not None and self.mcu.is_fileoutput():
-            self.toolhead.flush_step_generation()
-        self._sim_catch_up(until)
-
     # --- status and dump endpoint ---------------------------------------------
     def get_status(self, eventtime=None):
-        self._sim_catch_up()
-        measured, commanded = self.grip.flows()
-        position = self.grip.filament_position
-        position = None if position is None else round(float(position), 4)
-        grip = self.grip.grip
-        fault = self.faults.fault
-        return {
-            'grip': None if grip is None or fault else round(float(grip), 4),
-            'measured_flow': round(float(measured), 3),
-            'commanded_flow': round(float(commanded), 3),
-            'filament_position': position,
-            'sample_rate': round(self.rate.per_second(), 1),
-            'samples': self.rate.total,
-            'errors': dict(self.faults.errors),
-            'fault': fault,
-            'calibration': round(self.grip.calibration, 6),
-        }
+        return self.status
 
     def _dump_start(self):
         self.dump_samples = []
@@ -330,11 +222,10 @@ class FlowSensor:
         self.dump_samples = None
 
     def _dump_batch(self, eventtime):
-        self._sim_catch_up()
         if not self.dump_samples:
             return {}
         data, self.dump_samples = self.dump_samples, []
-        status = self.get_status(eventtime)
+        status = self.status
         return {'data': data, 'grip': status['grip'], 'fault': status['fault'],
                 'errors': status['errors']}
 
@@ -342,8 +233,8 @@ class FlowSensor:
     cmd_QUERY_FLOW_SENSOR_help = "Report grip, flows and errors of a flow sensor"
 
     def cmd_QUERY_FLOW_SENSOR(self, gcmd):
-        self._sim_sync()
-        s = self.get_status()
+        self.source.sync()
+        s = self.status
         grip = "not judged" if s['grip'] is None else f"{s['grip']:.3f}"
         position = s['filament_position']
         position = "none" if position is None else f"{position:.3f} mm"
@@ -354,43 +245,12 @@ class FlowSensor:
             f" filament position {position}, {s['sample_rate']:.0f} samples/s,"
             f" errors {s['errors'] or 'none'}, fault {s['fault'] or 'none'}")
 
-    cmd_FLOW_SENSOR_FEED_help = ("Feed one sensor_bulk_data payload (hex) to the"
-                                 " sensor's response handler (testing)")
-
-    def cmd_FLOW_SENSOR_FEED(self, gcmd):
-        data = gcmd.get('DATA')
-        sequence = gcmd.get_int('SEQUENCE', minval=0, maxval=0xffff)
-        try:
-            payload = bytes.fromhex(data)
-        except ValueError:
-            raise gcmd.error(f"DATA must be hex bytes, not '{data}'") from None
-        if len(payload) > bulk_sensor.MAX_BULK_MSG_SIZE:
-            raise gcmd.error("DATA is longer than a sensor_bulk_data message")
-        # The params the serial thread hands the handler (msgproto parses
-        # %*s to bytes); the format is checked against the dictionaries in
-        # tests/c.
-        self._handle_bulk({'#name': 'sensor_bulk_data', 'oid': self.oid,
-                           'sequence': sequence, 'data': payload})
-        self._process_queue()
-
-    cmd_SET_FLOW_SENSOR_SIMULATION_help = "Make the simulated sensor misbehave"
-
-    def cmd_SET_FLOW_SENSOR_SIMULATION(self, gcmd):
-        fault = gcmd.get('FAULT', 'none').lower()
-        self._sim_catch_up()
-        try:
-            self.sim.set_fault(None if fault == 'none' else fault)
-        except FlowloopError as e:
-            raise gcmd.error(str(e)) from None
-        gcmd.respond_info(f"flow_sensor {self.name}: simulated fault {fault}")
-
     def _wait_for_samples(self, print_time):
         """Sensor filament (counts / counts_per_mm) once samples reach
         print_time; the toolhead must be idle (after wait_moves)."""
         deadline = self.reactor.monotonic() + SAMPLE_WAIT_TIMEOUT
         while True:
-            self._sim_sync(until=print_time)
-            self._process_queue()
+            self.source.sync(until=print_time)
             last = self.grip.last_time
             if last is not None and last >= print_time - self.sample_period:
                 return self.grip.filament_position * self.grip.calibration
@@ -428,13 +288,18 @@ class FlowSensor:
         "Extrude at slow speeds and set sensor mm per extruder mm")
 
     def cmd_CALIBRATE_FLOW_SENSOR(self, gcmd):
-        length = gcmd.get_float('LENGTH', 20., minval=1., maxval=200.)
+        low, high = flow_grip.CALIBRATION_LENGTH_RANGE
+        length = gcmd.get_float('LENGTH', flow_grip.CALIBRATION_LENGTH_MM,
+                                minval=low, maxval=high)
         try:
-            speeds = flow_grip.parse_speeds(gcmd.get('SPEEDS', '0.5,1,2'))
+            speeds = flow_grip.parse_speeds(
+                gcmd.get('SPEEDS', flow_grip.DEFAULT_CALIBRATION_SPEEDS))
         except FlowloopError as e:
             raise gcmd.error(str(e)) from None
-        max_spread = gcmd.get_float('MAX_SPREAD', MAX_CALIBRATION_SPREAD,
-                                    minval=0.001, maxval=0.2)
+        low, high = flow_grip.MAX_CALIBRATION_SPREAD_RANGE
+        max_spread = gcmd.get_float('MAX_SPREAD',
+                                    flow_grip.MAX_CALIBRATION_SPREAD,
+                                    minval=low, maxval=high)
         self._check_extruder(gcmd)
         commanded, measured = [], []
         for i, speed in enumerate(speeds):
@@ -460,8 +325,11 @@ class FlowSensor:
         "Correct the extruder rotation_distance from what the sensor measured")
 
     def cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE(self, gcmd):
-        length = gcmd.get_float('LENGTH', 50., minval=5., maxval=500.)
-        speed = gcmd.get_float('SPEED', 1., above=0., maxval=10.)
+        low, high = flow_grip.ROTATION_DISTANCE_LENGTH_RANGE
+        length = gcmd.get_float('LENGTH', flow_grip.ROTATION_DISTANCE_LENGTH_MM,
+                                minval=low, maxval=high)
+        speed = gcmd.get_float('SPEED', flow_grip.ROTATION_DISTANCE_SPEED_MM_S,
+                               above=0., maxval=flow_grip.MAX_CALIBRATION_SPEED)
         self._check_extruder(gcmd)
         stepper = self.extruder.extruder_stepper.stepper
         old_rd = stepper.get_rotation_distance()[0]
@@ -494,10 +362,235 @@ class FlowSensor:
         SAVE_CONFIG; return the lines to paste for values in included files."""
         self.grip.calibration = calibration
         self.grip.reset()
+        self._update_status()
         host = self.printer.lookup_object('flowloop')
         return host.stage_for_save_config(
             [(self.section, 'calibration', f"{calibration:.6f}")]
             + list(also_stage))[1]
+
+
+class Ems22Source:
+    """The real EMS22 on an MCU SPI bus: the MCU reads it on a timer, the
+    serial thread only queues its messages, a reactor timer decodes them."""
+
+    def __init__(self, config, sensor):
+        self.sensor = sensor
+        self.printer = config.get_printer()
+        self.reactor = self.printer.get_reactor()
+        speed = config.getint('spi_speed', ems22.MAX_SPI_HZ,
+                              minval=ems22.MIN_SPI_HZ, maxval=ems22.MAX_SPI_HZ)
+        self.spi = bus.MCU_SPI_from_config(config, sensor.spi_mode,
+                                           default_speed=speed)
+        self.mcu = mcu = self.spi.get_mcu()
+        self.oid = mcu.create_oid()
+        mcu.add_config_cmd(
+            f"config_ems22 oid={self.oid} spi_oid={self.spi.get_oid()}")
+        mcu.add_config_cmd(f"query_ems22 oid={self.oid} clock=0 rest_ticks=0"
+                           " time_shift=0", on_restart=True)
+        mcu.register_config_callback(self._build_config)
+        mcu.register_serial_response(self._handle_bulk, ems22.BULK_DATA_MSG,
+                                     self.oid)
+        self.lock = threading.Lock()
+        self.raw_queue = []
+        self.query_cmd = None
+        self.start_clock = None
+        self.rest_ticks = self.time_shift = 0
+        self.restart_pending = False
+
+    def commands(self):
+        return [('FLOW_SENSOR_FEED', self.cmd_FLOW_SENSOR_FEED,
+                 self.cmd_FLOW_SENSOR_FEED_help)]
+
+    def _build_config(self):
+        if not self.mcu.check_valid_response(ems22.QUERY_CMD):
+            raise self.printer.config_error(
+                f"[{self.sensor.section}] "
+                + REBUILD_MSG.format(self.mcu.get_name()))
+        self.time_shift = ems22.time_shift_for(self.mcu.seconds_to_clock(1.))
+        self.query_cmd = self.mcu.lookup_command(
+            ems22.QUERY_CMD, cq=self.spi.get_command_queue())
+
+    def connect(self, sensor):
+        pass
+
+    def start(self):
+        self.rest_ticks = self.mcu.seconds_to_clock(self.sensor.sample_period)
+        self._start_query()
+
+    def temp_c(self, eventtime):
+        return self.sensor.heater.get_temp(eventtime)[0]
+
+    def _start_query(self):
+        self.sensor.decoder.reset()
+        print_time = self.mcu.estimated_print_time(self.reactor.monotonic())
+        self.start_clock = self.mcu.print_time_to_clock(print_time + MIN_MSG_TIME)
+        self.query_cmd.send([self.oid, self.start_clock & 0xffffffff,
+                             self.rest_ticks, self.time_shift],
+                            reqclock=self.start_clock)
+
+    def _restart_query(self):
+        # Stop the MCU and drop what it sent before the stop (as angle.py
+        # does), so that no old record is timed against the new start
+        logging.warning("flow_sensor %s: MCU '%s' fell %d reads behind and"
+                        " lost count of them; restarting the sensor query",
+                        self.sensor.name, self.mcu.get_name(), ems22.MAX_PENDING)
+        self.restart_pending = True
+        self.query_cmd.send_wait_ack([self.oid, 0, 0, 0])
+        with self.lock:
+            self.raw_queue = []
+        self._start_query()
+        self.restart_pending = False
+
+    def _handle_bulk(self, params):
+        # Runs in the serial thread: only queue (the reactor timer decodes)
+        with self.lock:
+            self.raw_queue.append((params['sequence'], params['data']))
+
+    def catch_up(self):
+        with self.lock:
+            messages, self.raw_queue = self.raw_queue, []
+        if not messages:
+            return
+        self.sensor.process(messages)
+        # After this batch's good samples are timed against the old start
+        if self.sensor.decoder.time_lost and not self.restart_pending:
+            self._restart_query()
+
+    def sync(self, until=None):
+        self.catch_up()
+
+    cmd_FLOW_SENSOR_FEED_help = ("Feed one sensor_bulk_data payload (hex) to the"
+                                 " sensor's response handler (testing)")
+
+    def cmd_FLOW_SENSOR_FEED(self, gcmd):
+        data = gcmd.get('DATA')
+        sequence = gcmd.get_int('SEQUENCE', minval=0, maxval=0xffff)
+        try:
+            payload = bytes.fromhex(data)
+        except ValueError:
+            raise gcmd.error(f"DATA must be hex bytes, not '{data}'") from None
+        if len(payload) > bulk_sensor.MAX_BULK_MSG_SIZE:
+            raise gcmd.error("DATA is longer than a sensor_bulk_data message")
+        # The params the serial thread hands the handler (msgproto parses
+        # %*s to bytes); the format is checked against the dictionaries in
+        # tests/c.
+        self._handle_bulk({'#name': 'sensor_bulk_data', 'oid': self.oid,
+                           'sequence': sequence, 'data': payload})
+        self.catch_up()
+
+
+class SimulatedSource:
+    """A host-side twin of the sensor: at each step generation it turns the
+    extruder stepper's motion into the bytes an MCU would send."""
+
+    def __init__(self, config, sensor):
+        self.sensor = sensor
+        self.printer = config.get_printer()
+        self.mcu = self.printer.lookup_object('mcu')
+        default = twin.DEFAULT_MELT_LINE
+        melt_temp = config.getfloat('melt_temp', 200.)
+        melt = FlowLine(
+            slope_mm3_s_per_c=config.getfloat(
+                'melt_slope', default.slope_mm3_s_per_c, above=0.),
+            temp_c=melt_temp,
+            flow_mm3_s=config.getfloat('melt_flow',
+                                       default.flow_mm3_s(melt_temp), above=0.))
+        low, high = twin.SENSOR_SCALE_RANGE
+        self.twin = twin.SimulatedEms22(
+            melt.line(), counts_per_mm=sensor.counts_per_mm,
+            sensor_scale=config.getfloat('sensor_scale', 1., minval=low,
+                                         maxval=high),
+            noise_counts=config.getfloat('noise_counts',
+                                         twin.DEFAULT_NOISE_COUNTS, minval=0.),
+            spi_mode=sensor.spi_mode, seed=config.getint('seed', 0))
+        # The extruder's real rotation_distance (default: as configured)
+        self.true_rotation_distance = config.getfloat(
+            'true_rotation_distance', None, above=0.)
+        self.start_clock = None
+        self.rest_ticks = self.time_shift = 0
+        self.stepper = self.motion_queuing = None
+        self.mm_per_step = 0.
+
+    def commands(self):
+        return [('SET_FLOW_SENSOR_SIMULATION',
+                 self.cmd_SET_FLOW_SENSOR_SIMULATION,
+                 self.cmd_SET_FLOW_SENSOR_SIMULATION_help)]
+
+    def connect(self, sensor):
+        extruder = sensor.extruder
+        area = getattr(extruder, 'filament_area', None)
+        if area:
+            self.twin.filament_area_mm2 = area
+        self.motion_queuing = self.printer.lookup_object('motion_queuing')
+        self.motion_queuing.register_flush_callback(self._flush)
+        self.stepper = extruder.extruder_stepper.stepper
+        rotation_distance, steps_per_rotation = \
+            self.stepper.get_rotation_distance()
+        true_rd = self.true_rotation_distance or rotation_distance
+        self.mm_per_step = true_rd / steps_per_rotation
+
+    def start(self):
+        self.rest_ticks = self.mcu.seconds_to_clock(self.sensor.sample_period)
+        # The twin samples from now on (no motion can be older)
+        print_time = self.mcu.estimated_print_time(
+            self.printer.get_reactor().monotonic())
+        self.start_clock = self.mcu.print_time_to_clock(print_time)
+
+    def temp_c(self, eventtime):
+        # The twin's hotend is at its target at once
+        return self.sensor.heater.get_status(eventtime)['target']
+
+    def _flush(self, flush_time, step_gen_time):
+        # Steps up to motion_queuing's last_step_gen_time exist already (it is
+        # updated after the callbacks), so the twin can read the extruder there.
+        self.catch_up()
+
+    def catch_up(self, until=None):
+        """Samples up to the generated steps; up to `until` (inclusive) if
+        the caller waited for the moves (nothing is queued beyond)."""
+        if self.start_clock is None:
+            return
+        done_time = self.motion_queuing.last_step_gen_time
+        if until is not None:
+            done_time = max(done_time, until + 1e-9)
+        to_time = self.mcu.clock_to_print_time
+        index = self.twin.next_index
+        times = []
+        while True:
+            t = to_time(self.start_clock + (index + len(times)) * self.rest_ticks)
+            if t >= done_time:
+                break
+            times.append(t)
+        if not times:
+            return
+        # Filament the stepper really fed: its steps times the true mm/step
+        steps = self.stepper.get_past_mcu_position
+        fed = [steps(t) * self.mm_per_step for t in times]
+        temp_c = self.temp_c(self.printer.get_reactor().monotonic())
+        self.sensor.process(self.twin.messages(times, fed, temp_c))
+
+    def sync(self, until=None):
+        # In batch mode steps are generated only when the reactor gets to
+        # its flush timer, which a G-code batch never yields to: generate
+        # them now so the twin can follow the motion queued so far.
+        if self.mcu.is_fileoutput():
+            self.sensor.toolhead.flush_step_generation()
+        self.catch_up(until)
+
+    cmd_SET_FLOW_SENSOR_SIMULATION_help = "Make the simulated sensor misbehave"
+
+    def cmd_SET_FLOW_SENSOR_SIMULATION(self, gcmd):
+        fault = gcmd.get('FAULT', 'none').lower()
+        self.catch_up()
+        try:
+            self.twin.set_fault(None if fault == 'none' else fault)
+        except FlowloopError as e:
+            raise gcmd.error(str(e)) from None
+        gcmd.respond_info(
+            f"flow_sensor {self.sensor.name}: simulated fault {fault}")
+
+
+SOURCES = {'ems22': Ems22Source, 'simulated': SimulatedSource}
 
 
 def load_config_prefix(config):

@@ -62,6 +62,12 @@ _MCU_ERRORS = {ERR_OVERFLOW: OVERFLOW, ERR_SCHEDULE: SCHEDULE,
 SHAFT_DIAMETER_MM = 3.17
 DEFAULT_COUNTS_PER_MM = POSITIONS / (math.pi * SHAFT_DIAMETER_MM)
 MAX_SPI_HZ = 1_000_000
+MIN_SPI_HZ = 100_000
+# [flow_sensor] options and their limits: the adapter reads them from here
+DEFAULT_SPI_MODE = 2
+DEFAULT_SAMPLE_PERIOD_S = 0.001
+SAMPLE_PERIOD_RANGE_S = (0.0002, 0.1)
+DEFAULT_FAULT_SAMPLES = 100
 
 
 def parity_odd(frame: int) -> int:
@@ -341,19 +347,13 @@ def print_times(clocks: np.ndarray, clock_to_print_time) -> np.ndarray:
     return t0 + (clocks - base) * per_clock
 
 
-def check_spi_speed(speed_hz: int) -> None:
-    if speed_hz > MAX_SPI_HZ:
-        raise FlowloopError(
-            f"spi_speed {speed_hz} exceeds the EMS22's 1 MHz clock limit")
-
-
 class FaultMonitor:
     """Counts bad samples by kind; `limit` consecutive bad samples make a
     fault, which clears at the next good sample. Transients only count."""
 
     STUCK_WINDOWS = 2
 
-    def __init__(self, limit: int = 100):
+    def __init__(self, limit: int = DEFAULT_FAULT_SAMPLES):
         if limit < 1:
             raise FlowloopError(f"fault_samples must be at least 1, not {limit}")
         self.limit = limit

@@ -24,20 +24,37 @@ from typing import Deque, List, Optional, Sequence, Tuple
 from ..errors import FlowloopError
 
 FLOW_PERIOD_S = 0.25
+# [flow_sensor] options and their limits: the adapter reads them from here
+DEFAULT_WINDOW_MM = 1.25
+WINDOW_MM_RANGE = (0.1, 50.0)
+CALIBRATION_RANGE = (0.5, 2.0)    # sensor mm per extruder mm
+MAX_CALIBRATION_SPREAD = 0.02
+MAX_CALIBRATION_SPREAD_RANGE = (0.001, 0.2)
+DEFAULT_CALIBRATION_SPEEDS = "0.5,1,2"
+CALIBRATION_LENGTH_MM = 20.0
+CALIBRATION_LENGTH_RANGE = (1.0, 200.0)
+ROTATION_DISTANCE_LENGTH_MM = 50.0
+ROTATION_DISTANCE_LENGTH_RANGE = (5.0, 500.0)
+ROTATION_DISTANCE_SPEED_MM_S = 1.0
+MAX_ROTATION_DISTANCE_CHANGE = 0.2
 
 
 @dataclass(frozen=True)
 class Window:
+    """One closed grip window, as [flow_sensor]'s subscribers receive it."""
     start_time: float
     end_time: float
     commanded_mm: float
     measured_mm: float
     grip: Optional[float]
-    reason: str  # "judged", "retraction", "too_little_motion", "stuck"
+    reason: str  # "judged", "retraction", "too_little_motion", "stuck", "fault"
+    flow_mm3_s: Optional[float] = None   # measured volumetric flow over it
+    temp_c: Optional[float] = None       # hotend temperature at end_time
 
 
 class GripEstimator:
-    def __init__(self, window_mm: float = 1.25, calibration: float = 1.0,
+    def __init__(self, window_mm: float = DEFAULT_WINDOW_MM,
+                 calibration: float = 1.0,
                  filament_area_mm2: float = 2.405, max_window_s: float = 2.0,
                  retract_tolerance_mm: float = 0.02,
                  stuck_tolerance_mm: float = 0.02):
@@ -52,6 +69,7 @@ class GripEstimator:
         self.retract_tolerance_mm = retract_tolerance_mm
         self.stuck_tolerance_mm = stuck_tolerance_mm
         self.grip: Optional[float] = None
+        self._temp_c: Optional[float] = None
         self.last_window: Optional[Window] = None
         self._start: Optional[Tuple[float, float, float]] = None
         self._high = 0.0
@@ -63,12 +81,15 @@ class GripEstimator:
         self._recent.clear()
 
     def add(self, times: Sequence[float], sensor_mm: Sequence[float],
-            commanded_mm: Sequence[float]) -> List[Window]:
+            commanded_mm: Sequence[float],
+            temp_c: Optional[float] = None) -> List[Window]:
         """Feed samples in time order; return the windows they closed.
 
         sensor_mm is raw sensor filament (counts / counts_per_mm); the
-        calibration is applied here.
+        calibration is applied here. temp_c, the hotend temperature when the
+        batch was taken, is carried into the windows it closes.
         """
+        self._temp_c = temp_c
         closed = []
         cal = self.calibration
         for t, s, c in zip(times, sensor_mm, commanded_mm):
@@ -94,7 +115,8 @@ class GripEstimator:
 
     def _close(self, t, m, c, grip, reason) -> Window:
         t0, m0, c0 = self._start
-        window = Window(t0, t, c - c0, m - m0, grip, reason)
+        flow = (m - m0) * self.filament_area_mm2 / (t - t0) if t > t0 else None
+        window = Window(t0, t, c - c0, m - m0, grip, reason, flow, self._temp_c)
         self.last_window = window
         self.grip = grip
         self._start, self._high = (t, m, c), c
@@ -176,7 +198,7 @@ class CalibrationFit:
 MAX_CALIBRATION_SPEED = 10.0
 
 
-def parse_speeds(text: str) -> List[float]:
+def parse_speeds(text: str = DEFAULT_CALIBRATION_SPEEDS) -> List[float]:
     """CALIBRATE_FLOW_SENSOR's SPEEDS: at least two, in 0..10 mm/s."""
     try:
         speeds = [float(s) for s in text.split(",") if s.strip()]
@@ -191,7 +213,7 @@ def parse_speeds(text: str) -> List[float]:
 
 def fit_calibration(speeds: Sequence[float], commanded_mm: Sequence[float],
                     measured_mm: Sequence[float],
-                    max_spread: float = 0.02) -> CalibrationFit:
+                    max_spread: float = MAX_CALIBRATION_SPREAD) -> CalibrationFit:
     """Sensor mm per extruder mm from slow extrusions, one per speed.
 
     The fit is the least-squares line through the origin (sum m*c / sum c^2).
@@ -212,9 +234,10 @@ def fit_calibration(speeds: Sequence[float], commanded_mm: Sequence[float],
     if spread > max_spread:
         raise FlowloopError(f"{fit.describe()}: the speeds disagree by more than "
                             f"{100 * max_spread:.2f}%")
-    if not 0.5 <= cal <= 2.0:
+    low, high = CALIBRATION_RANGE
+    if not low <= cal <= high:
         raise FlowloopError(f"{fit.describe()}: calibration {cal:.4f} is outside "
-                            f"0.5..2; check counts_per_mm")
+                            f"{low:g}..{high:g}; check counts_per_mm")
     return fit
 
 
@@ -227,7 +250,8 @@ class RotationDistanceChange:
 
 def rotation_distance_correction(rotation_distance: float, commanded_mm: float,
                                  measured_mm: float,
-                                 max_change: float = 0.2) -> RotationDistanceChange:
+                                 max_change: float = MAX_ROTATION_DISTANCE_CHANGE
+                                 ) -> RotationDistanceChange:
     """New rotation_distance from a sensor whose counts_per_mm is trusted.
 
     The extruder moved measured/commanded of what it was told, so its real

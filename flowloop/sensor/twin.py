@@ -5,9 +5,9 @@ sample times) into the exact bytes the MCU would send: 24-bit SPI reads in
 flowloop's record layout, so the simulated path runs through the same
 decoder and grip estimator as the real sensor.
 
-The filament model: the hotend melts at most `MeltModel.max_flow(temp)`
-mm^3/s, a straight line in temperature (a material profile's shape: a slope
-in mm^3/s per degC through one point). When the demanded flow (smoothed over
+The filament model: the hotend melts at most what a material profile's line
+(`flowloop.material.profile.Line`, the one melt line of the project) gives
+at the hotend temperature. When the demanded flow (smoothed over
 `melt_time_s`, the hotend's lag) exceeds it, the feeder slips and only
 capacity/demand of the commanded filament moves. Retractions always move.
 """
@@ -15,36 +15,27 @@ capacity/demand of the commanded filament moves. Retractions always move.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from ..errors import FlowloopError
+from ..material.profile import FlowLine, Line
 from . import ems22
 
+# The twin's default hotend: 10 mm^3/s at 200 C, 0.2 mm^3/s more per degree
+DEFAULT_MELT_LINE = FlowLine(slope_mm3_s_per_c=0.2, temp_c=200.0,
+                             flow_mm3_s=10.0).line()
+DEFAULT_NOISE_COUNTS = 0.34   # 0.12 deg RMS per the datasheet
+SENSOR_SCALE_RANGE = (0.5, 2.0)
 
-@dataclass(frozen=True)
-class MeltModel:
-    """Melt capacity: flow_mm3_s at temp_c, rising slope_mm3_s_per_c per degC."""
-    slope_mm3_s_per_c: float = 0.2
-    temp_c: float = 200.0
-    flow_mm3_s: float = 10.0
 
-    def __post_init__(self):
-        if self.slope_mm3_s_per_c <= 0 or self.flow_mm3_s <= 0:
-            raise FlowloopError("melt model needs a positive slope and flow")
-
-    def max_flow(self, temp_c: float) -> float:
-        return max(0.0, self.flow_mm3_s
-                   + self.slope_mm3_s_per_c * (temp_c - self.temp_c))
-
-    def grip(self, demand_mm3_s: float, temp_c: float) -> float:
-        """Share of commanded filament that moves at this demand."""
-        capacity = self.max_flow(temp_c)
-        if demand_mm3_s <= capacity:
-            return 1.0
-        return capacity / demand_mm3_s
+def melt_grip(melt: Line, demand_mm3_s: float, temp_c: float) -> float:
+    """Share of commanded filament that moves at this demand."""
+    capacity = max(0.0, melt.flow_mm3_s(temp_c))
+    if demand_mm3_s <= capacity:
+        return 1.0
+    return capacity / demand_mm3_s
 
 
 def raw_reads(frames: np.ndarray, bit_offset: int, idle_do: int = 1) -> np.ndarray:
@@ -57,9 +48,10 @@ def raw_reads(frames: np.ndarray, bit_offset: int, idle_do: int = 1) -> np.ndarr
 
 
 class SimulatedEms22:
-    def __init__(self, melt: MeltModel = MeltModel(),
+    def __init__(self, melt: Line = DEFAULT_MELT_LINE,
                  counts_per_mm: float = ems22.DEFAULT_COUNTS_PER_MM,
-                 sensor_scale: float = 1.0, noise_counts: float = 0.34,
+                 sensor_scale: float = 1.0,
+                 noise_counts: float = DEFAULT_NOISE_COUNTS,
                  spi_mode: int = 2, filament_area_mm2: float = 2.405,
                  melt_time_s: float = 0.05, seed: int = 0):
         self.melt = melt
@@ -95,7 +87,8 @@ class SimulatedEms22:
                     alpha = 1.0 - math.exp(-dt / self.melt_time_s)
                     demand = max(0.0, dc) / dt * self.filament_area_mm2
                     self.demand_mm3_s += alpha * (demand - self.demand_mm3_s)
-                grip = self.melt.grip(self.demand_mm3_s, temp_c) if dc > 0 else 1.0
+                grip = (melt_grip(self.melt, self.demand_mm3_s, temp_c)
+                        if dc > 0 else 1.0)
                 self.filament_mm += dc * grip
             self._last = (t, c)
             out[i] = self.filament_mm

@@ -8,6 +8,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from devtools.klippy_test import run_file
 from flowloop.sensor import ems22
 
@@ -81,3 +83,54 @@ def test_time_lost_by_the_mcu_restarts_the_query(klipper_build, klippy_venv,
           " ERRORS=0 FAULT=none\n")
     log = run_file(test, klipper_build, klippy_venv, short_tmp)
     assert "fell 255 reads behind and lost count of them" in log
+
+
+class _Subscribed:
+    """The Klipper build, with klippy started through flow_sensor_subscriber.py."""
+
+    def __init__(self, build):
+        self.tree, self.dict_dir = build.tree, build.dict_dir
+        self.klippy = HERE / "flow_sensor_subscriber.py"
+
+
+def test_subscribers_get_every_window_with_flow_and_temperature(
+        klipper_build, klippy_venv, short_tmp):
+    # Phases, each ended by a QUERY_FLOW_SENSOR answer in the log: 5 mm^3/s,
+    # 20 mm^3/s (the twin melts 10 at 200 C), a missing sensor, back again
+    test = short_tmp / "subscribe.test"
+    test.write_text(
+        f"DICTIONARY atmega2560.dict\nCONFIG {HERE / 'flow_sensor_sim.cfg'}\n"
+        "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=200\nM83\n"
+        "G1 E20 F125\nM400\nQUERY_FLOW_SENSOR\n"
+        "G1 E40 F500\nM400\nQUERY_FLOW_SENSOR\n"
+        "SET_FLOW_SENSOR_SIMULATION FAULT=missing\n"
+        "G1 E10 F300\nM400\nG1 E10 F300\nM400\nQUERY_FLOW_SENSOR\n"
+        "SET_FLOW_SENSOR_SIMULATION FAULT=none\n"
+        "G1 E10 F125\nM400\nQUERY_FLOW_SENSOR\n")
+    log = run_file(test, _Subscribed(klipper_build), klippy_venv, short_tmp)
+    phases = [[]]
+    for line in log.splitlines():
+        if "GRIP_WINDOW " in line:
+            phases[-1].append(json.loads(line.split("GRIP_WINDOW ", 1)[1]))
+        elif line.startswith("flow_sensor sim: grip"):
+            phases.append([])
+    slow, fast, faulted, back = phases[:4]
+    assert all(w["sensor"] == "sim" and w["reactor_thread"]
+               for w in slow + fast + faulted + back)
+    # 20 mm in windows of 1.25 mm; the first one holds the acceleration
+    assert len(slow) == 15 and all(w["reason"] == "judged" for w in slow)
+    for w in slow[1:]:
+        assert w["grip"] == pytest.approx(1.0, abs=0.03)
+        assert w["flow_mm3_s"] == pytest.approx(5.0, rel=0.03)
+        assert w["temp_c"] == 200.0
+        assert w["end_time"] > w["start_time"]
+    # settled (the twin's melt lag is 50 ms): half slips, 10 mm^3/s measured
+    assert len(fast) >= 30
+    for w in fast[2:]:
+        assert w["reason"] == "judged"
+        assert w["grip"] == pytest.approx(0.5, abs=0.05)
+        assert w["flow_mm3_s"] == pytest.approx(10.0, rel=0.05)
+    # while the sensor is faulted nothing is judged; then it is again
+    assert [w for w in faulted if w["grip"] is not None] == []
+    assert len(back) >= 6 and all(w["grip"] == pytest.approx(1.0, abs=0.03)
+                                  for w in back[1:])

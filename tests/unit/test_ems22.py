@@ -11,7 +11,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flowloop.errors import FlowloopError
 from flowloop.sensor import ems22
 
 VECTORS = Path(__file__).resolve().parents[1] / "data" / "ems22_vectors.json"
@@ -261,12 +260,6 @@ def test_the_docs_name_every_error_kind():
 def test_default_counts_per_mm_is_the_3_17mm_axle():
     assert ems22.DEFAULT_COUNTS_PER_MM == pytest.approx(102.823, abs=1e-3)
     assert 1024 / ems22.DEFAULT_COUNTS_PER_MM == pytest.approx(math.pi * 3.17)
-
-
-def test_spi_speed_over_1mhz_is_refused():
-    ems22.check_spi_speed(1_000_000)
-    with pytest.raises(FlowloopError, match="1 MHz"):
-        ems22.check_spi_speed(1_000_001)
 
 
 if __name__ == "__main__":

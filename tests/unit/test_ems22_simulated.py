@@ -8,18 +8,31 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from flowloop.errors import FlowloopError
+from flowloop.material.profile import FlowLine, Line
 from flowloop.sensor import ems22
 from flowloop.sensor.grip import GripEstimator
-from flowloop.sensor.twin import MeltModel, SimulatedEms22, raw_reads
+from flowloop.sensor.twin import SimulatedEms22, melt_grip, raw_reads
 
 
-def test_melt_capacity_is_a_line_through_the_profile_point():
-    melt = MeltModel(slope_mm3_s_per_c=0.25, temp_c=210, flow_mm3_s=12)
-    assert melt.max_flow(210) == 12
-    assert melt.max_flow(230) == pytest.approx(17)
-    assert melt.max_flow(100) == 0
-    assert melt.grip(6, 210) == 1.0
-    assert melt.grip(24, 210) == pytest.approx(0.5)
+def _melt(slope, temp_c, flow):
+    return FlowLine(slope_mm3_s_per_c=slope, temp_c=temp_c, flow_mm3_s=flow).line()
+
+
+def test_the_twin_melts_what_the_material_line_gives():
+    melt = _melt(0.25, 210, 12)
+    assert isinstance(melt, Line)
+    assert melt_grip(melt, 6, 210) == 1.0
+    assert melt_grip(melt, 24, 210) == pytest.approx(0.5)
+    assert melt_grip(melt, 17, 230) == pytest.approx(1.0)
+    assert melt_grip(melt, 34, 230) == pytest.approx(0.5)
+    # below the line's zero nothing melts
+    assert melt_grip(melt, 5, 100) == 0.0
+
+
+def test_the_twin_takes_any_material_line_object():
+    # a profile's working line is what a hotend twin will be handed
+    sim = SimulatedEms22(Line(0.1, -10.0), noise_counts=0)
+    assert sim.melt.flow_mm3_s(200) == pytest.approx(10.0)
 
 
 @given(st.integers(0, 0xFFFF), st.integers(0, 3), st.integers(0, 1))
@@ -48,7 +61,7 @@ def test_decoded_twin_counts_follow_the_filament_within_noise():
 @pytest.mark.parametrize("temp_c, expect", [(200, 0.5), (250, 1.0), (225, 0.75)])
 def test_grip_falls_when_demand_exceeds_what_melts(temp_c, expect):
     # 8.316 mm/s of 1.75 mm filament = 20 mm^3/s; 200 C melts 10, 250 C 20
-    sim = SimulatedEms22(MeltModel(0.2, 200, 10), seed=1)
+    sim = SimulatedEms22(_melt(0.2, 200, 10), seed=1)
     times, commanded, samples = _run(sim, 20 / 2.405, 3.0, temp_c)
     est = GripEstimator(window_mm=1.25)
     est.add(times, samples.counts / sim.counts_per_mm, commanded)
