@@ -1,18 +1,12 @@
-"""Shared test data: sample profiles and the paths of ../shared/data."""
+"""Test data: sample profiles and the ddPrint profiles shipped in tests/data."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import pytest
-
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-DATA = SHARED / "ddprint-profiles"
+# Every material file of ddPrint's public profile repository (see SOURCE.md).
+DATA = Path(__file__).resolve().parent / "data" / "ddprint-profiles"
 MAT = DATA / "mat-profiles"
-
-needs_data = pytest.mark.skipif(
-    not MAT.is_dir(), reason=f"the shared ddPrint profiles are not at {DATA} "
-                             f"(../shared/data beside the repo)")
 
 
 def make(air=(0.146, 171.6312, 7.5789), real=(0.146, 210.0, 10.1356),

@@ -17,6 +17,7 @@ from ..material.profile import (
     decode_profile,
     encode_profile,
     flow_at,
+    line_warnings,
     temp_for_flow,
 )
 
@@ -70,6 +71,7 @@ def describe(profile: Profile, wp: float) -> str:
                + (f" at {prov.measured_at}" if prov.measured_at else "")
                + (f" from {prov.source}" if prov.source else "")
                + f", {len(profile.points)} raw point(s)")
+    out += [f"  warning: {warning}" for warning in line_warnings(profile)]
     out.append(f"  at working point {wp:g}:")
     b = profile.bounds
     step = 10.0
@@ -137,6 +139,9 @@ def cmd_import(args) -> int:
         path.write_bytes(encode_profile(profile))
         print(f"wrote {path} ({json.dumps(profile.identity.name)}, nozzle "
               f"{profile.identity.nozzle_diameter_mm:g} mm)")
+        for warning in line_warnings(profile):
+            print(f"flowloop profile import: warning: {profile.identity.name}: "
+                  f"{warning}", file=sys.stderr)
     for problem in problems:
         print(f"flowloop profile import: skipped {problem}", file=sys.stderr)
     return 1 if problems else 0

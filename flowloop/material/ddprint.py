@@ -79,13 +79,19 @@ def is_specific(data: Dict[str, Any]) -> bool:
 
 def find_generic_base(path: Path) -> Optional[Path]:
     """The generic file a printer-specific one overrides: ../<type>.json whose
-    stem is a word of this file's name (herz-pla-red -> pla.json)."""
+    stem is a word of this file's name (herz-pla-red -> pla.json), else whose
+    stem begins a word (biofila_platec -> pla.json; the longest stem wins)."""
     path = Path(path)
-    words = path.stem.lower().replace("-", "_").split("_")
+    words = [w for w in path.stem.lower().replace("-", "_").split("_") if w]
+    generics = {p.stem.lower(): p for p in sorted(path.parent.parent.glob("*.json"))
+                if p.is_file()}
     for word in words:
-        candidate = path.parent.parent / f"{word}.json"
-        if word and candidate.is_file():
-            return candidate
+        if word in generics:
+            return generics[word]
+    for word in words:
+        for stem in sorted(generics, key=len, reverse=True):
+            if word.startswith(stem):
+                return generics[stem]
     return None
 
 
@@ -226,15 +232,16 @@ def import_file(path: Path, nozzle_mm: Optional[float] = None,
 
 def to_ddprint(profile: Profile) -> Dict[str, Any]:
     """The ddPrint dict for a profile: every number it holds, ddPrint's names."""
-    extras = profile.ddprint or DdprintExtras()
+    # An imported profile writes back exactly the numbers it read (version
+    # included or not); one flowloop made gets ddPrint's current version.
+    extras = profile.ddprint or DdprintExtras(top={"version": DDPRINT_VERSION},
+                                              nozzle={"version": DDPRINT_VERSION})
     lines, b = profile.lines, profile.bounds
-    out: Dict[str, Any] = {"version": DDPRINT_VERSION}
-    out.update(extras.top)
+    out: Dict[str, Any] = dict(extras.top)
     out.update({"material_diameter": profile.identity.filament_diameter_mm,
                 "hotendBaseTemp": b.min_temp_c, "hotendGoodTemp": b.recommended_temp_c,
                 "hotendMaxTemp": b.max_temp_c})
-    props: Dict[str, Any] = {"version": DDPRINT_VERSION}
-    props.update(extras.nozzle)
+    props: Dict[str, Any] = dict(extras.nozzle)
     air, real = lines.into_air, lines.real_print
     props["Ktemp"] = air.slope_mm3_s_per_c
     props.update({"P0temp": air.temp_c, "FR0pwm": air.flow_mm3_s})

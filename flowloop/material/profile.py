@@ -10,11 +10,18 @@ Everything here is pure: the schema (versioned, strict, msgspec), its
 validation, and the functions over the two lines that autotemp, the limiters
 and the measurement commands use:
 
-- `working_line(into_air, real_print, wp)` -> a `Line` (slope, intercept),
+- `profile_line(profile, wp)` / `working_line(into_air, real_print, wp)` -> the
+  `Line` at WP, the one melt line everything uses (`Line.flow_mm3_s(temp_c)`,
+  `Line.temp_c(flow_mm3_s)`),
 - `flow_at(profile, temp_c, wp)`, `temp_for_flow(profile, flow, wp)` (clamped
   to the profile's bounds), `max_flow_at(profile, measured_temp_c, wp)`,
 - `capped_to_heater(profile, heater_max_temp_c)`: bounds within a heater's
-  max_temp, for klippy to keep.
+  max_temp, for klippy to keep,
+- `line_warnings(profile)`: what is implausible about the two lines. Real
+  ddPrint files have a real-print line above the into-air line; such a profile
+  is kept as it is, and no working line ever gives more flow than the into-air
+  line (there, the lower of the two), which is the conservative side for
+  autotemp (hotter) and the limiters (slower).
 """
 
 from __future__ import annotations
@@ -64,8 +71,7 @@ class FlowLine(_Strict, kw_only=True):
     flow_mm3_s: float
 
     def line(self) -> Line:
-        return Line(self.slope_mm3_s_per_c,
-                    self.flow_mm3_s - self.slope_mm3_s_per_c * self.temp_c)
+        return Line.through(self.slope_mm3_s_per_c, self.temp_c, self.flow_mm3_s)
 
 
 class PowerLine(_Strict, kw_only=True):
@@ -146,16 +152,55 @@ class Profile(_Strict, kw_only=True):
 
 
 class Line(NamedTuple):
-    """A flow line as slope and intercept: flow = slope * temp + intercept."""
+    """Melt capacity against hotend temperature: flow = slope * temp +
+    intercept, held at or below `ceiling` (another Line) when one is set, and
+    never below 0. The one melt line of flowloop: autotemp, the limiters, the
+    plots and the simulated twin all ask a Line (`profile_line`)."""
 
     slope_mm3_s_per_c: float
     intercept_mm3_s: float
+    ceiling: Optional[Line] = None
+
+    @classmethod
+    def through(cls, slope_mm3_s_per_c: float, temp_c: float,
+                flow_mm3_s: float) -> Line:
+        """The line with this slope through (temp_c, flow_mm3_s)."""
+        return cls(slope_mm3_s_per_c, flow_mm3_s - slope_mm3_s_per_c * temp_c)
 
     def flow_mm3_s(self, temp_c: float) -> float:
-        return self.slope_mm3_s_per_c * temp_c + self.intercept_mm3_s
+        """The most flow (mm^3/s) the hotend melts at temp_c; 0 below the zero."""
+        flow = self.slope_mm3_s_per_c * temp_c + self.intercept_mm3_s
+        if self.ceiling is not None:
+            flow = min(flow, self.ceiling.flow_mm3_s(temp_c))
+        return max(0.0, flow)
 
     def temp_c(self, flow_mm3_s: float) -> float:
-        return (flow_mm3_s - self.intercept_mm3_s) / self.slope_mm3_s_per_c
+        """The lowest temperature at which the hotend melts flow_mm3_s."""
+        temp = (flow_mm3_s - self.intercept_mm3_s) / self.slope_mm3_s_per_c
+        if self.ceiling is not None:
+            temp = max(temp, self.ceiling.temp_c(flow_mm3_s))
+        return temp
+
+    def knee_temp_c(self) -> Optional[float]:
+        """Where the line meets its ceiling (None: no ceiling, or parallel)."""
+        if self.ceiling is None:
+            return None
+        slope_gap = self.slope_mm3_s_per_c - self.ceiling.slope_mm3_s_per_c
+        if slope_gap == 0:
+            return None
+        return (self.ceiling.intercept_mm3_s - self.intercept_mm3_s) / slope_gap
+
+    def to_dict(self) -> Dict[str, Any]:
+        """JSON-able: slope, intercept and the ceiling's (or None)."""
+        return {"slope_mm3_s_per_c": self.slope_mm3_s_per_c,
+                "intercept_mm3_s": self.intercept_mm3_s,
+                "ceiling": None if self.ceiling is None else self.ceiling.to_dict()}
+
+    @classmethod
+    def from_dict(cls, data: Dict[str, Any]) -> Line:
+        ceiling = data.get("ceiling")
+        return cls(data["slope_mm3_s_per_c"], data["intercept_mm3_s"],
+                   None if ceiling is None else cls.from_dict(ceiling))
 
 
 # ---------------------------------------------------------------------------
@@ -204,11 +249,24 @@ def check_text(value: str, what: str, limit: int = MAX_TEXT_CHARS) -> str:
 
 
 def check_name(name: str) -> str:
-    """A profile name: free text on one line, not blank."""
+    """A profile name: free text on one line, not blank, shown as it is.
+
+    Leading or trailing whitespace is refused (an HTTP query strips it, so
+    such a name could be stored but never found), and so are invisible format
+    characters (Unicode Cf: U+200B, the bidirectional overrides U+202E,
+    U+2066..U+2069, ...), which can make one name display as another.
+    """
     if not isinstance(name, str):
         raise _bad("profile name must be a string")
     if not name.strip():
         raise _bad("profile name is empty")
+    if name != name.strip():
+        raise _bad(f"profile name {name[:MAX_NAME_CHARS]!r} begins or ends with "
+                   f"whitespace; remove it")
+    for ch in name:
+        if unicodedata.category(ch) == "Cf":
+            raise _bad(f"profile name contains the invisible format character "
+                       f"U+{ord(ch):04X}; use visible text")
     return check_text(name, "profile name", MAX_NAME_CHARS)
 
 
@@ -286,7 +344,6 @@ def check_profile(p: Profile) -> None:
             _check_range(f"lines.{name}_power.flow_mm3_s", power.flow_mm3_s, 0.0,
                          MAX_FLOW_MM3_S)
             _check_range(f"lines.{name}_power.pwm", power.pwm, 0.0, lines.pwm_max)
-    _check_lines_apart(lines.into_air.line(), lines.real_print.line(), b)
     for i, point in enumerate(p.points):
         where = f"points[{i}]"
         _check_range(f"{where}.temp_c", point.temp_c, MIN_TEMP_C, MAX_TEMP_C)
@@ -298,21 +355,34 @@ def check_profile(p: Profile) -> None:
         _check_range("provenance.min_grip", p.provenance.min_grip, 0.0, 1.0)
 
 
-def _check_lines_apart(air: Line, real: Line, b: Bounds) -> None:
-    """The into-air line (best case) must not lie below the real-print line."""
-    gap_lo = air.flow_mm3_s(b.min_temp_c) - real.flow_mm3_s(b.min_temp_c)
-    gap_hi = air.flow_mm3_s(b.max_temp_c) - real.flow_mm3_s(b.max_temp_c)
-    tol = -LINE_TOLERANCE_MM3_S
-    if gap_lo >= tol and gap_hi >= tol:
-        return
-    if gap_lo < tol and gap_hi < tol:
-        raise _bad(f"the real-print line lies above the into-air line "
-                   f"(by {-gap_lo:.3g} mm^3/s at {b.min_temp_c:g} degC); "
-                   f"real print must need more heat than into air")
+def line_warnings(profile: Profile) -> List[str]:
+    """What is implausible about the two lines, one line each (none: []).
+
+    Real print should need more heat than into air, so the real-print line
+    should lie below the into-air line over the bounds. Real ddPrint files do
+    not always (measurement scatter); they are kept and used as they are, and
+    `working_line` then holds every working point at the into-air line.
+    """
+    b = profile.bounds
+    air = profile.lines.into_air.line()
+    real = profile.lines.real_print.line()
+    gaps = [(air.flow_mm3_s(t) - real.flow_mm3_s(t), t)
+            for t in (b.min_temp_c, b.max_temp_c)]
+    below = [(gap, t) for gap, t in gaps if gap < -LINE_TOLERANCE_MM3_S]
+    if not below:
+        return []
+    used = "every working point uses the into-air line (the lower one)"
+    if len(below) == 2:
+        gap, temp = min(below)
+        return [f"the real-print line lies above the into-air line (by {-gap:.3g} "
+                f"mm^3/s at {temp:g} degC; real print should need more heat): "
+                f"{used}"]
     slope_gap = air.slope_mm3_s_per_c - real.slope_mm3_s_per_c
     cross_c = (real.intercept_mm3_s - air.intercept_mm3_s) / slope_gap
-    raise _bad(f"the into-air and real-print lines cross at {cross_c:.1f} degC, "
-               f"inside the bounds {b.min_temp_c:g}..{b.max_temp_c:g} degC")
+    side = "below" if below[0][1] == b.min_temp_c else "above"
+    return [f"the into-air and real-print lines cross at {cross_c:.1f} degC, "
+            f"inside the bounds {b.min_temp_c:g}..{b.max_temp_c:g} degC: {side} "
+            f"it the real-print line lies above and {used}"]
 
 
 # ---------------------------------------------------------------------------
@@ -372,16 +442,23 @@ def summary(profile: Profile) -> Dict[str, Any]:
 
 def working_line(into_air: FlowLine, real_print: FlowLine,
                  working_point: float = DEFAULT_WORKING_POINT) -> Line:
-    """The line at WP: 0 = real print, 1 = into air, linear in between."""
+    """The line at WP: 0 = real print, 1 = into air, linear in between, and
+    never above the into-air line (the best case): where the real-print line
+    lies above it, every WP uses the into-air line, the lower of the two."""
     wp = check_working_point(working_point)
     air, real = into_air.line(), real_print.line()
-    return Line(
+    line = Line(
         real.slope_mm3_s_per_c + wp * (air.slope_mm3_s_per_c - real.slope_mm3_s_per_c),
         real.intercept_mm3_s + wp * (air.intercept_mm3_s - real.intercept_mm3_s))
+    if wp == 1.0 or (line.slope_mm3_s_per_c == air.slope_mm3_s_per_c
+                     and line.intercept_mm3_s <= air.intercept_mm3_s):
+        return line  # nowhere above the into-air line
+    return line._replace(ceiling=air)
 
 
 def profile_line(profile: Profile,
                  working_point: float = DEFAULT_WORKING_POINT) -> Line:
+    """The profile's melt line at a working point (see `working_line`)."""
     return working_line(profile.lines.into_air, profile.lines.real_print,
                         working_point)
 
@@ -397,7 +474,7 @@ def flow_at(profile: Profile, temp_c: float,
             working_point: float = DEFAULT_WORKING_POINT) -> float:
     """Melt flow (mm^3/s) the WP line gives at temp_c; never below 0."""
     temp_c = _finite(temp_c, "temperature")
-    return max(0.0, profile_line(profile, working_point).flow_mm3_s(temp_c))
+    return profile_line(profile, working_point).flow_mm3_s(temp_c)
 
 
 def temp_for_flow(profile: Profile, flow_mm3_s: float,
@@ -419,7 +496,7 @@ def max_flow_at(profile: Profile, measured_temp_c: float,
     flow at max_temp_c. Below the line's zero the answer is 0.
     """
     temp = min(_finite(measured_temp_c, "temperature"), profile.bounds.max_temp_c)
-    return max(0.0, profile_line(profile, working_point).flow_mm3_s(temp))
+    return profile_line(profile, working_point).flow_mm3_s(temp)
 
 
 def capped_to_heater(profile: Profile, heater_max_temp_c: float) -> Profile:
@@ -451,8 +528,8 @@ def active_status(profile: Profile, working_point: float) -> Dict[str, Any]:
         "working_point": working_point,
         "into_air": flow_line(profile.lines.into_air),
         "real_print": flow_line(profile.lines.real_print),
-        "working_line": {"slope_mm3_s_per_c": line.slope_mm3_s_per_c,
-                         "intercept_mm3_s": line.intercept_mm3_s},
+        "working_line": line.to_dict(),
+        "warnings": line_warnings(profile),
         "min_temp_c": b.min_temp_c,
         "recommended_temp_c": b.recommended_temp_c,
         "max_temp_c": b.max_temp_c,

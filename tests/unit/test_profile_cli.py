@@ -11,7 +11,7 @@ from flowloop.cli import main
 from flowloop.cli.profile import safe_file_stem
 from flowloop.material import ddprint
 from flowloop.material import profile as P
-from tests.samples import MAT, make, needs_data
+from tests.samples import MAT, make
 
 
 def run(capsys, *argv):
@@ -22,15 +22,12 @@ def run(capsys, *argv):
 
 @pytest.fixture
 def imported(tmp_path, capsys):
-    if not MAT.is_dir():
-        pytest.skip(f"the shared ddPrint profiles are not at {MAT}")
     code, out, err = run(capsys, "import", MAT / "UM2-1/herz-pla-red.json",
                          "-o", tmp_path)
     assert code == 0, err
     return tmp_path / "herz-pla-red_80.json"
 
 
-@needs_data
 def test_import_writes_one_profile_per_file_and_nozzle(tmp_path, capsys):
     files = sorted((MAT / "UM2-1").glob("*.json")) + [MAT / "pla.json"]
     code, out, err = run(capsys, "import", *files, "-o", tmp_path)
@@ -44,7 +41,6 @@ def test_import_writes_one_profile_per_file_and_nozzle(tmp_path, capsys):
         P.decode_profile(path.read_bytes())
 
 
-@needs_data
 def test_import_names_unreadable_files_and_exits_non_zero(tmp_path, capsys):
     broken = tmp_path / "broken.json"
     broken.write_text("{ not json")
@@ -59,7 +55,16 @@ def test_import_names_unreadable_files_and_exits_non_zero(tmp_path, capsys):
     assert [p.name for p in out_dir.iterdir()] == ["nylon_80.json"]
 
 
-@needs_data
+def test_import_warns_about_a_real_print_line_above_into_air(tmp_path, capsys):
+    code, out, err = run(capsys, "import", MAT / "JP-1/kaiser-pla-grey.json",
+                         "-o", tmp_path)
+    assert code == 0  # imported: a warning, not a refusal
+    assert [p.name for p in tmp_path.iterdir()] == ["kaiser-pla-grey_80.json"]
+    assert "warning: kaiser-pla-grey_80: the real-print line lies above" in err
+    code, out, _ = run(capsys, "show", tmp_path / "kaiser-pla-grey_80.json")
+    assert code == 0 and "  warning: the real-print line lies above" in out
+
+
 def test_import_nozzle_option(tmp_path, capsys):
     code, out, err = run(capsys, "import", MAT / "pla.json", "--nozzle", "0.4",
                          "-o", tmp_path)
@@ -89,8 +94,6 @@ def test_validate_reports_each_file(imported, tmp_path, capsys):
 
 
 def test_a_ddprint_file_given_to_show_gets_a_hint(capsys):
-    if not MAT.is_dir():
-        pytest.skip(f"the shared ddPrint profiles are not at {MAT}")
     code, _, err = run(capsys, "show", MAT / "pla.json")
     assert code == 2 and "run 'flowloop profile import" in err
 
@@ -139,7 +142,6 @@ def test_safe_file_stem_is_used_for_written_files(tmp_path, capsys, monkeypatch)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["evil.svg", "in.json"]
 
 
-@needs_data
 def test_import_never_overwrites_what_it_wrote_in_the_same_run(tmp_path, capsys):
     for folder, base in (("a", 190), ("b", 185)):
         (tmp_path / folder).mkdir()

@@ -1,4 +1,5 @@
-"""ddPrint material files: import of every shared file, export, round trips."""
+"""ddPrint material files: import of the whole public repository, export,
+round trips."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from hypothesis import strategies as st
 from flowloop.errors import FlowloopError
 from flowloop.material import ddprint
 from flowloop.material import profile as P
-from tests.samples import MAT, make, needs_data
+from tests.samples import MAT, make
 
 
 def flatten_numbers(data, prefix=""):
@@ -26,31 +27,54 @@ def flatten_numbers(data, prefix=""):
     return out
 
 
-UM2 = sorted((MAT / "UM2-1").glob("*.json")) if MAT.is_dir() else []
+UM2 = sorted((MAT / "UM2-1").glob("*.json"))
+EVERY_FILE = sorted(MAT.rglob("*.json"))
+INTO_AIR_LOWER = "the real-print line lies above the into-air line"
 
-@needs_data
+
 def test_the_four_um2_profiles_are_there():
     assert [p.name for p in UM2] == ["herz-pla-red.json", "herz_petg_white.json",
                                      "kaisertech_pla_white.json",
                                      "noname_pla_blue.json"]
 
 
-# What each shared file holds: (file, imported names, problems that must be named)
+# Every material file of ddPrint's public repository (tests/data): the
+# profiles it gives, the problems that must be named, and which profiles get
+# the plausibility warning (real-print line above the into-air line).
 EXPECTED = {
+    "Anycubic_i3m-1/kaisertech_pla_white.json": (["kaisertech_pla_white_40"], []),
+    "JP-1/3d-print-filament_nylon_natural_N17528181109H5.json": (
+        ["3d-print-filament_nylon_natural_N17528181109H5_80"], []),
+    "JP-1/biofila_platec.json": (["biofila_platec_80"], []),
+    "JP-1/das-filament_pla_grau.json": (["das-filament_pla_grau_80"], []),
+    "JP-1/esun_petg_solid-white_6-922572-264090.json": (
+        ["esun_petg_solid-white_6-922572-264090_80"], []),
+    "JP-1/herz_petg-black-5800070.json": (["herz_petg-black-5800070_80"], []),
+    "JP-1/kaiser-pla-grey.json": (["kaiser-pla-grey_80"], []),
+    "JP-1/taulman_nylon-230-black_688295584315.json": (
+        ["taulman_nylon-230-black_688295584315_80"], []),
+    "JP-1/zaper-petg-silver-1807201H3D0182.json": (
+        ["zaper-petg-silver-1807201H3D0182_80"], []),
     "UM2-1/herz-pla-red.json": (["herz-pla-red_80"], []),
     "UM2-1/herz_petg_white.json": (["herz_petg_white_40"], []),
     "UM2-1/kaisertech_pla_white.json": (["kaisertech_pla_white_80"], []),
     "UM2-1/noname_pla_blue.json": (["noname_pla_blue_80"], []),
     "pla.json": (["pla_40", "pla_80"], []),
-    "petg.json": (["petg_80"], ["properties_40: the real-print line lies above"]),
+    "petg.json": (["petg_40", "petg_80"], []),
+    # ddPrint's placeholders ("XXX copied from petg"): one line, no real print
     "nylon.json": (["nylon_80"], ["properties_40: no real-print point"]),
     "tpu_tpe.json": (["tpu_tpe_80"], ["properties_40: no real-print point"]),
 }
+WARNED = {"biofila_platec_80", "kaiser-pla-grey_80",
+          "taulman_nylon-230-black_688295584315_80", "petg_40"}
 
 
-@needs_data
+def imported_profiles():
+    return ddprint.import_paths(EVERY_FILE)[0]
+
+
 @pytest.mark.parametrize("rel", sorted(EXPECTED))
-def test_every_shared_file_imports_or_names_its_problem(rel):
+def test_every_file_of_the_repository_imports_or_names_its_problem(rel):
     names, problems = EXPECTED[rel]
     result = ddprint.import_file(MAT / rel)
     assert [p.identity.name for p in result.profiles] == names
@@ -59,19 +83,37 @@ def test_every_shared_file_imports_or_names_its_problem(rel):
         assert want in got and Path(rel).name in got
 
 
-@needs_data
 def test_a_file_without_measured_lines_is_refused_with_the_reason():
     with pytest.raises(FlowloopError, match=r"abs.json: no properties_NN"):
         ddprint.import_file(MAT / "abs.json")
 
 
-@needs_data
-def test_all_shared_files_are_covered():
-    found = {str(p.relative_to(MAT)) for p in MAT.rglob("*.json")}
+def test_all_files_of_the_repository_are_covered():
+    found = {str(p.relative_to(MAT)) for p in EVERY_FILE}
     assert found == set(EXPECTED) | {"abs.json"}
+    assert len(found) == 18
 
 
-@needs_data
+def test_a_real_print_line_above_into_air_is_imported_and_warned_not_refused():
+    profiles = imported_profiles()
+    assert len(profiles) == 19
+    warned = {p.identity.name for p in profiles if P.line_warnings(p)}
+    assert warned == WARNED
+    for p in profiles:
+        for warning in P.line_warnings(p):
+            assert INTO_AIR_LOWER in warning
+            for wp in (0.0, 0.5):  # held at the into-air line, the lower one
+                assert P.flow_at(p, 230.0, wp) == pytest.approx(
+                    p.lines.into_air.line().flow_mm3_s(230.0))
+
+
+def test_a_file_is_matched_to_a_generic_base_a_word_begins_with():
+    assert ddprint.find_generic_base(MAT / "JP-1/biofila_platec.json") == \
+        MAT / "pla.json"
+    assert ddprint.find_generic_base(MAT / "JP-1/kaiser-pla-grey.json") == \
+        MAT / "pla.json"
+
+
 def test_herz_pla_red_maps_to_the_schema_with_its_generic_base():
     (p,) = ddprint.import_file(MAT / "UM2-1/herz-pla-red.json").profiles
     assert p.identity.printer == "UM2-1" and p.identity.nozzle_diameter_mm == 0.8
@@ -91,27 +133,37 @@ def test_herz_pla_red_maps_to_the_schema_with_its_generic_base():
     assert "UM2-1/herz-pla-red.json + pla.json" == p.provenance.source
 
 
-@needs_data
-@pytest.mark.parametrize("path", UM2, ids=lambda p: p.name)
-def test_um2_profiles_round_trip_with_every_number_kept(path):
-    original = ddprint.read_file(path)
-    base = ddprint.read_file(ddprint.find_generic_base(path))
-    (profile,) = ddprint.import_file(path).profiles
-    exported = ddprint.parse_text(ddprint.export_text(profile))
-    got = flatten_numbers(exported)
-    want = flatten_numbers(original)
-    # the printer file's own numbers, and the generic ones it did not replace
-    want.update({k: v for k, v in flatten_numbers(base).items()
-                 if k.split(".")[0] not in original
-                 and not k.startswith("properties_")})
-    assert {k: got.get(k) for k in want} == want
-    # ...and the exported file imports to the same profile
-    ident = profile.identity
-    again = ddprint.to_profile(exported, ident.nozzle_diameter_mm, name=ident.name,
-                               printer=ident.printer, filament_name=ident.filament_name,
-                               filament_type=ident.filament_type,
-                               source=profile.provenance.source)
-    assert again == profile
+def numbers_of_one_nozzle(path, nozzle_key):
+    """Every number a ddPrint file (merged over its generic base) holds for
+    one nozzle: the top-level ones and that nozzle's."""
+    data = ddprint.read_file(path)
+    if ddprint.is_specific(data):
+        merged = ddprint.read_file(ddprint.find_generic_base(path))
+        merged.update(data)
+        data = merged
+    return {k: v for k, v in flatten_numbers(data).items()
+            if not k.startswith("properties_") or k.startswith(nozzle_key + ".")}
+
+
+@pytest.mark.parametrize("path", [f for f in EVERY_FILE if f.name != "abs.json"],
+                         ids=lambda p: str(p.relative_to(MAT)))
+def test_every_imported_profile_round_trips_with_every_number_kept(path):
+    profiles = ddprint.import_file(path).profiles
+    assert profiles
+    for profile in profiles:
+        key = ddprint.properties_key(profile.identity.nozzle_diameter_mm)
+        want = numbers_of_one_nozzle(path, key)
+        exported = ddprint.parse_text(ddprint.export_text(profile))
+        got = flatten_numbers(exported)
+        assert {k: got.get(k) for k in want} == want
+        assert P.decode_profile(P.encode_profile(profile)) == profile
+        # ...and the exported file imports to the same profile
+        ident = profile.identity
+        again = ddprint.to_profile(
+            exported, ident.nozzle_diameter_mm, name=ident.name,
+            printer=ident.printer, filament_name=ident.filament_name,
+            filament_type=ident.filament_type, source=profile.provenance.source)
+        assert again == profile
 
 
 def test_comments_and_comment_strings_are_dropped():
@@ -147,7 +199,6 @@ def test_a_printer_file_without_a_base_asks_for_one(tmp_path):
         ddprint.import_file(lone)
 
 
-@needs_data
 def test_nozzle_filter_and_missing_nozzle():
     assert [p.identity.name for p in
             ddprint.import_file(MAT / "pla.json", nozzle_mm=0.4).profiles] == ["pla_40"]
@@ -155,7 +206,6 @@ def test_nozzle_filter_and_missing_nozzle():
         ddprint.import_file(MAT / "pla.json", nozzle_mm=0.6)
 
 
-@needs_data
 def test_an_explicit_base_and_printer_are_used():
     (p,) = ddprint.import_file(MAT / "UM2-1/herz_petg_white.json",
                                base=MAT / "petg.json", printer="my UM2").profiles
