@@ -1,0 +1,98 @@
+"""The cap arithmetic for one G-code move, and which cap wins.
+
+A move goes from one G-code position (x, y, z, e) to the next at a requested
+speed. Klipper treats the speed as the XYZ speed, or as the E speed when the
+move has no XYZ motion (an extrude-only move). The volumetric flow a move
+asks of the hotend is filament_area * dE / duration; only forward E melts
+plastic, so retractions (and wipes with negative E) ask for no flow and are
+never slowed, and travel (no E) is never touched. A cap only ever lowers a
+speed, and nothing here changes a distance.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Optional, Sequence
+
+from ..errors import FlowloopError
+
+# Below this the move has no XYZ motion (Klipper's own threshold in Move()).
+MIN_XYZ_MM = 1e-9
+# A cap is never set below this: a zero cap would stop a move forever.
+MIN_CAP_MM3_S = 0.1
+
+CAP_NAMES = ("max_flow", "temperature", "grip", "model")
+
+
+class MoveShape(NamedTuple):
+    """What the limiter needs of a move: XYZ distance and filament pushed."""
+
+    distance_mm: float  # XYZ path length; 0 for an extrude-only move
+    extrude_mm: float   # E change (after the extrude factor); < 0 retracts
+
+    @property
+    def extrudes(self) -> bool:
+        return self.extrude_mm > 0.0
+
+    def flow_mm3_s(self, speed_mm_s: float, filament_area_mm2: float) -> float:
+        """Volumetric flow at a requested speed; 0 unless the move extrudes."""
+        if not self.extrudes:
+            return 0.0
+        if self.distance_mm < MIN_XYZ_MM:
+            return filament_area_mm2 * speed_mm_s
+        return filament_area_mm2 * self.extrude_mm / self.distance_mm * speed_mm_s
+
+    def duration_s(self, speed_mm_s: float) -> float:
+        """Time at the requested speed (no acceleration): for slowed_time."""
+        length = self.distance_mm if self.distance_mm >= MIN_XYZ_MM \
+            else abs(self.extrude_mm)
+        return length / speed_mm_s if speed_mm_s > 0 else 0.0
+
+
+def move_shape(start: Sequence[float], end: Sequence[float]) -> MoveShape:
+    """The shape of a move between two G-code positions (x, y, z, e, ...)."""
+    dx, dy, dz = (end[i] - start[i] for i in range(3))
+    return MoveShape(math.sqrt(dx * dx + dy * dy + dz * dz), end[3] - start[3])
+
+
+def capped_speed(shape: MoveShape, speed_mm_s: float, cap_mm3_s: Optional[float],
+                 filament_area_mm2: float, floor_mm_s: float = 0.0) -> float:
+    """speed = min(speed, cap / (area * dE / distance)), never below floor_mm_s
+    (and never above the requested speed, whatever the floor)."""
+    if cap_mm3_s is None or not shape.extrudes:
+        return speed_mm_s
+    flow = shape.flow_mm3_s(speed_mm_s, filament_area_mm2)
+    if flow <= cap_mm3_s:
+        return speed_mm_s
+    slowed = speed_mm_s * cap_mm3_s / flow
+    return min(speed_mm_s, max(slowed, floor_mm_s))
+
+
+class ActiveCap(NamedTuple):
+    cap_mm3_s: Optional[float]  # the lowest cap, None when no cap is on
+    reason: str                 # one of CAP_NAMES, or "none"
+
+
+def lowest_cap(**caps: Optional[float]) -> ActiveCap:
+    """The lowest of the named caps (None = that cap is off), at least
+    MIN_CAP_MM3_S; ties go to the first name in CAP_NAMES."""
+    best = ActiveCap(None, "none")
+    for name in CAP_NAMES:
+        value = caps.pop(name, None)
+        if value is not None and (best.cap_mm3_s is None or value < best.cap_mm3_s):
+            best = ActiveCap(max(MIN_CAP_MM3_S, value), name)
+    if caps:
+        raise FlowloopError(f"unknown cap {sorted(caps)[0]!r}")
+    return best
+
+
+def check_max_flow(value: float, what: str = "max_flow") -> float:
+    """A fixed cap in mm^3/s: a finite number above 0."""
+    try:
+        flow = float(value)
+    except (TypeError, ValueError):
+        raise FlowloopError(f"{what} must be a number in mm^3/s, not {value!r}") \
+            from None
+    if not math.isfinite(flow) or flow <= 0.0:
+        raise FlowloopError(f"{what} must be above 0 mm^3/s, not {value}")
+    return flow

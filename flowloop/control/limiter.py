@@ -1,0 +1,252 @@
+"""The flowrate and temperature limiter: every cap, and the speed of a move.
+
+`FlowLimiter` holds what the caps know (the fixed max_flow, the active
+profile's melt line, the hotend temperature, the sensor's grip windows) and
+answers one question per G-code move: at what speed may it run. The caps:
+
+- max_flow: a fixed cap (mm^3/s), no sensor or profile needed;
+- temperature: the active profile's melt line at the measured temperature;
+- grip: the reactive rule (flowloop.control.reactive) after a slip;
+- model: the predictive grip model (flowloop.control.grip_model) at the
+  measured temperature, before a slip.
+
+The mode says which caps may act; each mode adds one to the one before:
+static (max_flow), temperature, reactive, predictive. The lowest cap wins.
+max_flow and temperature are hard caps; the grip caps never slow a move
+below min_speed_factor of the speed its G-code asked for. A cap that lacks
+its input (no profile, no temperature, a sensor fault) is off, and the status
+says why. The status is rebuilt when something changes, never when read.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, Optional
+
+from ..errors import FlowloopError
+from ..material.profile import Profile, profile_line
+from . import caps as fl_caps
+from .grip_model import CapacityLine, GripModel
+from .reactive import (
+    DEFAULT_HYSTERESIS,
+    DEFAULT_MIN_GRIP,
+    DEFAULT_MIN_SPEED_FACTOR,
+    DEFAULT_RECOVERY_PER_S,
+    ReactiveRule,
+    ReactiveSettings,
+    check_min_grip,
+)
+
+MODES = ("static", "temperature", "reactive", "predictive")
+DEFAULT_MODE = "predictive"
+MODE_CAPS = {mode: fl_caps.CAP_NAMES[:i + 1] for i, mode in enumerate(MODES)}
+# A temperature change smaller than this does not recompute the caps.
+TEMP_RESOLUTION_C = 0.1
+
+
+def check_mode(value: str) -> str:
+    mode = str(value).strip().lower()
+    if mode not in MODES:
+        raise FlowloopError(f"mode must be one of {', '.join(MODES)}, not {value!r}")
+    return mode
+
+
+def check_min_speed_factor(value: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not 0.0 < value <= 1.0:
+        raise FlowloopError(f"min_speed_factor must be in (0, 1], not {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class LimiterSettings:
+    max_flow_mm3_s: Optional[float] = None
+    mode: str = DEFAULT_MODE
+    min_grip: Optional[float] = None  # None: the profile's, else DEFAULT_MIN_GRIP
+    min_speed_factor: float = DEFAULT_MIN_SPEED_FACTOR
+    hysteresis: float = DEFAULT_HYSTERESIS
+    recovery_per_s: float = DEFAULT_RECOVERY_PER_S
+
+    def __post_init__(self):
+        if self.max_flow_mm3_s is not None:
+            fl_caps.check_max_flow(self.max_flow_mm3_s)
+        check_mode(self.mode)
+        if self.min_grip is not None:
+            check_min_grip(self.min_grip)
+        check_min_speed_factor(self.min_speed_factor)
+        ReactiveSettings(DEFAULT_MIN_GRIP, self.hysteresis, self.recovery_per_s)
+
+
+class FlowLimiter:
+    def __init__(self, settings: LimiterSettings = LimiterSettings(),
+                 filament_area_mm2: float = 2.405):
+        self.settings = settings
+        self.filament_area_mm2 = filament_area_mm2
+        self.enabled = True
+        self.profile: Optional[Profile] = None
+        self.working_point = 0.5
+        self.model: Optional[GripModel] = None
+        self.temp_c: Optional[float] = None
+        self.sensor_fault: Optional[str] = None
+        self.reactive = ReactiveRule(self._reactive_settings())
+        self.caps: Dict[str, Optional[float]] = {}
+        self.active = fl_caps.ActiveCap(None, "none")
+        self.why = ""
+        self.slowed_time_s = 0.0
+        self.slowed_moves = 0
+        self._status: Dict[str, Any] = {}
+        self._update()
+
+    # --- inputs ------------------------------------------------------------
+    @property
+    def min_grip(self) -> float:
+        if self.settings.min_grip is not None:
+            return self.settings.min_grip
+        if self.profile is not None and self.profile.provenance.min_grip:
+            return self.profile.provenance.min_grip
+        return DEFAULT_MIN_GRIP
+
+    def _reactive_settings(self) -> ReactiveSettings:
+        s = self.settings
+        return ReactiveSettings(self.min_grip, s.hysteresis, s.recovery_per_s)
+
+    def configure(self, enabled: Optional[bool] = None,
+                  max_flow_mm3_s: Optional[float] = None, clear_max_flow=False,
+                  mode: Optional[str] = None) -> None:
+        """Change what SET_FLOWRATE_LIMIT may change; checks everything first,
+        so bad input changes nothing."""
+        changes: Dict[str, Any] = {}
+        if max_flow_mm3_s is not None:
+            changes["max_flow_mm3_s"] = fl_caps.check_max_flow(max_flow_mm3_s,
+                                                               "MAX_FLOW")
+        elif clear_max_flow:
+            changes["max_flow_mm3_s"] = None
+        if mode is not None:
+            changes["mode"] = check_mode(mode)
+        settings = LimiterSettings(**{**self.settings.__dict__, **changes})
+        self.settings = settings
+        if enabled is not None:
+            self.enabled = bool(enabled)
+        self._update()
+
+    def set_profile(self, profile: Optional[Profile],
+                    working_point: float = 0.5) -> None:
+        """A newly active profile (None: none) seeds the temperature cap and
+        a fresh grip model."""
+        self.profile = profile
+        self.working_point = working_point
+        self.model = None
+        if profile is not None:
+            line = profile_line(profile, working_point)
+            seed_grip = profile.provenance.min_grip or DEFAULT_MIN_GRIP
+            self.model = GripModel(CapacityLine.from_profile_line(
+                line, seed_grip, profile.bounds.recommended_temp_c))
+        self.reactive = ReactiveRule(self._reactive_settings())
+        self._update()
+
+    def set_temperature(self, temp_c: Optional[float]) -> None:
+        old = self.temp_c
+        if temp_c is None or old is None \
+                or abs(temp_c - old) >= TEMP_RESOLUTION_C:
+            self.temp_c = temp_c
+            if temp_c != old:
+                self._update()
+
+    def set_sensor_fault(self, fault: Optional[str]) -> None:
+        """A fault turns the grip caps off (never on, never lower)."""
+        if fault == self.sensor_fault:
+            return
+        self.sensor_fault = fault
+        if fault is not None:
+            self.reactive.reset()
+        self._update()
+
+    def on_window(self, duration_s: float, commanded_mm: float,
+                  grip: Optional[float], temp_c: Optional[float]) -> None:
+        """One closed grip window of the sensor."""
+        if self.sensor_fault is not None or duration_s <= 0.0:
+            return
+        flow = self.filament_area_mm2 * commanded_mm / duration_s
+        before = self.reactive.cap_mm3_s
+        self.reactive.on_window(grip, flow, duration_s)
+        learned = False
+        if self.model is not None:
+            learned = self.model.add_window(flow, grip, temp_c)
+        if learned or self.reactive.cap_mm3_s != before:
+            self._update()
+
+    # --- the decision --------------------------------------------------------
+    def _update(self) -> None:
+        allowed = MODE_CAPS[self.settings.mode]
+        caps: Dict[str, Optional[float]] = dict.fromkeys(fl_caps.CAP_NAMES)
+        why = []
+        caps["max_flow"] = self.settings.max_flow_mm3_s
+        if self.profile is None:
+            why.append("no active profile: temperature and model caps off")
+        elif self.temp_c is None:
+            why.append("no hotend temperature: temperature and model caps off")
+        else:
+            temp = min(self.temp_c, self.profile.bounds.max_temp_c)
+            caps["temperature"] = profile_line(
+                self.profile, self.working_point).flow_mm3_s(temp)
+            if self.model is not None:
+                caps["model"] = self.model.cap_mm3_s(temp, self.min_grip)
+        if self.sensor_fault is not None:
+            why.append(f"sensor fault '{self.sensor_fault}': grip caps off")
+            caps["grip"] = caps["model"] = None
+        else:
+            caps["grip"] = self.reactive.cap_mm3_s
+        self.caps = {name: (round(v, 4) if v is not None and name in allowed
+                            else None) for name, v in caps.items()}
+        self.active = fl_caps.lowest_cap(**self.caps) if self.enabled \
+            else fl_caps.ActiveCap(None, "none")
+        if not self.enabled:
+            why.insert(0, "disabled")
+        self.why = "; ".join(why)
+        self._build_status()
+
+    def limit(self, shape: fl_caps.MoveShape, speed_mm_s: float) -> float:
+        """The speed this move may run at (never above speed_mm_s)."""
+        cap = self.active.cap_mm3_s
+        if cap is None or not shape.extrudes:
+            return speed_mm_s
+        hard = [c for c in (self.caps["max_flow"], self.caps["temperature"])
+                if c is not None]
+        speed = fl_caps.capped_speed(shape, speed_mm_s,
+                                     min(hard) if hard else None,
+                                     self.filament_area_mm2)
+        if self.active.reason in ("grip", "model"):
+            floor = self.settings.min_speed_factor * speed_mm_s
+            speed = fl_caps.capped_speed(shape, speed, cap, self.filament_area_mm2,
+                                         floor_mm_s=min(floor, speed))
+        if speed < speed_mm_s:
+            self.slowed_moves += 1
+            self.slowed_time_s += shape.duration_s(speed) - shape.duration_s(
+                speed_mm_s)
+            self._status["slowed_moves"] = self.slowed_moves
+            self._status["slowed_time"] = round(self.slowed_time_s, 3)
+        return speed
+
+    # --- status --------------------------------------------------------------
+    def _build_status(self) -> None:
+        cap = self.active.cap_mm3_s
+        self._status = {
+            "enabled": self.enabled,
+            "mode": self.settings.mode,
+            "max_flow": self.settings.max_flow_mm3_s,
+            "cap": None if cap is None else round(cap, 3),
+            "reason": self.active.reason,
+            "why": self.why,
+            "caps": dict(self.caps),
+            "min_grip": self.min_grip,
+            "temperature": None if self.temp_c is None else round(self.temp_c, 1),
+            "profile": None if self.profile is None else self.profile.name,
+            "slowed_time": round(self.slowed_time_s, 3),
+            "slowed_moves": self.slowed_moves,
+            "model": None if self.model is None else self.model.status(),
+        }
+
+    def status(self) -> Dict[str, Any]:
+        """The held status (a fresh top-level dict; nested values are not
+        changed in place, they are replaced)."""
+        return dict(self._status)

@@ -1,0 +1,87 @@
+"""The reactive grip rule: slow down after the feeder slipped, recover slowly.
+
+The rule is stated in speed. When a judged grip window reads grip g below
+`min_grip`, the feeder moved only g of the filament it was told to; the
+hotend melted the measured flow g * F. The cap drops to that measured flow,
+so the next moves ask for what the hotend just proved it can melt: their
+speed is scaled by at most g (never below `min_speed_factor` of the speed
+the G-code asked for; that floor is applied per move by the limiter). A
+lower cap is never raised by a slip.
+
+Between `min_grip` and `min_grip + hysteresis` the cap holds. At or above it,
+the cap rises by `recovery_per_s` of the flow that slipped per second of good
+window: the speed of the moves that slipped climbs back by at most that
+share of their G-code speed per second (0.2: from 0.5 to full speed in
+2.5 s), and the cap is released once it is back at the flow that slipped. ddPrint's rule is linear in 1/grip
+with no hysteresis, so it oscillates around the slip point; this one reacts
+at once and returns slowly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+from ..errors import FlowloopError
+
+DEFAULT_MIN_GRIP = 0.9
+DEFAULT_MIN_SPEED_FACTOR = 0.3
+DEFAULT_HYSTERESIS = 0.03
+DEFAULT_RECOVERY_PER_S = 0.2
+# A window longer than this counts as this long for recovery (a pause is not
+# evidence that the hotend keeps up).
+MAX_RECOVERY_STEP_S = 1.0
+
+
+def check_min_grip(value: float, what: str = "min_grip") -> float:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) \
+            or not 0.0 < value <= 1.0:
+        raise FlowloopError(f"{what} must be in (0, 1], not {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class ReactiveSettings:
+    min_grip: float = DEFAULT_MIN_GRIP
+    hysteresis: float = DEFAULT_HYSTERESIS
+    recovery_per_s: float = DEFAULT_RECOVERY_PER_S
+
+    def __post_init__(self):
+        check_min_grip(self.min_grip)
+        if not 0.0 <= self.hysteresis < 1.0:
+            raise FlowloopError(f"hysteresis must be in 0..1, not {self.hysteresis}")
+        if not self.recovery_per_s > 0.0:
+            raise FlowloopError(
+                f"recovery_rate must be above 0, not {self.recovery_per_s}")
+
+
+class ReactiveRule:
+    def __init__(self, settings: ReactiveSettings = ReactiveSettings()):
+        self.settings = settings
+        self.cap_mm3_s: Optional[float] = None
+        self.slip_flow_mm3_s: Optional[float] = None  # the flow that slipped
+
+    def reset(self) -> None:
+        self.cap_mm3_s = self.slip_flow_mm3_s = None
+
+    def on_window(self, grip: Optional[float], commanded_flow_mm3_s: float,
+                  duration_s: float) -> Optional[float]:
+        """Update from one closed window (grip None: not judged, no change);
+        returns the cap (mm^3/s) or None when the rule does not limit."""
+        if grip is None or commanded_flow_mm3_s <= 0.0:
+            return self.cap_mm3_s
+        s = self.settings
+        if grip < s.min_grip:
+            measured = grip * commanded_flow_mm3_s
+            if self.cap_mm3_s is None:
+                self.slip_flow_mm3_s = commanded_flow_mm3_s
+                self.cap_mm3_s = measured
+            else:
+                self.cap_mm3_s = min(self.cap_mm3_s, measured)
+        elif grip >= s.min_grip + s.hysteresis and self.cap_mm3_s is not None:
+            step = min(max(duration_s, 0.0), MAX_RECOVERY_STEP_S)
+            self.cap_mm3_s += s.recovery_per_s * step * self.slip_flow_mm3_s
+            if self.cap_mm3_s >= self.slip_flow_mm3_s:
+                self.reset()
+        return self.cap_mm3_s
+

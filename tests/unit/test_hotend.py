@@ -1,0 +1,79 @@
+"""The hotend thermal model: a first-order lag after a dead time within the
+heater's power, a sag when extrusion needs more heat than the heater has."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from flowloop.control.hotend import HotendModel, HotendParams
+from flowloop.errors import FlowloopError
+
+PARAMS = HotendParams(time_constant_s=4.0, dead_time_s=1.0)
+
+
+def test_nothing_happens_before_the_dead_time():
+    model = HotendModel(PARAMS, temp_c=25.0)
+    model.set_target(0.0, 210.0)
+    assert model.advance(0.95) == pytest.approx(25.0)
+
+
+def test_within_power_it_follows_as_a_first_order_lag():
+    # Start hot, a 2 degC step (about 21 W, within the heater's 40)
+    model = HotendModel(PARAMS, temp_c=200.0, target_c=200.0)
+    model.advance(5.0)
+    model.set_target(5.0, 202.0)
+    assert model.advance(6.0) == pytest.approx(200.0)
+    temp = model.advance(6.0 + PARAMS.time_constant_s)
+    assert 0.0 < model.power_w < PARAMS.max_power_w
+    assert temp == pytest.approx(202.0 - 2.0 / math.e, abs=0.01)
+
+
+def test_heating_from_cold_is_limited_by_the_heater_power():
+    model = HotendModel(PARAMS, temp_c=25.0)
+    model.set_target(0.0, 210.0)
+    model.advance(1.0)
+    # 40 W into 16.7 J/K can raise at most 2.4 degC/s
+    temp = model.advance(3.0)
+    assert model.power_w == PARAMS.max_power_w
+    assert 25.0 < temp <= 25.0 + 2.0 * 40.0 / 16.7 + 1e-6
+
+
+def test_extrusion_cools_and_a_high_flow_sags_the_nozzle():
+    p = PARAMS
+    limit = p.max_steady_flow_mm3_s(230.0)
+    # 40 W minus 0.07 W/K * 205 K, over 0.00233 J/K/mm^3 * 205 K
+    assert limit == pytest.approx((40 - 0.07 * 205) / (0.00233 * 205))
+    for flow, sags in ((0.8 * limit, False), (1.5 * limit, True)):
+        model = HotendModel(p, temp_c=230.0, target_c=230.0)
+        temp = model.advance(600.0, flow_mm3_s=flow)
+        assert (temp < 229.0) is sags
+    # the sag settles where the heater's full power holds the block
+    k = p.loss_w_per_c + p.filament_j_per_mm3_c * 1.5 * limit
+    assert temp == pytest.approx(p.ambient_c + p.max_power_w / k, abs=0.5)
+
+
+def test_a_heater_turned_off_cools_toward_ambient():
+    model = HotendModel(PARAMS, temp_c=200.0)
+    temp = model.advance(600.0)
+    assert model.power_w == 0.0 and 25.0 < temp < 60.0
+
+
+@given(st.floats(0, 300), st.floats(0, 300), st.floats(0, 60), st.floats(0, 50))
+def test_the_nozzle_never_overshoots_a_target_it_approaches(start, target, t, flow):
+    model = HotendModel(PARAMS, temp_c=max(start, PARAMS.ambient_c))
+    model.set_target(0.0, target)
+    temp = model.advance(t, flow)
+    lo = min(model.params.ambient_c, target, start)
+    hi = max(target, start, model.params.ambient_c)
+    assert lo - 1e-6 <= temp <= hi + 1e-6
+
+
+def test_bad_parameters_are_one_line():
+    with pytest.raises(FlowloopError, match="max_power_w must be above 0"):
+        HotendParams(max_power_w=0)
+    with pytest.raises(FlowloopError, match="dead_time_s must be >= 0"):
+        HotendParams(dead_time_s=-1)

@@ -1,0 +1,143 @@
+"""FlowLimiter: which cap acts in which mode, the floor of the grip caps,
+sensor faults, and bad input that changes nothing."""
+
+from __future__ import annotations
+
+import pytest
+
+from flowloop.control.caps import move_shape
+from flowloop.control.limiter import FlowLimiter, LimiterSettings
+from flowloop.errors import FlowloopError
+from flowloop.material.profile import profile_from_dict, profile_line
+from tests.samples import make
+
+AREA = 2.405
+PROFILE = profile_from_dict(make())
+LINE = profile_line(PROFILE, 0.5)
+# 0.05 mm of filament per mm at 200 mm/s: 24 mm^3/s
+FAST = move_shape([0, 0, 0, 0], [100, 0, 0, 5])
+
+
+def flow(speed):
+    return FAST.flow_mm3_s(speed, AREA)
+
+
+def test_max_flow_alone_caps_without_sensor_or_profile():
+    lim = FlowLimiter(LimiterSettings(max_flow_mm3_s=12.0), AREA)
+    assert flow(lim.limit(FAST, 200.0)) == pytest.approx(12.0)
+    s = lim.status()
+    assert (s["cap"], s["reason"], s["slowed_moves"]) == (12.0, "max_flow", 1)
+    assert s["slowed_time"] == pytest.approx(100 / (12 / (AREA * 0.05)) - 0.5,
+                                             abs=1e-3)
+    assert "no active profile" in s["why"]
+
+
+def test_the_temperature_cap_follows_the_measured_temperature():
+    lim = FlowLimiter(LimiterSettings(mode="temperature"), AREA)
+    lim.set_profile(PROFILE, 0.5)
+    assert lim.status()["cap"] is None  # no reading yet: off, and says so
+    assert "no hotend temperature" in lim.status()["why"]
+    for temp in (200.0, 215.0, 240.0):
+        lim.set_temperature(temp)
+        assert lim.status()["reason"] == "temperature"
+        assert flow(lim.limit(FAST, 200.0)) == pytest.approx(
+            LINE.flow_mm3_s(temp), rel=1e-3)
+
+
+def test_above_the_profile_max_temp_the_line_is_not_trusted():
+    lim = FlowLimiter(LimiterSettings(mode="temperature"), AREA)
+    lim.set_profile(PROFILE, 0.5)
+    lim.set_temperature(300.0)
+    assert lim.status()["cap"] == pytest.approx(LINE.flow_mm3_s(260.0), abs=1e-3)
+
+
+def test_static_mode_ignores_the_profile():
+    lim = FlowLimiter(LimiterSettings(mode="static"), AREA)
+    lim.set_profile(PROFILE, 0.5)
+    lim.set_temperature(200.0)
+    assert lim.limit(FAST, 200.0) == 200.0
+    assert lim.status()["reason"] == "none"
+
+
+def test_a_slip_caps_at_the_measured_flow_down_to_the_floor():
+    lim = FlowLimiter(LimiterSettings(mode="reactive", min_speed_factor=0.5), AREA)
+    # 1.25 mm in 0.1 s is 30 mm^3/s commanded; grip 0.6 melts 18
+    lim.on_window(0.1, 1.25, 0.6, None)
+    melted = 0.6 * AREA * 12.5
+    s = lim.status()
+    assert s["reason"] == "grip" and s["cap"] == pytest.approx(melted, abs=1e-3)
+    assert flow(lim.limit(FAST, 200.0)) == pytest.approx(melted, abs=1e-3)
+    # a move 4x as fast would need a quarter: it gets the floor, half its speed
+    assert lim.limit(FAST, 800.0) == pytest.approx(400.0)
+
+
+def test_predictive_mode_caps_before_any_slip():
+    lim = FlowLimiter(LimiterSettings(mode="predictive", min_grip=0.9), AREA)
+    lim.set_profile(PROFILE, 0.5)
+    lim.set_temperature(210.0)
+    s = lim.status()
+    # seeded at the profile's line (its grip 0.9 = this min_grip): equal caps,
+    # the temperature cap wins the tie
+    assert s["caps"]["model"] == pytest.approx(s["caps"]["temperature"], rel=1e-3)
+    # a hotend weaker than its profile: the model learns and caps lower
+    weak = 0.6 * LINE.flow_mm3_s(210.0)
+    for _ in range(30):
+        lim.on_window(0.1, 1.25, weak / 30.0, 210.0)
+    s = lim.status()
+    assert s["reason"] in ("grip", "model")
+    assert s["caps"]["model"] < 0.8 * s["caps"]["temperature"]
+    assert s["model"]["windows"] == 30
+
+
+def test_a_sensor_fault_turns_the_grip_caps_off_and_says_so():
+    lim = FlowLimiter(LimiterSettings(mode="predictive", max_flow_mm3_s=25.0), AREA)
+    lim.on_window(0.1, 1.25, 0.5, None)
+    assert lim.status()["reason"] == "grip"
+    lim.set_sensor_fault("magnet")
+    s = lim.status()
+    assert s["reason"] == "max_flow" and s["caps"]["grip"] is None
+    assert "sensor fault 'magnet': grip caps off" in s["why"]
+    lim.on_window(0.1, 1.25, 0.1, None)  # nothing judged while faulted
+    assert lim.status()["caps"]["grip"] is None
+
+
+def test_disabled_caps_nothing():
+    lim = FlowLimiter(LimiterSettings(max_flow_mm3_s=5.0), AREA)
+    lim.configure(enabled=False)
+    assert lim.limit(FAST, 200.0) == 200.0
+    assert lim.status()["enabled"] is False and lim.status()["cap"] is None
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"max_flow_mm3_s": -3}, "MAX_FLOW must be above 0"),
+    ({"max_flow_mm3_s": "x"}, "MAX_FLOW must be a number"),
+    ({"mode": "fast"}, "mode must be one of static, temperature, reactive"),
+    ({"enabled": False, "mode": "fast"}, "mode must be one of"),
+])
+def test_bad_input_changes_nothing(kw, message):
+    lim = FlowLimiter(LimiterSettings(max_flow_mm3_s=10.0), AREA)
+    before = lim.status()
+    with pytest.raises(FlowloopError, match=message):
+        lim.configure(**kw)
+    assert lim.status() == before
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"min_grip": 0.0}, r"min_grip must be in \(0, 1\]"),
+    ({"min_grip": 1.5}, r"min_grip must be in \(0, 1\]"),
+    ({"min_speed_factor": 0.0}, r"min_speed_factor must be in \(0, 1\]"),
+    ({"max_flow_mm3_s": 0.0}, "max_flow must be above 0"),
+])
+def test_bad_settings_are_refused(kw, message):
+    with pytest.raises(FlowloopError, match=message):
+        LimiterSettings(**kw)
+
+
+def test_min_grip_defaults_to_the_profile_s():
+    lim = FlowLimiter(LimiterSettings(), AREA)
+    assert lim.min_grip == 0.9
+    strict = profile_from_dict(make(provenance={"method": "manual",
+                                                "min_grip": 0.95}))
+    lim.set_profile(strict, 0.5)
+    assert lim.min_grip == 0.95
+    assert lim.status()["min_grip"] == 0.95

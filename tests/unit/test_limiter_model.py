@@ -1,0 +1,84 @@
+"""The predictive grip model: seeded from the profile's one melt line,
+fitted online to the windows the sensor closes."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from flowloop.control.grip_model import (
+    CapacityLine,
+    GripModel,
+    fit_capacity,
+    predicted_grip,
+)
+from flowloop.material.profile import Line, profile_from_dict, profile_line
+from tests.samples import make
+
+PROFILE = profile_from_dict(make())          # herz-pla-red 0.8 mm (ddPrint)
+LINE = profile_line(PROFILE, 0.5)
+
+
+def test_the_seed_is_the_profile_line_at_its_grip():
+    seed = CapacityLine.from_profile_line(LINE, 0.9, 210.0)
+    for temp in (200.0, 210.0, 230.0):
+        assert seed.at(temp) == pytest.approx(0.9 * LINE.flow_mm3_s(temp))
+    model = GripModel(seed)
+    assert model.cap_mm3_s(220.0, 0.9) == pytest.approx(LINE.flow_mm3_s(220.0))
+
+
+def test_predicted_grip_is_capacity_over_demand():
+    seed = CapacityLine(210.0, 10.0, 0.15)
+    assert predicted_grip(seed, 8.0, 210.0) == 1.0
+    assert predicted_grip(seed, 20.0, 210.0) == pytest.approx(0.5)
+    assert predicted_grip(seed, 0.0, 210.0) == 1.0
+
+
+def test_slipping_windows_pull_the_fit_to_the_true_capacity():
+    seed = CapacityLine(210.0, 10.0, 0.15)
+    true = CapacityLine(210.0, 7.0, 0.12)      # a hotend 30 % weaker than seeded
+    model = GripModel(seed)
+    for i in range(60):
+        temp = 200.0 + (i % 5) * 10.0
+        demand = 1.6 * true.at(temp)
+        model.add_window(demand, true.at(temp) / demand, temp)
+    # 60 windows against a prior worth 5: over 90 % of the seed's error gone
+    assert abs(model.fitted.capacity_mm3_s - 7.0) < 0.1 * 3.0
+    assert model.fitted.slope_mm3_s_per_c == pytest.approx(0.12, rel=0.1)
+    assert model.status()["windows"] == 60
+
+
+def test_a_window_that_kept_up_above_the_model_raises_it():
+    model = GripModel(CapacityLine(210.0, 10.0, 0.15))
+    for _ in range(20):
+        model.add_window(14.0, 1.0, 210.0)
+    assert model.fitted.at(210.0) > 13.0
+
+
+def test_windows_that_say_nothing_change_nothing():
+    model = GripModel(CapacityLine(210.0, 10.0, 0.15))
+    assert not model.add_window(5.0, 1.0, 210.0)     # kept up below capacity
+    assert not model.add_window(15.0, None, 210.0)   # not judged
+    assert not model.add_window(15.0, 0.5, None)     # no temperature
+    assert model.fitted == model.seed
+
+
+@given(st.lists(st.tuples(st.floats(180, 260), st.floats(0, 40)), max_size=30))
+def test_with_one_temperature_the_slope_stays_near_the_seed(points):
+    seed = CapacityLine(210.0, 10.0, 0.15)
+    same_temp = [(215.0, flow) for _, flow in points]
+    fit = fit_capacity(seed, same_temp)
+    # all at one temperature: the data pins C(215), the prior the slope
+    if points:
+        mean = sum(f for _, f in same_temp) / len(same_temp)
+        n = len(same_temp)
+        assert fit.at(215.0) == pytest.approx(
+            (n * mean + 5 * seed.at(215.0)) / (n + 5), rel=0.2, abs=0.5)
+
+
+def test_the_line_it_is_seeded_from_is_the_material_line():
+    # one melt line: the model asks flowloop.material's Line, never its own
+    line = Line(0.2, -30.0)
+    assert CapacityLine.from_profile_line(line, 1.0, 200.0).at(210.0) == \
+        pytest.approx(line.flow_mm3_s(210.0))
