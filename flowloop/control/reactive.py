@@ -12,9 +12,9 @@ Between `min_grip` and `min_grip + hysteresis` the cap holds. At or above it,
 the cap rises by `recovery_per_s` of the flow that slipped per second of good
 window: the speed of the moves that slipped climbs back by at most that
 share of their G-code speed per second (0.2: from 0.5 to full speed in
-2.5 s), and the cap is released once it is back at the flow that slipped. ddPrint's rule is linear in 1/grip
-with no hysteresis, so it oscillates around the slip point; this one reacts
-at once and returns slowly.
+2.5 s), and the cap is released once it is back at the flow that slipped.
+ddPrint's rule is linear in 1/grip with no hysteresis, so it oscillates
+around the slip point; this one reacts at once and returns slowly.
 """
 
 from __future__ import annotations
