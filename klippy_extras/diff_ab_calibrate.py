@@ -12,6 +12,7 @@ import re
 
 from flowloop.calibrate import diff_ab
 from flowloop.errors import FlowloopError
+from flowloop.host import klipper_config
 
 # stepper_x, stepper_x1, ... all move with motor A (X on cartesian)
 AXIS_STEPPER_RE = {axis: re.compile(re.escape(name) + r'\d*$')
@@ -145,9 +146,7 @@ class DiffABCalibrate:
         for stepper, old, new in changes:
             lines.append(f"{stepper.get_name()}: rotation_distance"
                          f" {old:.6f} -> {new:.6f} (applied now)")
-        lines += paste
-        if staged:
-            lines.append("Run SAVE_CONFIG to keep the new values.")
+        lines += klipper_config.save_report(staged, paste)
         lines.append("X and Y are no longer homed: run G28 before moving.")
         gcmd.respond_info("\n".join(lines))
 

@@ -11,6 +11,7 @@ import logging
 
 from flowloop.calibrate import delta
 from flowloop.errors import FlowloopError
+from flowloop.host import klipper_config
 
 from . import probe
 
@@ -165,10 +166,7 @@ class EndstopCalibrate:
             lines.append(f"Within {check.tolerance_mm:.4f} mm: nothing to"
                          " change.")
         else:
-            lines += paste
-            if staged:
-                lines.append("The SAVE_CONFIG command will store the staged"
-                             " position_endstop values and restart.")
+            lines += klipper_config.save_report(staged, paste)
             lines.append("Delta geometry is read at startup: after the"
                          " restart, G28 and ENDSTOP_CALIBRATE again to check.")
         self.gcode.respond_info("\n".join(lines))

@@ -210,16 +210,6 @@ def read_config(path: Union[str, Path]) -> KlipperConfig:
 # --- which file sets an option ----------------------------------------------
 
 
-def included_definitions(main_config: str, section: str, option: str) -> List[str]:
-    """Files other than the main config that set [section] option.
-
-    SAVE_CONFIG refuses to save an option that an included file sets, so such
-    a value must be pasted into that file by hand.
-    """
-    config = read_config(main_config)
-    return [str(path) for path in config.included_files_setting(section, option)]
-
-
 def save_plan(main_config: str, items: Sequence[Tuple[str, str, str]]
               ) -> Tuple[List[Tuple[str, str, str]], List[str]]:
     """Split (section, option, value) items for SAVE_CONFIG.
@@ -248,3 +238,14 @@ def save_plan(main_config: str, items: Sequence[Tuple[str, str, str]]
                 lines.append(f"  [{section}]")
             lines.append(f"  {option}: {value}")
     return stageable, lines
+
+
+def save_report(staged: Sequence[Tuple[str, str, str]], paste: Sequence[str]
+                ) -> List[str]:
+    """What a calibration says after staging values (save_plan's two parts):
+    the lines to paste by hand, then what SAVE_CONFIG will store."""
+    lines = list(paste)
+    if staged:
+        names = ", ".join(f"[{section}] {option}" for section, option, _ in staged)
+        lines.append(f"Run SAVE_CONFIG to store {names} (Klipper restarts).")
+    return lines

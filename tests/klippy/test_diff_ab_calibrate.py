@@ -53,4 +53,6 @@ def test_values_from_an_included_file_are_printed_to_paste(
             "them there:") in log
     assert "  [stepper_y1]\n  rotation_distance: 32.250600" in log
     assert "save_config: set [stepper_y" not in log
+    assert ("Run SAVE_CONFIG to store [stepper_x] rotation_distance (Klipper restarts)."
+            in log)
     assert "X and Y are no longer homed: run G28 before moving." in log

@@ -170,6 +170,18 @@ def test_save_plan_leaves_included_values_to_paste(tmp_path):
                      "  [stepper_a]", "  position_endstop: 300.5"]
 
 
+def test_the_save_report_lists_what_to_paste_then_what_save_config_stores():
+    staged = [("stepper_b", "position_endstop", "298.8"),
+              ("stepper_c", "position_endstop", "300.5")]
+    paste = ["a.cfg sets these, which SAVE_CONFIG cannot change; paste them there:",
+             "  [stepper_a]", "  position_endstop: 301.2"]
+    assert klipper_config.save_report(staged, paste) == paste + [
+        "Run SAVE_CONFIG to store [stepper_b] position_endstop,"
+        " [stepper_c] position_endstop (Klipper restarts)."]
+    assert klipper_config.save_report([], paste) == paste
+    assert klipper_config.save_report([], []) == []
+
+
 def test_an_included_file_with_indented_options_is_seen_setting_them(tmp_path):
     # klippy's reader (configparser) takes indented lines right after a header
     # as options, so SAVE_CONFIG would refuse to save them.
@@ -183,7 +195,7 @@ def test_an_included_file_with_indented_options_is_seen_setting_them(tmp_path):
     assert staged == [] and paste[-1] == "  position_endstop: 300.5"
 
 
-def test_included_definitions_follow_includes_and_skip_the_save_config_block(tmp_path):
+def test_included_files_follow_includes_and_skip_the_save_config_block(tmp_path):
     (tmp_path / "hw").mkdir()
     (tmp_path / "hw" / "steppers.cfg").write_text(
         "[stepper_x]\nrotation_distance: 40 # belt\n[stepper_y]\nmicrosteps: 16\n")
@@ -193,8 +205,7 @@ def test_included_definitions_follow_includes_and_skip_the_save_config_block(tmp
         "#*# <---------------------- SAVE_CONFIG ---------------------->\n"
         "#*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.\n"
         "#*#\n#*# [stepper_y]\n#*# rotation_distance = 40\n")
-    where = klipper_config.included_definitions
-    assert where(str(main), "stepper_x", "rotation_distance") \
-        == [str((tmp_path / "hw" / "steppers.cfg").resolve())]
-    assert where(str(main), "stepper_y", "rotation_distance") \
-        == []
+    config = read_config(main)
+    assert config.included_files_setting("stepper_x", "rotation_distance") \
+        == [(tmp_path / "hw" / "steppers.cfg").resolve()]
+    assert config.included_files_setting("stepper_y", "rotation_distance") == []
