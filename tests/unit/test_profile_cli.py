@@ -98,11 +98,13 @@ def test_a_ddprint_file_given_to_show_gets_a_hint(capsys):
     assert code == 2 and "run 'flowloop profile import" in err
 
 
-def test_plot_writes_svg(imported, tmp_path, capsys):
+def test_plot_writes_svg_and_png(imported, tmp_path, capsys):
     out = tmp_path / "p.svg"
     code, _, _ = run(capsys, "plot", imported, "-o", out, "--wp", "0.2")
     assert code == 0
     ET.fromstring(out.read_bytes())
+    code, _, _ = run(capsys, "plot", imported, "-o", tmp_path / "p.png")
+    assert code == 0 and (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
     code, _, err = run(capsys, "plot", imported, "-o", tmp_path / "p.pdf")
     assert code == 2 and ".svg or .png" in err
 

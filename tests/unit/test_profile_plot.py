@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
+import sys
 import xml.etree.ElementTree as ET
 
+import numpy as np
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
@@ -103,19 +104,50 @@ def test_bad_working_point_is_refused():
         plot.svg(P.profile_from_dict(make()), 2.0)
 
 
-@pytest.mark.skipif(importlib.util.find_spec("matplotlib") is not None,
-                    reason="matplotlib is installed: the PNG path is tested instead")
-def test_png_without_matplotlib_says_what_to_install(tmp_path):
-    with pytest.raises(FlowloopError, match="pip install matplotlib"):
+def test_png_without_matplotlib_says_what_to_install(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import fails as if absent
+    with pytest.raises(FlowloopError, match=r"klipper-flowloop\[plot\]"):
         plot.png(P.profile_from_dict(make()), tmp_path / "x.png")
+    assert not (tmp_path / "x.png").exists()
 
 
-@pytest.mark.skipif(importlib.util.find_spec("matplotlib") is None,
-                    reason="matplotlib is not installed (PNG plots are optional)")
-def test_png_with_matplotlib(tmp_path):
+def pixels_of(image, color: str) -> int:
+    """How many pixels of the PNG have this #rrggbb colour (within 8/255)."""
+    want = np.array([int(color[i:i + 2], 16) for i in (1, 3, 5)]) / 255.0
+    return int((np.abs(image[:, :, :3] - want).max(axis=2) < 8 / 255).sum())
+
+
+def test_png_draws_the_same_panels_as_the_svg(measured, tmp_path):
+    from matplotlib import image as mpl_image  # the plot extra, in dev installs
     out = tmp_path / "x.png"
-    plot.png(P.profile_from_dict(make()), out)
+    plot.png(measured, out, 0.25)
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    image = mpl_image.imread(str(out))
+    panels = plot.panels(measured, 0.25)
+    assert len(panels) == 2  # temperature and heater PWM, as in the SVG
+    assert image.shape[:2] == (40 + plot.PANEL_HEIGHT * 2, plot.WIDTH)
+    for color in (plot.COLORS["into_air"], plot.COLORS["real_print"],
+                  plot.COLORS["working"]):
+        assert pixels_of(image, color) > 200, color
+
+
+def test_png_of_a_profile_without_power_lines_has_one_panel(tmp_path):
+    from matplotlib import image as mpl_image
+    out = tmp_path / "x.png"
+    plot.png(P.profile_from_dict(make(name="$x$ and 100%")), out)
+    assert mpl_image.imread(str(out)).shape[:2] == (40 + plot.PANEL_HEIGHT, plot.WIDTH)
+
+
+def test_the_working_line_is_drawn_with_its_knee_at_the_into_air_line():
+    # real print steeper than into air: they cross at 229.8 degC
+    p = P.profile_from_dict(make(real=(0.3, 210.0, 10.1356)))
+    (temperature,) = plot.panels(p, 0.5)
+    working = {s.element_id: s for s in temperature.lines}["working_line"]
+    temps = [t for t, _ in working.points]
+    assert temps[0] == 190.0 and temps[-1] == 260.0
+    assert temps[1] == pytest.approx(229.8, abs=0.05)
+    air = p.lines.into_air.line()
+    assert working.points[-1][1] == pytest.approx(air.flow_mm3_s(260.0))
 
 
 def test_nice_ticks_cover_the_range():
