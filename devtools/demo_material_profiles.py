@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import tempfile
 from pathlib import Path
 from urllib.parse import quote
@@ -10,29 +12,27 @@ from flowloop.cli import main as flowloop_cli
 from flowloop.material import ddprint, plot
 from flowloop.material import profile as fl_profile
 
-SAMPLE = "shared/data/ddprint-profiles/mat-profiles/UM2-1/herz-pla-red.json"
-
-# The same numbers, for a checkout without ../shared/data beside it.
-FALLBACK = {
-    "identity": {"name": "herz-pla-red_80", "printer": "UM2-1",
-                 "nozzle_diameter_mm": 0.8, "filament_name": "herz-pla-red",
-                 "filament_type": "PLA"},
-    "lines": {"into_air": {"slope_mm3_s_per_c": 0.146, "temp_c": 171.6312,
-                           "flow_mm3_s": 7.5789},
-              "real_print": {"slope_mm3_s_per_c": 0.146, "temp_c": 210.0,
-                             "flow_mm3_s": 10.1356}},
-    "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 210.0, "max_temp_c": 260.0},
-    "provenance": {"method": "manual", "note": "ddPrint's herz-pla-red numbers"},
-}
+# Shipped with the tests: ddPrint's public material profiles (SOURCE.md there).
+PROFILES = Path("tests/data/ddprint-profiles/mat-profiles")
+SAMPLE = PROFILES / "UM2-1/herz-pla-red.json"
+# A real file whose real-print line lies above its into-air line.
+IMPLAUSIBLE = PROFILES / "JP-1/kaiser-pla-grey.json"
 
 
 def sample_profile(ctx) -> fl_profile.Profile:
-    path = ctx.project.parent / SAMPLE
-    if path.is_file():
-        ctx.say(f"importing the ddPrint file {path.name} (printer UM2-1)")
-        return ddprint.import_file(path).profiles[0]
-    ctx.say(f"({path} not found: using the same numbers built in)")
-    return fl_profile.profile_from_dict(FALLBACK)
+    ctx.say(f"importing the ddPrint file {SAMPLE} (printer UM2-1)")
+    return ddprint.import_file(ctx.project / SAMPLE).profiles[0]
+
+
+def implausible_but_kept(ctx) -> None:
+    (profile,) = ddprint.import_file(ctx.project / IMPLAUSIBLE).profiles
+    ctx.say(f"importing {IMPLAUSIBLE}: kept, with a warning:")
+    for warning in fl_profile.line_warnings(profile):
+        ctx.say(f"  {warning}")
+    temps = ", ".join(f"{fl_profile.temp_for_flow(profile, 12.0, wp):.1f}"
+                      for wp in (0.0, 0.5, 1.0))
+    ctx.say(f"  12 mm^3/s needs {temps} degC at working points 0, 0.5, 1 "
+            f"(the into-air line at each)")
 
 
 def demo(ctx) -> None:
@@ -48,6 +48,7 @@ def demo(ctx) -> None:
                 f"{fl_profile.temp_for_flow(profile, 12.0, wp):.1f} degC; at 230 degC "
                 f"the hotend melts {fl_profile.max_flow_at(profile, 230.0, wp):.2f} "
                 f"mm^3/s")
+    implausible_but_kept(ctx)
     mr = ctx.moonraker
     if mr is None:
         offline(ctx, profile)
@@ -79,10 +80,11 @@ def demo(ctx) -> None:
 
 def offline(ctx, profile: fl_profile.Profile) -> None:
     with tempfile.TemporaryDirectory(prefix="fl-demo-") as tmp:
-        src = ctx.project.parent / SAMPLE
-        if src.is_file():
-            ctx.say(f"$ flowloop profile import {src.name} -o {tmp}")
-            flowloop_cli(["profile", "import", str(src), "-o", tmp])
+        ctx.say(f"$ flowloop profile import {SAMPLE} -o OUT")
+        with contextlib.redirect_stdout(io.StringIO()):  # it names the temp dir
+            flowloop_cli(["profile", "import", str(ctx.project / SAMPLE), "-o", tmp])
+        for written in sorted(Path(tmp).iterdir()):
+            ctx.say(f"wrote OUT/{written.name}")
         out = Path(tmp) / "plot.svg"
         out.write_text(plot.svg(profile))
         ctx.say(f"plot written: {out.stat().st_size} bytes of SVG (flowloop profile "
