@@ -70,7 +70,7 @@ class LimiterSettings:
     def __post_init__(self):
         if self.max_flow_mm3_s is not None:
             fl_caps.check_max_flow(self.max_flow_mm3_s)
-        check_mode(self.mode)
+        object.__setattr__(self, "mode", check_mode(self.mode))
         if self.min_grip is not None:
             check_min_grip(self.min_grip)
         check_min_speed_factor(self.min_speed_factor)

@@ -1,0 +1,190 @@
+# [flowrate_limiter]: caps the volumetric flow of every extruding G-code
+# move, from a fixed max_flow, the active profile at the hotend's
+# temperature, the flow sensor's grip (reactive) and a grip model fitted to
+# it (predictive).
+#
+# A move transform (as skew_correction.py): registered at klippy:connect,
+# chained to the transform it replaces, so bed mesh, skew correction and
+# exclude_object keep working. The caps and the decision live in
+# flowloop.control; this module reads config, follows the printer and
+# hands each move to the core.
+#
+# This file may be distributed under the terms of the GNU GPLv3 license.
+from flowloop.control import caps as fl_caps
+from flowloop.control import limiter as fl_limiter
+from flowloop.control.hotend import HotendModel
+from flowloop.errors import FlowloopError
+
+SETTING_FIELDS = {'max_flow': 'max_flow_mm3_s', 'mode': 'mode',
+                  'min_grip': 'min_grip', 'min_speed_factor': 'min_speed_factor',
+                  'hysteresis': 'hysteresis', 'recovery_rate': 'recovery_per_s'}
+
+
+def option_error(config, option, message):
+    return config.error(
+        f"Section [{config.get_name()}], option {option}: {message}")
+
+
+class FlowrateLimiter:
+    def __init__(self, config):
+        self.printer = printer = config.get_printer()
+        self.host = printer.load_object(config, 'flowloop')
+        self.reactor = printer.get_reactor()
+        self.section = config.get_name()
+        self.extruder_name = config.get('extruder', 'extruder')
+        self.sensor_name = config.get('sensor', None)
+        # option -> LimiterSettings field; the limits live in flowloop.control
+        values = {'max_flow': config.getfloat('max_flow', None),
+                  'mode': config.get('mode', fl_limiter.DEFAULT_MODE),
+                  'min_grip': config.getfloat('min_grip', None),
+                  'min_speed_factor': config.getfloat('min_speed_factor', None),
+                  'hysteresis': config.getfloat('hysteresis', None),
+                  'recovery_rate': config.getfloat('recovery_rate', None)}
+        settings = {}
+        for option, value in values.items():
+            if value is None:
+                continue
+            field = SETTING_FIELDS[option]
+            try:
+                fl_limiter.LimiterSettings(**{field: value})
+            except FlowloopError as e:
+                raise option_error(config, option, str(e)) from None
+            settings[field] = value
+        self.settings = fl_limiter.LimiterSettings(**settings)
+        self.limiter = None
+        self.next_transform = None
+        self.last_position = [0., 0., 0., 0.]
+        self.toolhead = self.heater = self.sensor = self.mcu = None
+        self.hotend_model = None   # the nozzle estimate where none is measured
+        printer.register_event_handler('klippy:connect', self._handle_connect)
+        printer.register_event_handler('flowloop:profile_activated',
+                                       self._handle_profile)
+        gcode = printer.lookup_object('gcode')
+        gcode.register_command('SET_FLOWRATE_LIMIT', self.cmd_SET_FLOWRATE_LIMIT,
+                               desc=self.cmd_SET_FLOWRATE_LIMIT_help)
+        gcode.register_command('QUERY_FLOWRATE_LIMIT',
+                               self.cmd_QUERY_FLOWRATE_LIMIT,
+                               desc=self.cmd_QUERY_FLOWRATE_LIMIT_help)
+
+    # --- setup ---------------------------------------------------------------
+    def _handle_connect(self):
+        extruder = self.printer.lookup_object(self.extruder_name, None)
+        if extruder is None or not hasattr(extruder, 'get_heater'):
+            raise self.printer.config_error(
+                f"Section [{self.section}], option extruder:"
+                f" '{self.extruder_name}' is not an extruder")
+        self.extruder = extruder
+        self.heater = extruder.get_heater()
+        self.toolhead = self.printer.lookup_object('toolhead')
+        self.mcu = self.printer.lookup_object('mcu')
+        self.limiter = fl_limiter.FlowLimiter(
+            self.settings, getattr(extruder, 'filament_area', 2.405))
+        self.sensor = self._find_sensor()
+        if self.sensor is not None:
+            self.sensor.subscribe_grip_windows(self._handle_window)
+        if self.mcu.is_fileoutput():
+            # Batch mode: no temperature reading arrives; the thermal model
+            # follows the heater's target instead.
+            self.hotend_model = HotendModel()
+        active = self.host.get_active_profile(self.extruder_name)
+        if active is not None:
+            self.limiter.set_profile(*active)
+        gcode_move = self.printer.lookup_object('gcode_move')
+        self.next_transform = gcode_move.set_move_transform(self, force=True)
+
+    def _find_sensor(self):
+        sensors = [obj for name, obj in self.printer.lookup_objects('flow_sensor')
+                   if name.startswith('flow_sensor ')]
+        if self.sensor_name is not None:
+            for sensor in sensors:
+                if sensor.name == self.sensor_name:
+                    return sensor
+            raise self.printer.config_error(
+                f"Section [{self.section}], option sensor: no [flow_sensor"
+                f" {self.sensor_name}]")
+        for sensor in sensors:
+            if sensor.extruder_name == self.extruder_name:
+                return sensor
+        return None
+
+    def _handle_profile(self, extruder, profile, working_point):
+        if extruder == self.extruder_name and self.limiter is not None:
+            self.limiter.set_profile(profile, working_point)
+
+    def _handle_window(self, window):
+        # In the reactor, possibly inside a flush: no pauses here.
+        self.limiter.set_sensor_fault(self.sensor.get_status()['fault'])
+        self.limiter.on_window(window.end_time - window.start_time,
+                               window.commanded_mm, window.grip, window.temp_c)
+
+    # --- the move transform --------------------------------------------------
+    def get_position(self):
+        position = self.next_transform.get_position()
+        self.last_position = list(position)
+        return position
+
+    def move(self, newpos, speed):
+        shape = fl_caps.move_shape(self.last_position, newpos)
+        self.last_position = list(newpos)
+        if shape.extrudes and self.toolhead.get_extruder() is self.extruder:
+            self._update_inputs(shape, speed)
+            speed = self.limiter.limit(shape, speed)
+        self.next_transform.move(newpos, speed)
+
+    def _update_inputs(self, shape, speed):
+        if self.sensor is not None:
+            self.limiter.set_sensor_fault(self.sensor.get_status()['fault'])
+        if self.hotend_model is None:
+            temp_c, _ = self.heater.get_temp(self.reactor.monotonic())
+        else:
+            model = self.hotend_model
+            target = self.heater.get_status(None)['target']
+            model.set_target(model.time_s, target)
+            flow = shape.flow_mm3_s(speed, self.limiter.filament_area_mm2)
+            temp_c = model.advance(model.time_s + shape.duration_s(speed), flow)
+        self.limiter.set_temperature(temp_c)
+
+    # --- status and commands -------------------------------------------------
+    def get_status(self, eventtime=None):
+        if self.limiter is None:
+            return {}
+        return self.limiter.status()
+
+    cmd_SET_FLOWRATE_LIMIT_help = (
+        "Turn the flowrate limiter on or off, set its max_flow (mm^3/s) or"
+        " its mode")
+
+    def cmd_SET_FLOWRATE_LIMIT(self, gcmd):
+        enable = gcmd.get_int('ENABLE', None, minval=0, maxval=1)
+        max_flow = gcmd.get('MAX_FLOW', None)
+        mode = gcmd.get('MODE', None)
+        clear = max_flow is not None and max_flow.strip().lower() == 'none'
+        try:
+            self.limiter.configure(
+                enabled=None if enable is None else bool(enable),
+                max_flow_mm3_s=None if clear else max_flow,
+                clear_max_flow=clear, mode=mode)
+        except FlowloopError as e:
+            raise gcmd.error(f"SET_FLOWRATE_LIMIT: {e}; nothing changed") \
+                from None
+        self._report(gcmd)
+
+    cmd_QUERY_FLOWRATE_LIMIT_help = "Report the flowrate limiter's caps"
+
+    def cmd_QUERY_FLOWRATE_LIMIT(self, gcmd):
+        self._report(gcmd)
+
+    def _report(self, gcmd):
+        s = self.limiter.status()
+        cap = "none" if s['cap'] is None else f"{s['cap']:.2f} mm^3/s"
+        caps = ", ".join(f"{name} {'off' if v is None else f'{v:.2f}'}"
+                         for name, v in s['caps'].items())
+        state = "enabled" if s['enabled'] else "disabled"
+        gcmd.respond_info(
+            f"flowrate_limiter: {state}, mode {s['mode']}, cap {cap}"
+            f" ({s['reason']}); caps: {caps}; slowed {s['slowed_moves']} moves"
+            f" by {s['slowed_time']:.1f} s" + (f"; {s['why']}" if s['why'] else ""))
+
+
+def load_config(config):
+    return FlowrateLimiter(config)
