@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import re
+import unicodedata
 
 import msgspec
 import pytest
@@ -375,6 +377,15 @@ def test_any_junk_in_a_field_is_refused_with_one_line_or_accepted(field, junk):
         assert "\n" not in str(e) and str(e)
 
 
+@pytest.mark.parametrize("name, message", [
+    (" pad ", "begins or ends with whitespace"), ("\u00a0lead", "whitespace"),
+    ("evil\u202etxt.gcode", "U+202E"), ("zero\u200bwidth", "U+200B"),
+    ("\u2066isolate\u2069", "U+2066")])
+def test_padded_names_and_invisible_format_characters_are_refused(name, message):
+    with pytest.raises(FlowloopError, match=re.escape(message)):
+        P.profile_from_dict(make(name=name))
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.text(max_size=40))
 def test_names_round_trip_or_are_refused(name):
@@ -382,9 +393,12 @@ def test_names_round_trip_or_are_refused(name):
         p = P.profile_from_dict(make(name=name))
     except FlowloopError as e:
         assert "profile name" in str(e)
-        assert not name.strip() or any(ord(c) < 32 or 0x7f <= ord(c) <= 0x9f
-                                       or c in "\u2028\u2029\ufffe\uffff" or
-                                       0xd800 <= ord(c) <= 0xdfff for c in name)
+        # blank, padded with whitespace, or holding a control, line-break,
+        # surrogate, non-XML or invisible format (Cf) character
+        assert name != name.strip() or not name.strip() or any(
+            ord(c) < 32 or 0x7f <= ord(c) <= 0x9f or c in "\u2028\u2029\ufffe\uffff"
+            or 0xd800 <= ord(c) <= 0xdfff or unicodedata.category(c) == "Cf"
+            for c in name)
         return
     assert P.decode_profile(P.encode_profile(p)).identity.name == name
 
