@@ -126,23 +126,29 @@ class FlowrateLimiter:
     def move(self, newpos, speed):
         shape = fl_caps.move_shape(self.last_position, newpos)
         self.last_position = list(newpos)
-        if shape.extrudes and self.toolhead.get_extruder() is self.extruder:
-            self._update_inputs(shape, speed)
+        ours = self.toolhead.get_extruder() is self.extruder
+        if shape.extrudes and ours:
+            self._update_inputs()
             speed = self.limiter.limit(shape, speed)
+        if self.hotend_model is not None:
+            self._advance_model(shape, speed, ours)
         self.next_transform.move(newpos, speed)
 
-    def _update_inputs(self, shape, speed):
+    def _update_inputs(self):
         if self.sensor is not None:
             self.limiter.set_sensor_fault(self.sensor.get_status()['fault'])
         if self.hotend_model is None:
             temp_c, _ = self.heater.get_temp(self.reactor.monotonic())
-        else:
-            model = self.hotend_model
-            target = self.heater.get_status(None)['target']
-            model.set_target(model.time_s, target)
-            flow = shape.flow_mm3_s(speed, self.limiter.filament_area_mm2)
-            temp_c = model.advance(model.time_s + shape.duration_s(speed), flow)
-        self.limiter.set_temperature(temp_c)
+            self.limiter.set_temperature(temp_c)
+
+    def _advance_model(self, shape, speed, ours):
+        # Batch mode: the model runs on the moves' own (cruise) time
+        model = self.hotend_model
+        model.set_target(model.time_s, self.heater.get_status(None)['target'])
+        flow = shape.flow_mm3_s(speed, self.limiter.filament_area_mm2) \
+            if ours else 0.
+        self.limiter.set_temperature(
+            model.advance(model.time_s + shape.duration_s(speed), flow))
 
     # --- status and commands -------------------------------------------------
     def get_status(self, eventtime=None):

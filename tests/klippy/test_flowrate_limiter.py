@@ -4,13 +4,18 @@ rebuilt into flow over time (flowrate_limiter_steps.py)."""
 
 from __future__ import annotations
 
+import json
 import math
+import socket
 from pathlib import Path
 
 import pytest
 
+from devtools import stack
 from devtools.klippy_test import run_file
+from flowloop.material.profile import profile_from_dict, profile_line
 from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps, windowed_flow
+from tests.samples import make
 
 HERE = Path(__file__).resolve().parent
 GCODE = HERE.parent / "data" / "gcode" / "block_layers_1_2.gcode"
@@ -88,3 +93,91 @@ def test_the_limiter_slows_the_print_and_says_by_how_much(runs):
     end_off = stepper_steps(off, "PA4")[0][-1] / CLOCK_HZ
     assert end_on > end_off + 30.0
     assert "slowed 0 moves" not in log_on
+
+
+# --- the temperature cap follows the active profile ---------------------------
+
+PROFILE_CFG = """\
+[include {here}/flow_sensor_printer.cfg]
+
+[flowrate_limiter]
+mode: temperature
+"""
+
+
+class Api:
+    """klippy's own API socket (JSON + 0x03), one request at a time."""
+
+    def __init__(self, path):
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.connect(str(path))
+        self.sock.settimeout(60)
+        self.buffer = b""
+        self.next_id = 0
+
+    def call(self, method, **params):
+        self.next_id += 1
+        self.sock.sendall(json.dumps({"id": self.next_id, "method": method,
+                                      "params": params}).encode() + b"\x03")
+        while True:
+            while b"\x03" not in self.buffer:
+                self.buffer += self.sock.recv(65536)
+            raw, self.buffer = self.buffer.split(b"\x03", 1)
+            msg = json.loads(raw)
+            if msg.get("id") == self.next_id:
+                if "error" in msg:
+                    raise AssertionError(f"{method}: {msg['error']}")
+                return msg["result"]
+
+    def gcode(self, script):
+        return self.call("gcode/script", script=script)
+
+    def limiter(self):
+        return self.call("objects/query", objects={"flowrate_limiter": None})[
+            "status"]["flowrate_limiter"]
+
+
+def _pass_time(api, seconds):
+    # The batch-mode thermal model runs on move time: travel back and forth
+    moves = int(seconds / 1.5)
+    api.gcode("\n".join(f"G1 X{10 if i % 2 else 160} F6000" for i in range(moves)))
+
+
+def test_the_temperature_cap_follows_the_profile_at_the_hotend_temperature(
+        klipper_build, klippy_venv, short_tmp):
+    cfg = short_tmp / "printer.cfg"
+    cfg.write_text(PROFILE_CFG.format(here=HERE))
+    klippy = stack.Klippy(klipper_build, klippy_venv, cfg, short_tmp,
+                          {"mcu": "atmega2560"})
+    try:
+        klippy.wait_ready()
+        api = Api(klippy.api_socket)
+        stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+        assert api.limiter()["reason"] == "none"
+        assert "no active profile" in api.limiter()["why"]
+        api.call("flowloop/set_active_profile", extruder="extruder",
+                 profile=make(), working_point=0.5)
+        line = profile_line(profile_from_dict(make()), 0.5)
+        api.gcode("G28\nM83\nSET_HEATER_TEMPERATURE HEATER=extruder TARGET=200")
+        _pass_time(api, 3.0)
+        heating = api.limiter()
+        assert heating["profile"] == "herz-pla-red_80"
+        assert heating["temperature"] < 150  # still heating: capped low
+        assert heating["caps"]["temperature"] == pytest.approx(
+            line.flow_mm3_s(heating["temperature"]), abs=0.01)
+        for target in (200.0, 230.0):
+            api.gcode(f"SET_HEATER_TEMPERATURE HEATER=extruder TARGET={target:g}")
+            _pass_time(api, 150.0)
+            s = api.limiter()
+            assert s["temperature"] == pytest.approx(target, abs=0.5)
+            assert s["reason"] == "temperature"
+            assert s["cap"] == pytest.approx(line.flow_mm3_s(s["temperature"]),
+                                             abs=0.01)
+            # a move asking twice the cap is slowed
+            slowed = s["slowed_moves"]
+            e_per_mm = 2 * s["cap"] / (AREA * 100.0)
+            api.gcode(f"G1 X{10 if target == 200 else 160} E{150 * e_per_mm:.4f}"
+                      " F6000")
+            assert api.limiter()["slowed_moves"] == slowed + 1
+    finally:
+        klippy.stop()
