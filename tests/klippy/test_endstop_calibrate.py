@@ -154,6 +154,14 @@ def test_klippy_puts_the_carriages_where_flowloop_says(
 BELIEVED = delta.DeltaGeometry(140.0, (300.0, 300.4, 300.0), (300.0,) * 3,
                                (210.0, 329.8, 90.0))
 TRUE_ENDSTOPS = (301.2, 298.8, 300.5)
+# the true printer behind each ENDSTOP_CALIBRATE METHOD=manual test
+TRUE_PRINTERS = {
+    "endstop_calibrate.test": BELIEVED.with_endstops(TRUE_ENDSTOPS),
+    "endstop_calibrate_included.test": BELIEVED.with_endstops(TRUE_ENDSTOPS),
+    # tower C really stands at 90.5 degrees
+    "endstop_calibrate_angle.test": delta.DeltaGeometry(
+        140.0, BELIEVED.arm_lengths, TRUE_ENDSTOPS, (210.0, 329.8, 90.5)),
+}
 
 
 def pasted_heights(test_file: Path):
@@ -161,8 +169,7 @@ def pasted_heights(test_file: Path):
             for m in re.finditer(r"^G1 Z(\S+)$", test_file.read_text(), re.M)]
 
 
-@pytest.mark.parametrize("test_file", ["endstop_calibrate.test",
-                                       "endstop_calibrate_included.test"])
+@pytest.mark.parametrize("test_file", sorted(TRUE_PRINTERS))
 def test_the_manual_probe_heights_of_the_test_files_are_klippers(
         klipper_build, klippy_venv, test_file):
     assert delta.geometry_from_config(
@@ -170,7 +177,7 @@ def test_the_manual_probe_heights_of_the_test_files_are_klippers(
     points = delta.probe_points(BELIEVED.angles_deg, 100.0)
     heights = klipper_delta(
         klipper_build, klippy_venv,
-        {"believed": BELIEVED, "true": BELIEVED.with_endstops(TRUE_ENDSTOPS)},
+        {"believed": BELIEVED, "true": TRUE_PRINTERS[test_file]},
         [{"op": "probe_z", "believed": "believed", "true": "true", "xy": list(p)}
          for p in points])
     assert pasted_heights(HERE / test_file) == [round(h, 6) for h in heights]
