@@ -49,11 +49,14 @@ def offline(ctx, cfg: Path) -> None:
     rounds = _naive_rounds(believed, true, points[:4])
     ctx.say(f"per-tower loop: {rounds} probe rounds to get within 0.01 mm")
     argv = ["delta-endstops", "--printer-cfg", str(cfg), "--json"]
-    argv += [f"--probe={x:.3f},{y:.3f},{h:.3f}" for x, y, h in probes]
+    for x, y, h in probes:   # negative coordinates typed as they read
+        argv += ["--probe", f"{x:.3f},{y:.3f},{h:.3f}"]
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         code = flowloop_main(argv)
-    ctx.say(f"$ flowloop delta-endstops --printer-cfg {cfg.name} --probe=... --json")
+    first = ",".join(f"{v:.3f}" for v in probes[1])
+    ctx.say(f"$ flowloop delta-endstops --printer-cfg {cfg.name} --probe {first}"
+            " ... --json")
     ctx.say(f"  {out.getvalue().strip()}  (exit {code})")
 
 
