@@ -10,6 +10,11 @@ The filament model: the hotend melts at most what a material profile's line
 at the hotend temperature. When the demanded flow (smoothed over
 `melt_time_s`, the hotend's lag) exceeds it, the feeder slips and only
 capacity/demand of the commanded filament moves. Retractions always move.
+
+The hotend temperature is either given (the nozzle is at its target at
+once) or, with a `HotendModel` (flowloop.control.hotend, the one thermal
+model), simulated from the heater's target: heating takes time, the dead
+time and lag delay it, and the filament that moves cools the nozzle.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..control.hotend import HotendModel
 from ..errors import FlowloopError
 from ..material.profile import FlowLine, Line
 from . import ems22
@@ -53,8 +59,10 @@ class SimulatedEms22:
                  sensor_scale: float = 1.0,
                  noise_counts: float = DEFAULT_NOISE_COUNTS,
                  spi_mode: int = 2, filament_area_mm2: float = 2.405,
-                 melt_time_s: float = 0.05, seed: int = 0):
+                 melt_time_s: float = 0.05, seed: int = 0,
+                 hotend: Optional[HotendModel] = None):
         self.melt = melt
+        self.hotend = hotend
         self.counts_per_mm = counts_per_mm
         self.sensor_scale = sensor_scale
         self.noise_counts = noise_counts
@@ -75,9 +83,17 @@ class SimulatedEms22:
             raise FlowloopError(f"unknown simulated fault '{fault}'")
         self.fault = fault
 
+    def temp_c(self, target_c: float) -> float:
+        """The nozzle temperature: the hotend model's, else the target."""
+        return target_c if self.hotend is None else self.hotend.temp_c
+
     def advance(self, times: Sequence[float], commanded_mm: Sequence[float],
                 temp_c: float) -> np.ndarray:
-        """True filament position at each sample time (mm)."""
+        """True filament position at each sample time (mm). temp_c is the
+        nozzle temperature, or with a hotend model the heater's target."""
+        hotend = self.hotend
+        if hotend is not None and len(times):
+            hotend.set_target(times[0], temp_c)
         out = np.empty(len(times))
         for i, (t, c) in enumerate(zip(times, commanded_mm)):
             if self._last is not None:
@@ -87,9 +103,13 @@ class SimulatedEms22:
                     alpha = 1.0 - math.exp(-dt / self.melt_time_s)
                     demand = max(0.0, dc) / dt * self.filament_area_mm2
                     self.demand_mm3_s += alpha * (demand - self.demand_mm3_s)
-                grip = (melt_grip(self.melt, self.demand_mm3_s, temp_c)
+                nozzle_c = temp_c if hotend is None else hotend.temp_c
+                grip = (melt_grip(self.melt, self.demand_mm3_s, nozzle_c)
                         if dc > 0 else 1.0)
                 self.filament_mm += dc * grip
+                if hotend is not None and dt > 0:
+                    melted = max(0.0, dc * grip) / dt * self.filament_area_mm2
+                    hotend.advance(t, melted)
             self._last = (t, c)
             out[i] = self.filament_mm
         return out

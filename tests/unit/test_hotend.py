@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
+from flowloop.material.profile import Line
+from flowloop.sensor.twin import SimulatedEms22
 
 PARAMS = HotendParams(time_constant_s=4.0, dead_time_s=1.0)
 
@@ -77,3 +80,37 @@ def test_bad_parameters_are_one_line():
         HotendParams(max_power_w=0)
     with pytest.raises(FlowloopError, match="dead_time_s must be >= 0"):
         HotendParams(dead_time_s=-1)
+
+
+# --- the simulated twin's hotend ---------------------------------------------
+
+def _twin_grip(twin, target_c, seconds, demand_mm3_s, start=0.0):
+    """Share of commanded filament that moved over `seconds` of steady demand."""
+    times = start + np.arange(0.0, seconds, 0.001)
+    commanded = demand_mm3_s / twin.filament_area_mm2 * (times - start)
+    moved = twin.advance(times, commanded, target_c)
+    if demand_mm3_s == 0:
+        return None
+    return (moved[-1] - moved[0]) / (commanded[-1] - commanded[0])
+
+
+def test_the_twin_slips_while_its_hotend_heats_and_keeps_up_once_hot():
+    melt = Line(0.2, -30.0)                     # 10 mm^3/s at 200 C
+    twin = SimulatedEms22(melt, noise_counts=0,
+                          hotend=HotendModel(PARAMS, temp_c=25.0))
+    assert _twin_grip(twin, 200.0, 5.0, 5.0) < 0.2     # cold: nothing melts
+    _twin_grip(twin, 200.0, 120.0, 0.0, start=5.0)     # heats up, idle
+    assert twin.temp_c(200.0) == pytest.approx(200.0, abs=0.5)
+    assert _twin_grip(twin, 200.0, 5.0, 5.0, start=125.0) == pytest.approx(1.0)
+
+
+def test_a_long_high_flow_sags_the_twin_s_nozzle():
+    weak = HotendParams(max_power_w=20.0, time_constant_s=4.0, dead_time_s=1.0)
+    # a line that melts all of it at 230 C, if the heater could hold 230 C
+    twin = SimulatedEms22(Line(1.0, -200.0), noise_counts=0,
+                          hotend=HotendModel(weak, temp_c=230.0, target_c=230.0))
+    assert weak.max_steady_flow_mm3_s(230.0) < 20.0
+    first = _twin_grip(twin, 230.0, 2.0, 25.0)
+    later = _twin_grip(twin, 230.0, 60.0, 25.0, start=2.0)
+    assert first == pytest.approx(1.0)
+    assert twin.temp_c(230.0) < 220.0 and later < 0.9
