@@ -94,6 +94,10 @@ class FlowLimiter:
         self.why = ""
         self.slowed_time_s = 0.0
         self.slowed_moves = 0
+        # What the sensor saw, limiter on or off: judged windows, and those
+        # below min_grip
+        self.windows_judged = 0
+        self.windows_below_min_grip = 0
         self._status: Dict[str, Any] = {}
         self._update()
 
@@ -166,6 +170,10 @@ class FlowLimiter:
         """One closed grip window of the sensor."""
         if self.sensor_fault is not None or duration_s <= 0.0:
             return
+        if grip is not None:
+            self.windows_judged += 1
+            self.windows_below_min_grip += grip < self.min_grip
+            self._status["grip_windows"] = self._grip_windows()
         flow = self.filament_area_mm2 * commanded_mm / duration_s
         before = self.reactive.cap_mm3_s
         self.reactive.on_window(grip, flow, duration_s)
@@ -244,7 +252,12 @@ class FlowLimiter:
             "slowed_time": round(self.slowed_time_s, 3),
             "slowed_moves": self.slowed_moves,
             "model": None if self.model is None else self.model.status(),
+            "grip_windows": self._grip_windows(),
         }
+
+    def _grip_windows(self) -> Dict[str, int]:
+        return {"judged": self.windows_judged,
+                "below_min_grip": self.windows_below_min_grip}
 
     def status(self) -> Dict[str, Any]:
         """The held status (a fresh top-level dict; nested values are not

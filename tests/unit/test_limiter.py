@@ -69,6 +69,9 @@ def test_a_slip_caps_at_the_measured_flow_down_to_the_floor():
     assert flow(lim.limit(FAST, 200.0)) == pytest.approx(melted, abs=1e-3)
     # a move 4x as fast would need a quarter: it gets the floor, half its speed
     assert lim.limit(FAST, 800.0) == pytest.approx(400.0)
+    lim.on_window(0.1, 1.25, 0.95, None)
+    lim.on_window(0.1, 1.25, None, None)
+    assert lim.status()["grip_windows"] == {"judged": 2, "below_min_grip": 1}
 
 
 def test_predictive_mode_caps_before_any_slip():
