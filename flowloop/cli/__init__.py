@@ -22,6 +22,7 @@ COMMAND_MODULES = (
     "flowloop.cli.diff_ab",
     "flowloop.cli.profile",
     "flowloop.cli.delta",
+    "flowloop.cli.annotate",
 )
 
 

@@ -1,0 +1,324 @@
+"""Autotemp annotations: the flow the next seconds will demand, written into
+the G-code early enough for a hotend to heat before the flow arrives.
+
+The flow planner (planner.py) turns the file into print time. That time is
+cut into windows of `window_s`; each window's peak flow is announced by one
+command placed about `lead_s` before the window in print time:
+
+    AUTOTEMP_FLOW FLOW=<peak mm^3/s> LEAD=<s> DURATION=<s>
+
+LEAD is the print time from the command's place in the file (the start of the
+move that follows it) to the window's start, DURATION the window's length;
+Klipper reads the command about READAHEAD_S before that move runs, so the
+printer learns of the flow about `lead_s` ahead. FLOW is rounded up to 0.1.
+Windows follow each other without gaps from the first extrusion to the end of
+the print; neighbours with the same FLOW are merged (up to `lead_s` long).
+Waits the file does not time (M109, G28, M600...) are barriers: a window after
+one is announced after it, with a shorter LEAD.
+
+Annotations are profile-independent: flow, not temperature. The first line of
+an annotated file is a marker (MARKER_REGEX, also Moonraker's `ident` for a
+file processor), so annotating twice changes nothing; the last line sums up
+(peak flow, windows, print time).
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import os
+import re
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO, Deque, Iterable, Optional, Tuple
+
+from ..errors import FlowloopError
+from .planner import Barrier, Event, PrinterLimits, plan_file
+
+FORMAT_VERSION = 1
+DEFAULT_LEAD_S = 15.0
+DEFAULT_WINDOW_S = 1.0
+# How long before its move Klipper reads a command (toolhead BUFFER_TIME_HIGH).
+READAHEAD_S = 1.0
+MIN_LEAD_S = 2.0
+MAX_LEAD_S = 120.0
+MIN_WINDOW_S = 0.1
+COMMAND = "AUTOTEMP_FLOW"
+# Moonraker reads this much of a file's head when it looks for a marker.
+HEADER_BYTES = 1024 * 1024
+MARKER_REGEX = r"^; flowloop autotemp annotations (?P<version>v\d+)"
+_MARKER = re.compile(MARKER_REGEX.encode(), re.MULTILINE)
+SUMMARY_PREFIX = "; flowloop autotemp summary:"
+FLOW_STEP_MM3_S = 0.1
+
+
+@dataclass(frozen=True)
+class AnnotateSettings:
+    lead_s: float = DEFAULT_LEAD_S
+    window_s: float = DEFAULT_WINDOW_S
+
+    def __post_init__(self):
+        if not (isinstance(self.lead_s, (int, float))
+                and MIN_LEAD_S <= self.lead_s <= MAX_LEAD_S):
+            raise FlowloopError(f"lead must be {MIN_LEAD_S:g} to {MAX_LEAD_S:g} s,"
+                                f" not {self.lead_s!r}")
+        if not (isinstance(self.window_s, (int, float))
+                and MIN_WINDOW_S <= self.window_s <= self.lead_s):
+            raise FlowloopError(f"window must be {MIN_WINDOW_S:g} s to the lead"
+                                f" ({self.lead_s:g} s), not {self.window_s!r}")
+
+    @property
+    def placement_s(self) -> float:
+        """How far before its window a command sits in the file's print time."""
+        return self.lead_s - READAHEAD_S
+
+
+@dataclass(frozen=True)
+class Summary:
+    annotated: bool            # False: the file was annotated already, unchanged
+    peak_flow_mm3_s: float
+    windows: int
+    print_time_s: float
+
+
+def marker_line(settings: AnnotateSettings) -> str:
+    return (f"; flowloop autotemp annotations v{FORMAT_VERSION}: {COMMAND} "
+            f"FLOW=<peak mm^3/s> LEAD=<s> DURATION=<s>, lead {settings.lead_s:g} s,"
+            f" window {settings.window_s:g} s")
+
+
+def is_annotated(head: bytes) -> bool:
+    """Whether a file's head (its first HEADER_BYTES) carries the marker."""
+    return _MARKER.search(head) is not None
+
+
+def quantise_flow(flow_mm3_s: float) -> float:
+    """Rounded up to FLOW_STEP_MM3_S: an announced peak is never below the real one."""
+    steps = math.ceil(flow_mm3_s / FLOW_STEP_MM3_S - 1e-6)
+    return max(0, steps) * FLOW_STEP_MM3_S
+
+
+def command_line(flow_mm3_s: float, lead_s: float, duration_s: float) -> str:
+    # LEAD is rounded down, DURATION up, so the window announced covers the real one.
+    lead = math.floor(lead_s * 100 + 1e-6) / 100
+    duration = math.ceil((duration_s + lead_s - lead) * 100 - 1e-6) / 100
+    return f"{COMMAND} FLOW={flow_mm3_s:.1f} LEAD={lead:.2f} DURATION={duration:.2f}"
+
+
+class _Window:
+    __slots__ = ("start_s", "end_s", "flow", "insert_offset", "insert_time_s")
+
+    def __init__(self, start_s, end_s, flow, insert_offset, insert_time_s):
+        self.start_s = start_s
+        self.end_s = end_s
+        self.flow = flow
+        self.insert_offset = insert_offset
+        self.insert_time_s = insert_time_s
+
+
+class _Annotator:
+    """Windows from planner events, each placed at a line of the file."""
+
+    def __init__(self, settings: AnnotateSettings, src: BinaryIO, out: BinaryIO,
+                 newline: bytes):
+        self.settings = settings
+        self.src = src
+        self.out = out
+        self.newline = newline
+        self.copied = 0                  # bytes of src written to out
+        # (print time, byte offset) of move lines a command may go before
+        self.candidates: Deque[Tuple[float, int]] = collections.deque()
+        self.bin_start = 0.0
+        self.bin_peak = 0.0
+        self.pending: Optional[_Window] = None
+        self.started = False             # a window with flow was seen
+        self.windows = 0
+        self.peak = 0.0
+        self.end_s = 0.0
+
+    # --- windows ------------------------------------------------------------------
+
+    def segment(self, seg) -> None:
+        if not self.candidates or self.candidates[-1][1] != seg.offset:
+            self.candidates.append((seg.start_s, seg.offset))
+        self._advance_to(seg.start_s)
+        window = self.settings.window_s
+        end = seg.start_s + seg.duration_s
+        if seg.flow_mm3_s > self.peak:
+            self.peak = seg.flow_mm3_s
+        while True:
+            bin_end = self.bin_start + window
+            if seg.flow_mm3_s > self.bin_peak:
+                flow = seg.peak_flow_between(self.bin_start, bin_end)
+                if flow > self.bin_peak:
+                    self.bin_peak = flow
+            if end <= bin_end:
+                break
+            self._close_bin(bin_end)
+        self.end_s = max(self.end_s, end)
+
+    def _advance_to(self, time_s: float) -> None:
+        """Close every window that ends by time_s (the gap carries no flow)."""
+        window = self.settings.window_s
+        if time_s < self.bin_start + window:
+            return
+        self._close_bin(self.bin_start + window)
+        if time_s >= self.bin_start + window:
+            # one flowless window over the whole gap, on the grid
+            steps = math.floor((time_s - self.bin_start) / window)
+            self._close_bin(self.bin_start + steps * window)
+
+    def _close_bin(self, end_s: float) -> None:
+        start, flow = self.bin_start, quantise_flow(self.bin_peak)
+        self.bin_start, self.bin_peak = end_s, 0.0
+        if end_s <= start or (flow == 0.0 and not self.started):
+            return
+        self.started = True
+        p = self.pending
+        if p is not None and p.flow == flow and p.end_s == start \
+                and end_s - p.start_s <= self.settings.lead_s:
+            p.end_s = end_s
+            return
+        self._finish_pending()
+        offset, time_s = self._place(start)
+        self.pending = _Window(start, end_s, flow, offset, time_s)
+
+    def _place(self, window_start_s: float) -> Tuple[int, float]:
+        """The last move line at least placement_s before the window (or the
+        first one left, after a barrier or at the start)."""
+        target = window_start_s - self.settings.placement_s
+        cands = self.candidates
+        while len(cands) > 1 and cands[1][0] <= target:
+            cands.popleft()
+        time_s, offset = cands[0]
+        return offset, time_s
+
+    def barrier(self, barrier: Barrier) -> None:
+        self._advance_to(barrier.time_s)
+        if barrier.time_s > self.bin_start:
+            self._close_bin(barrier.time_s)
+        self._finish_pending()
+        self.candidates.clear()
+        self.bin_start, self.bin_peak = barrier.time_s, 0.0
+
+    def finish(self) -> None:
+        self._advance_to(self.end_s)
+        if self.end_s > self.bin_start:
+            self._close_bin(self.end_s)
+        self._finish_pending()
+
+    # --- output -------------------------------------------------------------------
+
+    def _finish_pending(self) -> None:
+        p = self.pending
+        if p is None:
+            return
+        self.pending = None
+        start = max(p.start_s, p.insert_time_s)
+        line = command_line(p.flow, start - p.insert_time_s, p.end_s - start)
+        self.copy_to(p.insert_offset)
+        self.out.write(line.encode() + self.newline)
+        self.windows += 1
+
+    def copy_to(self, offset: Optional[int]) -> None:
+        """Copy the source up to byte offset (None: to its end)."""
+        want = None if offset is None else offset - self.copied
+        while want is None or want > 0:
+            chunk = self.src.read(1 << 20 if want is None else min(want, 1 << 20))
+            if not chunk:
+                break
+            self.out.write(chunk)
+            self.copied += len(chunk)
+            self.last_byte = chunk[-1:]
+            if want is not None:
+                want -= len(chunk)
+
+
+def annotate_stream(events: Iterable[Event], src: BinaryIO, out: BinaryIO,
+                    settings: AnnotateSettings = AnnotateSettings(),
+                    newline: bytes = b"\n") -> Summary:
+    """Write src to out with annotations; events are src's planner events.
+
+    src is read from its start as the events reach further into it.
+    """
+    a = _Annotator(settings, src, out, newline)
+    a.last_byte = newline[-1:]
+    out.write(marker_line(settings).encode() + newline)
+    for event in events:
+        if isinstance(event, Barrier):
+            a.barrier(event)
+        else:
+            a.segment(event)
+    a.finish()
+    a.copy_to(None)
+    summary = Summary(True, quantise_flow(a.peak), a.windows, a.end_s)
+    if a.last_byte != newline[-1:]:
+        out.write(newline)
+    out.write((f"{SUMMARY_PREFIX} peak_flow_mm3_s={summary.peak_flow_mm3_s:.1f}"
+               f" windows={summary.windows} print_time_s={summary.print_time_s:.1f}"
+               ).encode() + newline)
+    return summary
+
+
+def _newline_of(path: Path) -> bytes:
+    with open(path, "rb") as f:
+        first = f.readline(1 << 16)
+    return b"\r\n" if first.endswith(b"\r\n") else b"\n"
+
+
+def annotate_file(src: Path, dst: Optional[Path] = None,
+                  limits: Optional[PrinterLimits] = None,
+                  settings: AnnotateSettings = AnnotateSettings()) -> Summary:
+    """Annotate src into dst (None: in place). The output appears whole or not
+    at all (a temporary file beside it, then a rename)."""
+    limits = limits if limits is not None else PrinterLimits()
+    src, dst = Path(src), Path(dst if dst is not None else src)
+    try:
+        with open(src, "rb") as f:
+            head = f.read(HEADER_BYTES)
+    except OSError as e:
+        raise FlowloopError(f"{src}: cannot read: {e.strerror}") from None
+    if is_annotated(head):
+        if dst.resolve() != src.resolve():
+            _replace_atomically(dst, lambda out: _copy(src, out), src)
+        return Summary(False, 0.0, 0, 0.0)
+    newline = _newline_of(src)
+    summary = None
+
+    def write(out: BinaryIO) -> None:
+        nonlocal summary
+        with open(src, "rb") as lines, open(src, "rb") as copy:
+            try:
+                summary = annotate_stream(plan_file(lines, limits), copy, out,
+                                          settings, newline)
+            except FlowloopError as e:
+                raise FlowloopError(f"{src}: {e}") from None
+    _replace_atomically(dst, write, src)
+    assert summary is not None
+    return summary
+
+
+def _copy(src: Path, out: BinaryIO) -> None:
+    with open(src, "rb") as f:
+        shutil.copyfileobj(f, out, 1 << 20)
+
+
+def _replace_atomically(dst: Path, write, mode_from: Path) -> None:
+    folder = dst.parent if str(dst.parent) else Path(".")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".tmp", dir=folder)
+    except OSError as e:
+        raise FlowloopError(f"{dst}: cannot write: {e.strerror}") from None
+    try:
+        with os.fdopen(fd, "wb") as out:
+            write(out)
+        shutil.copymode(mode_from, tmp)
+        os.replace(tmp, dst)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
