@@ -58,9 +58,11 @@ def move_shape(start: Sequence[float], end: Sequence[float]) -> MoveShape:
 def capped_speed(shape: MoveShape, speed_mm_s: float, cap_mm3_s: Optional[float],
                  filament_area_mm2: float, floor_mm_s: float = 0.0) -> float:
     """speed = min(speed, cap / (area * dE / distance)), never below floor_mm_s
-    (and never above the requested speed, whatever the floor)."""
+    (and never above the requested speed, whatever the floor). A cap below
+    MIN_CAP_MM3_S counts as MIN_CAP_MM3_S: a speed of 0 would stop klippy."""
     if cap_mm3_s is None or not shape.extrudes:
         return speed_mm_s
+    cap_mm3_s = max(cap_mm3_s, MIN_CAP_MM3_S)
     flow = shape.flow_mm3_s(speed_mm_s, filament_area_mm2)
     if flow <= cap_mm3_s:
         return speed_mm_s

@@ -51,6 +51,14 @@ def test_above_the_profile_max_temp_the_line_is_not_trusted():
     assert lim.status()["cap"] == pytest.approx(LINE.flow_mm3_s(260.0), abs=1e-3)
 
 
+def test_a_cold_hotend_crawls_but_never_stops():
+    lim = FlowLimiter(LimiterSettings(mode="temperature"), AREA)
+    lim.set_profile(PROFILE, 0.5)
+    lim.set_temperature(25.0)
+    assert lim.status()["caps"]["temperature"] == 0.0
+    assert 0 < lim.limit(FAST, 200.0) < 1.0
+
+
 def test_static_mode_ignores_the_profile():
     lim = FlowLimiter(LimiterSettings(mode="static"), AREA)
     lim.set_profile(PROFILE, 0.5)

@@ -75,17 +75,25 @@ def test_the_floor_holds_but_never_raises_a_speed():
     assert capped_speed(shape, 20, 1.0, AREA, floor_mm_s=30) == 20
 
 
+def test_a_zero_cap_slows_to_the_least_cap_but_never_stops_a_move():
+    # a cold hotend melts nothing: the move crawls, klippy is not asked for 0
+    shape = move_shape([0, 0, 0, 0], [10, 0, 0, 1])
+    speed = capped_speed(shape, 100, 0.0, AREA)
+    assert speed > 0
+    assert shape.flow_mm3_s(speed, AREA) == pytest.approx(MIN_CAP_MM3_S)
+
+
 moves = st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(0, 1),
                   st.floats(-3, 3))
 
 
-@given(moves, st.floats(0.1, 500), st.floats(0.1, 100), st.floats(0, 500))
+@given(moves, st.floats(0.1, 500), st.floats(0, 100), st.floats(0, 500))
 def test_a_cap_never_raises_a_speed(end, speed, cap, floor):
     shape = move_shape([0, 0, 0, 0], list(end))
     new = capped_speed(shape, speed, cap, AREA, floor_mm_s=floor)
     assert 0 < new <= speed
     if floor == 0:
-        assert shape.flow_mm3_s(new, AREA) <= cap * (1 + 1e-9)
+        assert shape.flow_mm3_s(new, AREA) <= max(cap, MIN_CAP_MM3_S) * (1 + 1e-9)
 
 
 def test_the_lowest_cap_wins_and_says_which():
