@@ -11,6 +11,7 @@
 import re
 
 from flowloop.calibrate import diff_ab
+from flowloop.calibrate.numbers import parse_numbers
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
 
@@ -31,28 +32,45 @@ class DiffABCalibrate:
         d1, d2 = diff_ab.NOMINAL_DISTANCES_MM
         self.d1 = config.getfloat('d1', d1, above=0.)
         self.d2 = config.getfloat('d2', d2, above=self.d1)
-        self.max_scale_change = config.getfloat(
+        max_scale_change_pct = config.getfloat(
             'max_scale_change', 100. * diff_ab.MAX_SCALE_CHANGE,
-            above=0., maxval=20.) / 100.
+            above=0., maxval=20.)
+        self.max_scale_change = max_scale_change_pct / 100.
         default = diff_ab.ErrorBudget()
-        try:   # klippy's getfloat lets 'nan' through
-            self.budget = diff_ab.ErrorBudget(
-                caliper_accuracy_mm=config.getfloat(
-                    'caliper_accuracy', default.caliper_accuracy_mm, minval=0.),
-                caliper_range_mm=config.getfloat(
-                    'caliper_range', default.caliper_range_mm, above=0.),
-                reading_error_mm=config.getfloat(
-                    'reading_error', default.reading_error_mm, minval=0.))
-        except FlowloopError as e:
-            raise config.error(f"[{self.name}]: {e}") from None
+        caliper_accuracy = config.getfloat(
+            'caliper_accuracy', default.caliper_accuracy_mm, minval=0.)
+        caliper_range = config.getfloat(
+            'caliper_range', default.caliper_range_mm, above=0.)
+        reading_error = config.getfloat(
+            'reading_error', default.reading_error_mm, minval=0.)
         self.bed_heater_name = config.get('bed_heater', 'heater_bed')
-        self.tolerance = config.getfloat('equilibrium_tolerance', 0.5,
-                                         above=0.)
-        self.window = config.getfloat('equilibrium_window', 120., above=1.)
-        self.timeout = config.getfloat('equilibrium_timeout', 1800., above=0.)
-        self.band = config.getfloat('equilibrium_band', 2., above=0.)
+        self.tolerance = config.getfloat(
+            'equilibrium_tolerance', diff_ab.EQUILIBRIUM_TOLERANCE_PCT_PER_MIN,
+            above=0.)
+        self.window = config.getfloat(
+            'equilibrium_window', diff_ab.EQUILIBRIUM_WINDOW_S, above=1.)
+        self.timeout = config.getfloat(
+            'equilibrium_timeout', diff_ab.EQUILIBRIUM_TIMEOUT_S, above=0.)
+        self.band = config.getfloat(
+            'equilibrium_band', diff_ab.EQUILIBRIUM_BAND_C, above=0.)
         self.report_interval = config.getfloat('report_interval', 10.,
                                                above=0.)
+        try:
+            klipper_config.check_finite(self.name, {
+                'd1': self.d1, 'd2': self.d2,
+                'max_scale_change': max_scale_change_pct,
+                'caliper_accuracy': caliper_accuracy,
+                'caliper_range': caliper_range, 'reading_error': reading_error,
+                'equilibrium_tolerance': self.tolerance,
+                'equilibrium_window': self.window,
+                'equilibrium_timeout': self.timeout,
+                'equilibrium_band': self.band,
+                'report_interval': self.report_interval})
+            self.budget = diff_ab.ErrorBudget(
+                caliper_accuracy_mm=caliper_accuracy,
+                caliper_range_mm=caliper_range, reading_error_mm=reading_error)
+        except FlowloopError as e:
+            raise config.error(str(e)) from None
         self.steppers = {'a': [], 'b': []}
         self.history = []
         self.last_result = None
@@ -159,6 +177,10 @@ class DiffABCalibrate:
     def cmd_WAIT_BED_EQUILIBRIUM(self, gcmd):
         tolerance = gcmd.get_float('TOLERANCE', self.tolerance, above=0.)
         timeout = gcmd.get_float('TIMEOUT', self.timeout, above=0.)
+        try:   # klippy's get_float lets 'nan' through: a nan TIMEOUT never ends
+            parse_numbers([timeout], 'TIMEOUT')
+        except FlowloopError as e:
+            raise gcmd.error(f"WAIT_BED_EQUILIBRIUM: {e}") from None
         heater = self.printer.lookup_object(self.bed_heater_name, None)
         if heater is None or not hasattr(heater, 'get_status'):
             self.bed_state = 'no_heater'

@@ -10,6 +10,7 @@
 import logging
 
 from flowloop.calibrate import delta
+from flowloop.calibrate.numbers import parse_numbers
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
 
@@ -28,14 +29,20 @@ class EndstopCalibrate:
         self.name = config.get_name()
         kinematics = config.getsection('printer').get('kinematics', '')
         if kinematics.strip() != 'delta':
-            raise config.error(
-                f"[{self.name}] is for linear delta printers"
-                f" (kinematics: delta), not kinematics: {kinematics}")
+            raise config.error(klipper_config.option_message(
+                'printer', 'kinematics', f"[{self.name}] is for linear delta"
+                f" printers (kinematics: delta), not {kinematics}"))
         self.radius = config.getfloat('radius', above=0.)
         self.samples = config.getint('samples', 1, minval=1)
         self.tolerance = config.getfloat('tolerance', 0.01, above=0.)
         self.geometry_warning = config.getfloat(
             'geometry_warning', delta.DEFAULT_GEOMETRY_WARNING_MM, above=0.)
+        try:
+            klipper_config.check_finite(self.name, {
+                'radius': self.radius, 'tolerance': self.tolerance,
+                'geometry_warning': self.geometry_warning})
+        except FlowloopError as e:
+            raise config.error(str(e)) from None
         self.opposite_points = config.getboolean('opposite_points', True)
         has_points = config.get('points', None) is not None
         self.probe_helper = probe.ProbePointsHelper(
@@ -59,18 +66,22 @@ class EndstopCalibrate:
     def _handle_connect(self):
         self.toolhead = self.printer.lookup_object('toolhead')
         if self.fixed_points is None:
-            self._check_radius(self.radius, self.printer.config_error)
+            problem = self._radius_problem(self.radius)
+            if problem:
+                raise self.printer.config_error(klipper_config.option_message(
+                    self.name, 'radius', problem))
 
     def _max_radius(self):
         kin = self.toolhead.get_kinematics()
         status = kin.get_status(self.printer.get_reactor().monotonic())
         return status['axis_maximum'][0]
 
-    def _check_radius(self, radius, error):
+    def _radius_problem(self, radius):
         max_radius = self._max_radius()
         if radius > max_radius:
-            raise error(f"[{self.name}] radius {radius:.3f} is outside the"
-                        f" printable radius {max_radius:.3f}")
+            return (f"{radius:.3f} is outside the printable radius"
+                    f" {max_radius:.3f}")
+        return None
 
     def _geometry(self):
         cal = self.toolhead.get_kinematics().get_calibration()
@@ -88,6 +99,12 @@ class EndstopCalibrate:
         samples = gcmd.get_int('SAMPLES', self.samples, minval=1)
         tolerance = gcmd.get_float('TOLERANCE', self.tolerance, above=0.)
         radius = gcmd.get_float('RADIUS', None, above=0.)
+        try:   # klippy's get_float lets 'nan' through its range checks
+            for name, value in (('TOLERANCE', tolerance), ('RADIUS', radius)):
+                if value is not None:
+                    parse_numbers([value], name)
+        except FlowloopError as e:
+            raise gcmd.error(f"ENDSTOP_CALIBRATE: {e}") from None
         if radius is not None and self.fixed_points is not None:
             raise gcmd.error("ENDSTOP_CALIBRATE: RADIUS cannot move the"
                              f" points configured in [{self.name}]")
@@ -96,7 +113,9 @@ class EndstopCalibrate:
         else:
             if radius is None:
                 radius = self.radius
-            self._check_radius(radius, gcmd.error)
+            problem = self._radius_problem(radius)
+            if problem:
+                raise gcmd.error(f"ENDSTOP_CALIBRATE: RADIUS={problem}")
             points = delta.probe_points(self._geometry().angles_deg, radius,
                                         self.opposite_points)
         self.active = {'samples': samples, 'tolerance': tolerance}

@@ -437,6 +437,12 @@ def history_lines(history: Sequence[Dict]) -> List[str]:
 
 # --- bed thermal equilibrium ------------------------------------------------
 
+# WAIT_BED_EQUILIBRIUM's defaults ([diff_ab_calibrate] equilibrium_* options)
+EQUILIBRIUM_TOLERANCE_PCT_PER_MIN = 0.5
+EQUILIBRIUM_WINDOW_S = 120.0
+EQUILIBRIUM_BAND_C = 2.0
+EQUILIBRIUM_TIMEOUT_S = 1800.0
+
 class BedEquilibrium:
     """Decides when the bed heater's power has stopped falling.
 
@@ -452,8 +458,9 @@ class BedEquilibrium:
       'equilibrium'  the power no longer falls (slope >= -tolerance)
     """
 
-    def __init__(self, tolerance_pct_per_min: float = 0.5, window_s: float = 120.0,
-                 band_c: float = 2.0):
+    def __init__(self, tolerance_pct_per_min: float = EQUILIBRIUM_TOLERANCE_PCT_PER_MIN,
+                 window_s: float = EQUILIBRIUM_WINDOW_S,
+                 band_c: float = EQUILIBRIUM_BAND_C):
         if not (math.isfinite(tolerance_pct_per_min) and tolerance_pct_per_min > 0):
             raise FlowloopError("TOLERANCE must be a positive number (% per minute)")
         if not (math.isfinite(window_s) and window_s > 0):

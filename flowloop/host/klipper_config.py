@@ -207,6 +207,24 @@ def read_config(path: Union[str, Path]) -> KlipperConfig:
     return parse_config(_read_text(path), path)
 
 
+# --- config errors, as flowloop's klippy sections report them -----------------
+
+
+def option_message(section: str, option: str, message: str) -> str:
+    """"Section [x], option y: message": the one format of flowloop's config errors."""
+    return f"Section [{section}], option {option}: {message}"
+
+
+def check_finite(section: str, values: Dict[str, Optional[float]]) -> None:
+    """Refuse nan and inf, naming the option: klippy's getfloat lets them
+    through its range checks ('nan' is neither below a minimum nor above a
+    maximum). None (an option left unset) is fine."""
+    for option, value in values.items():
+        if value is not None and not math.isfinite(value):
+            raise FlowloopError(option_message(section, option,
+                                               f"must be a finite number, not {value}"))
+
+
 # --- which file sets an option ----------------------------------------------
 
 

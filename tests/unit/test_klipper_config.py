@@ -209,3 +209,14 @@ def test_included_files_follow_includes_and_skip_the_save_config_block(tmp_path)
     assert config.included_files_setting("stepper_x", "rotation_distance") \
         == [(tmp_path / "hw" / "steppers.cfg").resolve()]
     assert config.included_files_setting("stepper_y", "rotation_distance") == []
+
+
+def test_config_errors_name_section_and_option_in_one_format():
+    assert klipper_config.option_message("endstop_calibrate", "radius", "too big") \
+        == "Section [endstop_calibrate], option radius: too big"
+    klipper_config.check_finite("x", {"a": 1.0, "b": None, "c": -0.0})
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        with pytest.raises(FlowloopError) as e:
+            klipper_config.check_finite("diff_ab_calibrate", {"d1": 10.0, "d2": bad})
+        assert str(e.value) == ("Section [diff_ab_calibrate], option d2: must be a"
+                                f" finite number, not {bad}")
