@@ -149,6 +149,7 @@ class FlowLimiter:
         self._update()
 
     def set_temperature(self, temp_c: Optional[float]) -> None:
+        temp_c = None if temp_c is None else float(temp_c)
         old = self.temp_c
         if temp_c is None or old is None \
                 or abs(temp_c - old) >= TEMP_RESOLUTION_C:
@@ -170,9 +171,14 @@ class FlowLimiter:
         """One closed grip window of the sensor."""
         if self.sensor_fault is not None or duration_s <= 0.0:
             return
+        # Plain floats: windows may carry numpy numbers, the status is JSON
+        duration_s, commanded_mm = float(duration_s), float(commanded_mm)
+        grip = None if grip is None else float(grip)
+        temp_c = None if temp_c is None else float(temp_c)
         if grip is not None:
             self.windows_judged += 1
-            self.windows_below_min_grip += grip < self.min_grip
+            if grip < self.min_grip:
+                self.windows_below_min_grip += 1
             self._status["grip_windows"] = self._grip_windows()
         flow = self.filament_area_mm2 * commanded_mm / duration_s
         before = self.reactive.cap_mm3_s

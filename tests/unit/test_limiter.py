@@ -152,3 +152,16 @@ def test_min_grip_defaults_to_the_profile_s():
     lim.set_profile(strict, 0.5)
     assert lim.min_grip == 0.95
     assert lim.status()["min_grip"] == 0.95
+
+
+def test_the_status_is_plain_json_whatever_numbers_the_sensor_hands_over():
+    import msgspec
+    import numpy as np
+    lim = FlowLimiter(LimiterSettings(max_flow_mm3_s=20.0), AREA)
+    lim.set_profile(PROFILE, 0.5)
+    lim.set_temperature(np.float64(212.0))
+    lim.on_window(np.float64(0.1), np.float64(1.25), np.float64(0.5),
+                  np.float64(212.0))
+    lim.limit(FAST, 200.0)
+    msgspec.json.encode(lim.status())  # no numpy scalar anywhere
+    assert type(lim.status()["grip_windows"]["below_min_grip"]) is int
