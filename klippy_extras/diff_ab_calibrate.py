@@ -75,6 +75,7 @@ class DiffABCalibrate:
         self.history = []
         self.last_result = None
         self.bed_state = None
+        self._update_status()
         self.toolhead = None
         self.gcode = self.printer.lookup_object('gcode')
         self.gcode.register_command('DIFF_AB_CALIBRATE',
@@ -92,6 +93,7 @@ class DiffABCalibrate:
             for axis, pattern in AXIS_STEPPER_RE.items():
                 if pattern.match(stepper.get_name()):
                     self.steppers[axis].append(stepper)
+        self._update_status()
 
     # --- DIFF_AB_CALIBRATE ------------------------------------------------
 
@@ -160,6 +162,7 @@ class DiffABCalibrate:
         self.history = diff_ab.append_history(self.history, calibration,
                                               keep=HISTORY_LENGTH)
         self.last_result = calibration.as_dict()
+        self._update_status()
         lines = calibration.report_lines()
         for stepper, old, new in changes:
             lines.append(f"{stepper.get_name()}: rotation_distance"
@@ -183,7 +186,7 @@ class DiffABCalibrate:
             raise gcmd.error(f"WAIT_BED_EQUILIBRIUM: {e}") from None
         heater = self.printer.lookup_object(self.bed_heater_name, None)
         if heater is None or not hasattr(heater, 'get_status'):
-            self.bed_state = 'no_heater'
+            self._set_bed_state('no_heater')
             gcmd.respond_info(f"No heater '{self.bed_heater_name}':"
                               " an unheated bed needs no wait.")
             return
@@ -198,7 +201,7 @@ class DiffABCalibrate:
             status = heater.get_status(eventtime)
             state = detector.add(eventtime - start, status['power'],
                                  status['temperature'], status['target'])
-            self.bed_state = state
+            self._set_bed_state(state)
             if state == 'off':
                 gcmd.respond_info("Bed heater is off: nothing to wait for.")
                 return
@@ -207,7 +210,7 @@ class DiffABCalibrate:
                                   + self._progress(status, detector))
                 return
             if eventtime - start >= timeout:
-                self.bed_state = 'timeout'
+                self._set_bed_state('timeout')
                 gcmd.respond_info(
                     f"!! Bed not at equilibrium after {timeout:.0f} s"
                     f" ({self._progress(status, detector)}); continuing.")
@@ -229,19 +232,26 @@ class DiffABCalibrate:
                 f" {detector.covered_s():.0f}/{detector.window_s:.0f} s"
                 " at temperature")
 
-    def get_status(self, eventtime=None):
+    def _set_bed_state(self, state):
+        self.bed_state = state
+        self.status = dict(self.status, bed_state=state)
+
+    def _update_status(self):
+        """Rebuilt when something it shows changes, never in get_status."""
         rd = {}
         for axis in ('a', 'b'):
             for stepper in self.steppers[axis]:
                 rd[stepper.get_name()] = stepper.get_rotation_distance()[0]
-        return {'kinematics': self.kinematics,
-                'rotation_distance': rd,
-                'last_result': self.last_result,
-                'iterations': (self.history[-1]['iteration'] if self.history
-                               else 0),
-                'history': list(self.history),
-                'bed_state': self.bed_state}
+        self.status = {
+            'kinematics': self.kinematics,
+            'rotation_distance': rd,
+            'last_result': self.last_result,
+            'iterations': self.history[-1]['iteration'] if self.history else 0,
+            'history': tuple(self.history),
+            'bed_state': self.bed_state}
 
+    def get_status(self, eventtime=None):
+        return self.status
 
 def load_config(config):
     return DiffABCalibrate(config)

@@ -34,7 +34,8 @@ class EndstopCalibrate:
                 f" printers (kinematics: delta), not {kinematics}"))
         self.radius = config.getfloat('radius', above=0.)
         self.samples = config.getint('samples', 1, minval=1)
-        self.tolerance = config.getfloat('tolerance', 0.01, above=0.)
+        self.tolerance = config.getfloat('tolerance', delta.DEFAULT_TOLERANCE_MM,
+                                         above=0.)
         self.geometry_warning = config.getfloat(
             'geometry_warning', delta.DEFAULT_GEOMETRY_WARNING_MM, above=0.)
         try:

@@ -27,6 +27,8 @@ TOWERS = ("stepper_a", "stepper_b", "stepper_c")
 DEFAULT_ANGLES_DEG = (210.0, 330.0, 90.0)
 # Max |height| left after the endstop fit before radius/angles are suspected.
 DEFAULT_GEOMETRY_WARNING_MM = 0.02
+# Spread and mean height within which ENDSTOP_CALIBRATE changes nothing.
+DEFAULT_TOLERANCE_MM = 0.01
 
 Triple = Tuple[float, float, float]
 
