@@ -220,6 +220,7 @@ def test_export_of_a_flowloop_profile_without_ddprint_extras():
     text = ddprint.export_text(p)
     data = ddprint.parse_text(text)
     assert data["properties_80"]["Ktemp"] == 0.2 and data["hotendMaxTemp"] == 250
+    assert data["version"] == data["properties_80"]["version"] == 5
     assert json.dumps(p.identity.name) in text.splitlines()[1]
     assert ddprint.to_profile(data, 0.8, name="y").lines == p.lines
 
