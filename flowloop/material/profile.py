@@ -433,6 +433,7 @@ def summary(profile: Profile) -> Dict[str, Any]:
     out["measured_at"] = profile.provenance.measured_at
     out["min_temp_c"] = profile.bounds.min_temp_c
     out["max_temp_c"] = profile.bounds.max_temp_c
+    out["warnings"] = line_warnings(profile)
     return out
 
 

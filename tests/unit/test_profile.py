@@ -274,6 +274,12 @@ def test_summary_lists_the_identity_fields(herz):
     s = P.summary(herz)
     assert s["name"] == "herz-pla-red_80" and s["printer"] == "UM2-1"
     assert s["nozzle_diameter_mm"] == 0.8 and s["method"] == "manual"
+    assert s["warnings"] == []
+
+
+def test_summary_carries_the_plausibility_warning(kaiser_grey):
+    (warning,) = P.summary(kaiser_grey)["warnings"]
+    assert "real-print line lies above the into-air line" in warning
 
 
 # --- hypothesis: validators and the line functions --------------------------
