@@ -181,3 +181,59 @@ def test_the_temperature_cap_follows_the_profile_at_the_hotend_temperature(
             assert api.limiter()["slowed_moves"] == slowed + 1
     finally:
         klippy.stop()
+
+
+# --- the closed loop: simulated sensor and hotend ------------------------------
+
+# A hotend that melts 4 mm^3/s at 200 C (0.1 more per degC): the block file's
+# infill asks for up to 6.4.
+WEAK = make(name="weak", air=(0.1, 200.0, 4.5), real=(0.1, 200.0, 3.5))
+CHUNK_LINES = 50
+
+
+def print_file_closed_loop(klipper_build, klippy_venv, tmp, enable):
+    """Print the slicer excerpt on the twin (flowrate_limiter_loop.cfg); the
+    limiter's grip_windows and the filament the twin really moved.
+
+    Batch mode never holds the G-code reader back as a printer does (about
+    1 s of moves ahead), so feedback would arrive only after the whole file:
+    an M400 every CHUNK_LINES lines bounds how far G-code runs ahead of the
+    steps the twin has seen."""
+    klippy = stack.Klippy(klipper_build, klippy_venv,
+                          HERE / "flowrate_limiter_loop.cfg", tmp,
+                          {"mcu": "atmega2560"})
+    try:
+        klippy.wait_ready()
+        api = Api(klippy.api_socket)
+        stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+        api.call("flowloop/set_active_profile", extruder="extruder",
+                 profile=WEAK, working_point=0.5)
+        api.gcode(f"SET_FLOWRATE_LIMIT ENABLE={enable}")
+        lines = GCODE.read_text().splitlines()
+        for i in range(0, len(lines), CHUNK_LINES):
+            api.gcode("\n".join(lines[i:i + CHUNK_LINES] + ["M400"]))
+        moved = api.call("objects/query", objects={"flow_sensor sim": None})[
+            "status"]["flow_sensor sim"]["filament_position"]
+        return api.limiter(), moved
+    finally:
+        klippy.stop()
+
+
+def test_the_closed_loop_keeps_grip_where_the_uncapped_print_loses_it(
+        klipper_build, klippy_venv, tmp_path_factory):
+    commanded = gcode_extrusion(GCODE)
+    on, moved_on = print_file_closed_loop(klipper_build, klippy_venv,
+                                          tmp_path_factory.mktemp("on"), 1)
+    off, moved_off = print_file_closed_loop(klipper_build, klippy_venv,
+                                            tmp_path_factory.mktemp("off"), 0)
+    # without the limiter most windows slip and a fifth of the plastic is lost
+    assert off["grip_windows"]["below_min_grip"] > 0.5 * off["grip_windows"][
+        "judged"]
+    assert moved_off < 0.8 * commanded
+    # with it, grip stays above min_grip (the twin heats from cold: M109 does
+    # not wait in batch mode, so the first extrusion finds a cold nozzle)
+    assert on["grip_windows"]["below_min_grip"] <= 0.02 * on["grip_windows"][
+        "judged"]
+    assert moved_on > 0.95 * commanded
+    assert on["slowed_moves"] > 100 and on["reason"] in ("temperature", "model")
+    assert on["model"]["windows"] > 0
