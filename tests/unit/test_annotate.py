@@ -1,0 +1,293 @@
+"""Autotemp annotations: where they go, what they say, and that the file
+comes out whole, once."""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+from pathlib import Path
+from typing import List, NamedTuple
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from flowloop import cli
+from flowloop.errors import FlowloopError
+from flowloop.gcode.annotate import (
+    MARKER_REGEX,
+    READAHEAD_S,
+    AnnotateSettings,
+    annotate_file,
+    annotate_stream,
+)
+from flowloop.gcode.planner import Barrier, Segment, plan_file
+
+pytestmark = pytest.mark.unit
+
+DEFAULT = AnnotateSettings()
+DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
+REAL = DATA / "block_layers_1_2.gcode"
+COMMAND = re.compile(rb"^AUTOTEMP_FLOW FLOW=(\S+) LEAD=(\S+) DURATION=(\S+)\r?$",
+                     re.MULTILINE)
+# LEAD is rounded down and DURATION up to 0.01 s
+ROUNDING_S = 0.011
+
+
+class Announced(NamedTuple):
+    at_s: float          # print time of the move after the command
+    start_s: float
+    end_s: float
+    flow: float
+
+
+def plan(data: bytes):
+    return list(plan_file(io.BytesIO(data)))
+
+
+def announcements(data: bytes) -> List[Announced]:
+    """Every AUTOTEMP_FLOW of an annotated file, on the file's own timeline."""
+    segs = [e for e in plan(data) if isinstance(e, Segment)]
+    out = []
+    for m in COMMAND.finditer(data):
+        at = next(s.start_s for s in segs if s.offset > m.start())
+        flow, lead, duration = (float(g) for g in m.groups())
+        out.append(Announced(at, at + lead, at + lead + duration, flow))
+    return out
+
+
+def peak_between(segs, t0: float, t1: float) -> float:
+    return max((s.peak_flow_between(t0, t1) for s in segs
+                if s.start_s < t1 and s.start_s + s.duration_s > t0), default=0.0)
+
+
+def annotated(data: bytes, settings=DEFAULT) -> bytes:
+    out = io.BytesIO()
+    annotate_stream(plan(data), io.BytesIO(data), out, settings)
+    return out.getvalue()
+
+
+def assert_announcements_cover_the_flow(original: bytes, result: bytes,
+                                        settings=DEFAULT) -> None:
+    """The one check of what annotations promise: windows tile the print from
+    the first flow on, each FLOW is its window's true peak (rounded up to 0.1),
+    and each comes at least lead - read-ahead early unless a barrier (or the
+    file's start) was closer."""
+    events = plan(original)
+    segs = [e for e in events if isinstance(e, Segment)]
+    barriers = [e.time_s for e in events if isinstance(e, Barrier)]
+    # the annotations change nothing in the motion
+    assert [(s.start_s, s.duration_s, s.flow_mm3_s) for s in plan(result)
+            if isinstance(s, Segment)] == [(s.start_s, s.duration_s, s.flow_mm3_s)
+                                           for s in segs]
+    windows = announcements(result)
+    flowing = [s for s in segs if s.filament_mm > 0]
+    if not flowing:
+        assert windows == []
+        return
+    assert windows[0].start_s <= flowing[0].start_s + 1e-9
+    assert windows[-1].end_s >= segs[-1].start_s + segs[-1].duration_s - 1e-6
+    for a, b in zip(windows, windows[1:]):
+        assert b.start_s == pytest.approx(a.end_s, abs=2 * ROUNDING_S)
+    for w in windows:
+        inner = peak_between(segs, w.start_s + ROUNDING_S, w.end_s - ROUNDING_S)
+        outer = peak_between(segs, w.start_s - ROUNDING_S, w.end_s + ROUNDING_S)
+        assert inner <= w.flow + 1e-9
+        assert w.flow <= outer + 0.1 + 1e-9
+        lead = w.start_s - w.at_s
+        first_possible = max([t for t in barriers if t <= w.start_s], default=0.0)
+        if w.start_s - settings.placement_s >= first_possible:
+            assert lead >= settings.placement_s - ROUNDING_S
+
+
+# --- the file and its marker --------------------------------------------------------
+
+def test_a_real_file_gets_windows_that_cover_its_flow():
+    data = REAL.read_bytes()
+    result = annotated(data)
+    assert len(COMMAND.findall(result)) > 10
+    assert_announcements_cover_the_flow(data, result)
+
+
+def test_a_flow_step_is_announced_lead_ahead():
+    # 40 s slow, then 20 s at four times the flow: the fast part is announced
+    # lead - read-ahead before it starts, in the middle of the slow part
+    slow = [f"G1 X{10 * (i % 2) + 10:.0f} Y{i:.0f} E0.05 F600" for i in range(1, 41)]
+    fast = [f"G1 X{100 * (i % 2) + 10:.0f} Y{40 + i * 0.1:.1f} E3 F6000"
+            for i in range(1, 21)]
+    data = "\n".join(["M83", "G1 X10 Y0 F6000"] + slow + fast).encode() + b"\n"
+    result = annotated(data)
+    assert_announcements_cover_the_flow(data, result)
+    segs = [e for e in plan(data) if isinstance(e, Segment)]
+    fast_start = next(s.start_s for s in segs if s.flow_mm3_s > 5)
+    step = next(w for w in announcements(result) if w.flow > 5)
+    assert step.start_s <= fast_start
+    assert step.start_s - step.at_s >= AnnotateSettings().placement_s - ROUNDING_S
+
+
+def test_nothing_is_announced_across_a_barrier():
+    lines = ["M83"] + [f"G1 X{10 * (i % 2)} Y{i} E0.1 F600" for i in range(30)]
+    data = "\n".join(lines[:20] + ["M109 S220"] + lines[20:]).encode() + b"\n"
+    result = annotated(data)
+    barrier_at = result.index(b"M109 S220")
+    after = [m.start() for m in COMMAND.finditer(result)]
+    windows = announcements(result)
+    barrier_s = next(e.time_s for e in plan(data) if isinstance(e, Barrier))
+    for offset, w in zip(after, windows):
+        if w.start_s > barrier_s + 1e-9:
+            assert offset > barrier_at
+    assert_announcements_cover_the_flow(data, result)
+
+
+def test_a_longer_lead_places_annotations_earlier():
+    data = REAL.read_bytes()
+    short = announcements(annotated(data, AnnotateSettings(lead_s=5)))
+    long = announcements(annotated(data, AnnotateSettings(lead_s=30)))
+    median = sorted(w.start_s - w.at_s for w in short)[len(short) // 2]
+    assert median >= 5 - READAHEAD_S - ROUNDING_S
+    assert sorted(w.start_s - w.at_s for w in long)[len(long) // 2] > median + 15
+
+
+def test_the_marker_is_found_as_moonraker_looks_for_it():
+    result = annotated(REAL.read_bytes())
+    head = result[:1024 * 1024].decode()
+    match = re.search(MARKER_REGEX, head, re.MULTILINE)
+    assert match is not None and match.group("version") == "v1"
+    assert result.splitlines()[0].startswith(b"; flowloop autotemp annotations v1")
+    assert result.splitlines()[-1].startswith(b"; flowloop autotemp summary:"
+                                              b" peak_flow_mm3_s=")
+    # the slicer's own header is still there for Moonraker's metadata
+    assert b"; generated by PrusaSlicer" in result[:2000]
+
+
+def test_a_file_without_extrusion_gets_only_marker_and_summary():
+    result = annotated(b"G28\nG1 X10 F600\n")
+    assert COMMAND.findall(result) == []
+    assert result.count(b"\n") == 4
+
+
+def test_crlf_files_keep_their_line_ends(tmp_path):
+    path = tmp_path / "crlf.gcode"
+    path.write_bytes(b"M83\r\n" + b"".join(
+        f"G1 X{i % 2 * 10} Y{i} E0.2 F1200\r\n".encode() for i in range(40)))
+    annotate_file(path)
+    data = path.read_bytes()
+    assert data.count(b"\n") == data.count(b"\r\n")
+
+
+# --- idempotence and safe output ---------------------------------------------------
+
+def test_annotating_twice_changes_nothing(tmp_path):
+    path = tmp_path / "part.gcode"
+    path.write_bytes(REAL.read_bytes())
+    first = annotate_file(path)
+    once = path.read_bytes()
+    second = annotate_file(path)
+    assert first.annotated and not second.annotated
+    assert path.read_bytes() == once
+    copy = tmp_path / "copy.gcode"
+    assert not annotate_file(path, copy).annotated
+    assert copy.read_bytes() == once
+
+
+def test_in_place_and_output_file_give_the_same_bytes(tmp_path):
+    inplace, src, out = tmp_path / "a.gcode", tmp_path / "b.gcode", tmp_path / "o.gcode"
+    inplace.write_bytes(REAL.read_bytes())
+    src.write_bytes(REAL.read_bytes())
+    annotate_file(inplace)
+    annotate_file(src, out)
+    assert inplace.read_bytes() == out.read_bytes()
+    assert src.read_bytes() == REAL.read_bytes()
+
+
+def test_a_failure_leaves_input_and_output_as_they_were(tmp_path):
+    src, out = tmp_path / "bad.gcode", tmp_path / "out.gcode"
+    src.write_bytes(REAL.read_bytes() + b"G1 X10 F-5\n")
+    out.write_bytes(b"earlier output\n")
+    for dst in (out, None):
+        with pytest.raises(FlowloopError, match=r"bad.gcode: line \d+: invalid speed"):
+            annotate_file(src, dst)
+    assert out.read_bytes() == b"earlier output\n"
+    assert src.read_bytes().endswith(b"G1 X10 F-5\n")
+    assert sorted(os.listdir(tmp_path)) == ["bad.gcode", "out.gcode"]
+
+
+def test_settings_refuse_nonsense():
+    with pytest.raises(FlowloopError, match="lead must be"):
+        AnnotateSettings(lead_s=0.5)
+    with pytest.raises(FlowloopError, match="window must be"):
+        AnnotateSettings(lead_s=5, window_s=10)
+
+
+# --- the command ------------------------------------------------------------------
+
+def test_the_command_annotates_and_says_what_it_did(tmp_path, capsys):
+    src, out = tmp_path / "in.gcode", tmp_path / "out.gcode"
+    src.write_bytes(REAL.read_bytes())
+    assert cli.main(["annotate", str(src), "-o", str(out), "--lead", "10"]) == 0
+    said = capsys.readouterr().out
+    assert re.match(r".*out.gcode: \d+ windows, peak flow \d+\.\d mm\^3/s, print time"
+                    r" 0:0\d:\d\d \(lead 10 s, window 1 s\)\n$", said)
+    assert cli.main(["annotate", str(out)]) == 0
+    assert "annotated already, unchanged" in capsys.readouterr().out
+
+
+def test_the_command_reads_limits_from_printer_cfg(tmp_path, capsys):
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text("[printer]\nkinematics: cartesian\nmax_velocity: 20\n"
+                   "max_accel: 500\n")
+    src = tmp_path / "in.gcode"
+    src.write_bytes(b"M83\nG1 X100 E5 F6000\n")
+    assert cli.main(["annotate", str(src), "--printer-cfg", str(cfg)]) == 0
+    # 100 mm at 20 mm/s: over 5 s, not the 0.4 s of the default limits
+    assert "print time 0:00:05" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("content, message", [
+    (b"\x89PNG\r\n\x1a\n\x00\x00\x00", "line 1: not G-code text"),
+    (b"G28\nGCDE\x01\x00\x00\x00", "line 2: binary data"),
+    (b"G1 X10 E1e400 F600\n", "absurd value"),
+    (b"G1 X10 F-100\n", "invalid speed"),
+])
+def test_bad_input_is_one_line_and_no_output(tmp_path, capsys, content, message):
+    src, out = tmp_path / "in.gcode", tmp_path / "out.gcode"
+    src.write_bytes(content)
+    assert cli.main(["annotate", str(src), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"flowloop annotate: error: {src}: line ")
+    assert message in err and err.count("\n") == 1
+    assert not out.exists()
+    assert src.read_bytes() == content
+
+
+def test_an_unreadable_file_is_one_line(tmp_path, capsys):
+    assert cli.main(["annotate", str(tmp_path / "missing.gcode")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"flowloop annotate: error: {tmp_path / 'missing.gcode'}: "
+                   "cannot read: No such file or directory\n")
+
+
+# --- any file ---------------------------------------------------------------------
+
+steps = st.lists(st.tuples(st.floats(min_value=0.5, max_value=60),      # mm
+                           st.floats(min_value=0.0, max_value=0.2),      # E per mm
+                           st.sampled_from([300, 1200, 3000, 9000]),     # F
+                           st.sampled_from(["", "", "", "G4 P800", "M109 S210",
+                                            "G1 E-1 F2400", "G1 E1 F2400"])),
+                 min_size=1, max_size=60)
+
+
+@settings(max_examples=40, deadline=None)
+@given(steps, st.sampled_from([(4.0, 0.5), (15.0, 1.0), (8.0, 3.0)]))
+def test_announcements_cover_the_flow_of_any_file(moves, lead_window):
+    lines, x = ["M83"], 0.0
+    for i, (length, e_per_mm, feed, extra) in enumerate(moves):
+        x = x + length if i % 2 else x - length
+        lines.append(f"G1 X{x:.3f} Y{i * 0.5:.1f} E{length * e_per_mm:.4f} F{feed}")
+        if extra:
+            lines.append(extra)
+    data = "\n".join(lines).encode() + b"\n"
+    settings_ = AnnotateSettings(*lead_window)
+    result = annotated(data, settings_)
+    assert_announcements_cover_the_flow(data, result, settings_)
