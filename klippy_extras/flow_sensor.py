@@ -13,9 +13,8 @@ import dataclasses
 import logging
 import threading
 
-from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
-from flowloop.material.profile import FlowLine, profile_line
+from flowloop.material.profile import FlowLine
 from flowloop.sensor import ems22, twin
 from flowloop.sensor import grip as flow_grip
 
@@ -68,6 +67,10 @@ class FlowSensor:
                                       ems22.DEFAULT_FAULT_SAMPLES, minval=1)
         self.on_fault = config.getchoice('on_fault', {'warn': 'warn',
                                                       'pause': 'pause'}, 'warn')
+        # As filament_switch_sensor's runout helper: pause_resume at config time
+        self.pause_resume = None
+        if self.on_fault == 'pause':
+            self.pause_resume = printer.load_object(config, 'pause_resume')
         self.grip = flow_grip.GripEstimator(window_mm=grip_window,
                                             calibration=calibration)
         self.faults = ems22.FaultMonitor(fault_samples)
@@ -201,16 +204,24 @@ class FlowSensor:
 
     def _act_on_fault(self, msg):
         gcode = self.printer.lookup_object('gcode')
-        if self.on_fault == 'pause':
-            pause_resume = self.printer.lookup_object('pause_resume', None)
-            if pause_resume is None:
-                gcode.respond_info(msg + " (on_fault: pause needs [pause_resume])")
-                return
-            gcode.respond_info(msg + ": pausing")
-            pause_resume.send_pause_command()
-            gcode.run_script("PAUSE")
+        if self.pause_resume is None or not self._is_printing():
+            gcode.respond_info(msg)
             return
-        gcode.respond_info(msg)
+        gcode.respond_info(msg + ": pausing")
+        # Pausing from inside an event needs the pause itself to happen now
+        # (send_pause_command); PAUSE then runs the user's macro, if any.
+        self.pause_resume.send_pause_command()
+        try:
+            gcode.run_script("PAUSE")
+        except Exception:
+            logging.exception("flow_sensor %s: PAUSE failed", self.name)
+
+    def _is_printing(self):
+        # A sensor that faults on an idle printer (unplugged at boot) must
+        # not run PAUSE: act only while printing, as filament sensors do.
+        idle_timeout = self.printer.lookup_object('idle_timeout')
+        now = self.reactor.monotonic()
+        return idle_timeout.get_status(now)['state'] == 'Printing'
 
     # --- status and dump endpoint ---------------------------------------------
     def get_status(self, eventtime=None):
@@ -503,8 +514,7 @@ class SimulatedSource:
                                          maxval=high),
             noise_counts=config.getfloat('noise_counts',
                                          twin.DEFAULT_NOISE_COUNTS, minval=0.),
-            spi_mode=sensor.spi_mode, seed=config.getint('seed', 0),
-            hotend=self._hotend(config))
+            spi_mode=sensor.spi_mode, seed=config.getint('seed', 0))
         # The extruder's real rotation_distance (default: as configured)
         self.true_rotation_distance = config.getfloat(
             'true_rotation_distance', None, above=0.)
@@ -512,26 +522,6 @@ class SimulatedSource:
         self.rest_ticks = self.time_shift = 0
         self.stepper = self.motion_queuing = None
         self.mm_per_step = 0.
-        self.printer.register_event_handler('flowloop:profile_activated',
-                                            self._handle_profile)
-
-    @staticmethod
-    def _hotend(config):
-        # With heater_power the twin's nozzle heats, lags and sags
-        # (flowloop.control.hotend); without it it is at its target at once.
-        power = config.getfloat('heater_power', None)
-        if power is None:
-            return None
-        try:
-            return HotendModel(HotendParams(max_power_w=power))
-        except FlowloopError as e:
-            raise option_error(config, 'heater_power', str(e)) from None
-
-    def _handle_profile(self, extruder, profile, working_point):
-        # The twin melts what the active profile's line says (one melt line)
-        if extruder == self.sensor.extruder_name and profile is not None:
-            self.catch_up()
-            self.twin.melt = profile_line(profile, working_point)
 
     def commands(self):
         return [('SET_FLOW_SENSOR_SIMULATION',
@@ -559,8 +549,8 @@ class SimulatedSource:
         self.start_clock = self.mcu.print_time_to_clock(print_time)
 
     def temp_c(self, eventtime):
-        # The twin's nozzle: its hotend model's, else at its target at once
-        return self.twin.temp_c(self.sensor.heater.get_status(eventtime)['target'])
+        # The twin's hotend is at its target at once
+        return self.sensor.heater.get_status(eventtime)['target']
 
     def _flush(self, flush_time, step_gen_time):
         # Steps up to motion_queuing's last_step_gen_time exist already (it is
@@ -588,9 +578,8 @@ class SimulatedSource:
         # Filament the stepper really fed: its steps times the true mm/step
         steps = self.stepper.get_past_mcu_position
         fed = [steps(t) * self.mm_per_step for t in times]
-        # The heater's target: the nozzle's temperature, or its hotend's goal
-        target_c = self.sensor.heater.get_status(None)['target']
-        self.sensor.process(self.twin.messages(times, fed, target_c))
+        temp_c = self.temp_c(self.printer.get_reactor().monotonic())
+        self.sensor.process(self.twin.messages(times, fed, temp_c))
 
     def sync(self, until=None):
         # In batch mode steps are generated only when the reactor gets to

@@ -40,6 +40,29 @@ def test_on_fault_pause_pauses_after_the_fault(klipper_build, klippy_venv,
     assert "Transition to shutdown" not in log
 
 
+MISSING_FRAMES = ("180002ffffff02ffffff02ffffff02ffffff02ffffff02ffffff02ffffff"
+                  "02ffffff02ffffff02ffffff02ffffff02ffffff")
+
+
+def test_on_fault_pause_leaves_an_idle_printer_alone(klipper_build, klippy_venv,
+                                                     short_tmp):
+    # A sensor unplugged at boot: a fault, said on the console, no PAUSE
+    cfg = short_tmp / "idle.cfg"
+    cfg.write_text(f"[include {HERE / 'flow_sensor.cfg'}]\n"
+                   "[flow_sensor filament]\non_fault: pause\n")
+    test = short_tmp / "idle.test"
+    test.write_text(
+        f"DICTIONARY atmega2560.dict\nCONFIG {cfg}\n"
+        f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE=0 DATA={MISSING_FRAMES}\n"
+        f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE=1 DATA={MISSING_FRAMES}\n"
+        "G4 P100\nQUERY_FLOW_SENSOR\n")
+    log = run_file(test, klipper_build, klippy_venv, short_tmp)
+    assert "fault missing" in log          # the query saw the fault
+    # logged, then said on the console by the callback that would pause
+    assert log.count("flow_sensor filament: fault 'missing'") == 2
+    assert "pausing" not in log and "action:paused" not in log
+
+
 def test_calibration_with_slipping_speeds_changes_nothing(klipper_build,
                                                           klippy_venv, short_tmp):
     # 8 mm/s of 1.75 mm filament is 19 mm^3/s: the twin melts only 10 at 200 C
