@@ -82,7 +82,9 @@ class PylonOptions:
 def _positive(name: str, value: float, maximum: float = math.inf) -> None:
     if not (isinstance(value, (int, float)) and math.isfinite(value)
             and 0.0 < value <= maximum):
-        raise FlowloopError(f"{name} must be a number in (0, {maximum:g}], got {value}")
+        limit = ("a finite number above 0" if maximum == math.inf
+                 else f"a number in (0, {maximum:g}]")
+        raise FlowloopError(f"{name} must be {limit}, got {value}")
 
 
 def validate(o: PylonOptions) -> None:
@@ -97,6 +99,10 @@ def validate(o: PylonOptions) -> None:
         _positive(name, getattr(o, name))
     if o.accel_mm_s2 is not None:
         _positive("accel_mm_s2", o.accel_mm_s2)
+    for name in ("centre_x_mm", "centre_y_mm"):
+        value = getattr(o, name)
+        if value is not None and not math.isfinite(value):
+            raise FlowloopError(f"{name} must be a finite number, got {value}")
     _positive("extrusion_multiplier", o.extrusion_multiplier, 1.5)
     for name in ("retract_mm", "z_hop_mm"):
         value = getattr(o, name)
@@ -120,8 +126,8 @@ def validate(o: PylonOptions) -> None:
     if len(o.distances_mm) < 2:
         raise FlowloopError("need at least two distances (D1 and D2)")
     distances = list(o.distances_mm)
-    for d in distances:
-        _positive("distance", d, 1000.0)
+    for k, d in enumerate(distances, 1):
+        _positive(f"D{k}", d, 1000.0)
     if distances != sorted(set(distances)):
         raise FlowloopError("distances must increase: D1 < D2 < ...")
     gap = distances[0] - 2 * o.pylon_width_mm

@@ -53,19 +53,33 @@ def _register_calibrate(subparsers) -> None:
                    help=f"accept a scale more than "
                         f"{100 * diff_ab.MAX_SCALE_CHANGE:g} %% from 1")
     b = diff_ab.ErrorBudget()
-    p.add_argument("--caliper-accuracy", type=float, default=b.caliper_accuracy_mm,
-                   metavar="MM", help=f"caliper trueness over --caliper-range "
-                                      f"({b.caliper_accuracy_mm:g})")
-    p.add_argument("--caliper-range", type=float, default=b.caliper_range_mm,
-                   metavar="MM", help=f"length the caliper accuracy is stated for "
-                                      f"({b.caliper_range_mm:g})")
-    p.add_argument("--reading-error", type=float, default=b.reading_error_mm,
-                   metavar="MM", help=f"3 sigma of one reading, used below 3 "
-                                      f"readings ({b.reading_error_mm:g})")
+    for flag, field, text in BUDGET_OPTIONS:
+        default = getattr(b, field)
+        p.add_argument(f"--{flag}", dest=field, type=float, default=default,
+                       metavar="MM", help=f"{text} ({default:g})")
     p.add_argument("--history", type=Path, metavar="FILE",
                    help="JSON file of earlier iterations; this one is appended")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run_calibrate)
+
+
+# ab-calibrate's error budget options: (flag, ErrorBudget field, help)
+BUDGET_OPTIONS = (
+    ("caliper-accuracy", "caliper_accuracy_mm",
+     "caliper trueness over --caliper-range"),
+    ("caliper-range", "caliper_range_mm",
+     "length the caliper accuracy is stated for"),
+    ("reading-error", "reading_error_mm",
+     "3 sigma of one reading, used below 3 readings"),
+)
+
+
+def _with_flags(error: FlowloopError, table) -> FlowloopError:
+    """The core names its fields; the user typed flags."""
+    text = str(error)
+    for flag, field, _ in table:
+        text = text.replace(field, f"--{flag}")
+    return FlowloopError(text)
 
 
 def _axis_sets(args, axis: str):
@@ -77,9 +91,11 @@ def _axis_sets(args, axis: str):
 
 
 def calibration_from_args(args) -> diff_ab.Calibration:
-    budget = diff_ab.ErrorBudget(caliper_accuracy_mm=args.caliper_accuracy,
-                                 caliper_range_mm=args.caliper_range,
-                                 reading_error_mm=args.reading_error)
+    try:
+        budget = diff_ab.ErrorBudget(**{field: getattr(args, field)
+                                        for _, field, _ in BUDGET_OPTIONS})
+    except FlowloopError as e:
+        raise _with_flags(e, BUDGET_OPTIONS) from None
     ks = (1, 2) + EXTRA_DISTANCES
     diff_ab.check_nominals_used(
         [k for k in EXTRA_DISTANCES if getattr(args, f"d{k}") is not None],
@@ -127,6 +143,32 @@ def run_calibrate(args) -> int:
 
 # --- ab-pylons -----------------------------------------------------------------
 
+# ab-pylons options: (flag, PylonOptions field, help)
+PYLON_OPTIONS = (
+    ("pylon-width", "pylon_width_mm", "along the row, mm"),
+    ("pylon-depth", "pylon_depth_mm", "across the row, mm"),
+    ("pylon-height", "pylon_height_mm", "mm"),
+    ("bed-x", "bed_size_x_mm", "bed size X, mm"),
+    ("bed-y", "bed_size_y_mm", "bed size Y, mm"),
+    ("centre-x", "centre_x_mm", "where the rows cross, default bed middle"),
+    ("centre-y", "centre_y_mm", "where the rows cross, default bed middle"),
+    ("nozzle", "nozzle_diameter_mm", "mm"),
+    ("line-width", "line_width_mm", "mm"),
+    ("layer-height", "layer_height_mm", "mm"),
+    ("filament-diameter", "filament_diameter_mm", "mm"),
+    ("extrusion-multiplier", "extrusion_multiplier", "never over-extrude"),
+    ("hotend-temp", "hotend_temp_c", "C"),
+    ("bed-temp", "bed_temp_c", "C, kept on after the print"),
+    ("speed", "print_speed_mm_s", "mm/s"),
+    ("first-layer-speed", "first_layer_speed_mm_s", "mm/s, at most --speed"),
+    ("travel-speed", "travel_speed_mm_s", "mm/s"),
+    ("accel", "accel_mm_s2", "mm/s^2, left set after the print; default: the "
+                             "printer's max_accel"),
+    ("retract", "retract_mm", "mm"),
+    ("z-hop", "z_hop_mm", "mm"),
+)
+
+
 def _register_pylons(subparsers) -> None:
     d = pylons.PylonOptions()
     p = subparsers.add_parser(
@@ -143,30 +185,7 @@ def _register_pylons(subparsers) -> None:
                    help="nominal D2 outside to outside, pylon 1 to 3 (150)")
     for k in EXTRA_DISTANCES:
         p.add_argument(f"--d{k}", type=float, help=argparse.SUPPRESS)
-    options = (
-        ("pylon-width", "pylon_width_mm", "along the row, mm"),
-        ("pylon-depth", "pylon_depth_mm", "across the row, mm"),
-        ("pylon-height", "pylon_height_mm", "mm"),
-        ("bed-x", "bed_size_x_mm", "bed size X, mm"),
-        ("bed-y", "bed_size_y_mm", "bed size Y, mm"),
-        ("centre-x", "centre_x_mm", "where the rows cross, default bed middle"),
-        ("centre-y", "centre_y_mm", "where the rows cross, default bed middle"),
-        ("nozzle", "nozzle_diameter_mm", "mm"),
-        ("line-width", "line_width_mm", "mm"),
-        ("layer-height", "layer_height_mm", "mm"),
-        ("filament-diameter", "filament_diameter_mm", "mm"),
-        ("extrusion-multiplier", "extrusion_multiplier", "never over-extrude"),
-        ("hotend-temp", "hotend_temp_c", "C"),
-        ("bed-temp", "bed_temp_c", "C, kept on after the print"),
-        ("speed", "print_speed_mm_s", "mm/s"),
-        ("first-layer-speed", "first_layer_speed_mm_s", "mm/s, at most --speed"),
-        ("travel-speed", "travel_speed_mm_s", "mm/s"),
-        ("accel", "accel_mm_s2", "mm/s^2, left set after the print; default: the "
-                                 "printer's max_accel"),
-        ("retract", "retract_mm", "mm"),
-        ("z-hop", "z_hop_mm", "mm"),
-    )
-    for flag, field, text in options:
+    for flag, field, text in PYLON_OPTIONS:
         default = getattr(d, field)
         shown = "" if default is None else f" ({default:g})"
         p.add_argument(f"--{flag}", dest=field, type=float, default=default,
@@ -190,7 +209,10 @@ def pylon_options_from_args(args) -> pylons.PylonOptions:
 
 
 def run_pylons(args) -> int:
-    options = pylon_options_from_args(args)
+    try:
+        options = pylon_options_from_args(args)
+    except FlowloopError as e:
+        raise _with_flags(e, PYLON_OPTIONS) from None
     text = pylons.render(options)
     if args.output == "-":
         sys.stdout.write(text)

@@ -383,6 +383,8 @@ def test_cli_human_report_and_history(capsys, tmp_path):
     (["--a3", "80"], "A3 needs D3=<nominal distance>"),
     (["--d4", "80"], "D4 is given but neither A4 nor B4 readings"),
     (["--a9", "1", "--d9", "1"], "D9 .* must be greater than D2"),
+    (["--caliper-accuracy", "nan"], "--caliper-accuracy must be a finite number"),
+    (["--caliper-range", "-1e-3"], "--caliper-range must be a finite number >= 0"),
 ])
 def test_cli_bad_input_exits_with_one_line(capsys, change, message):
     args = list(ARGS)
@@ -401,6 +403,20 @@ def test_cli_force_accepts_a_large_scale(capsys):
     args[args.index("--a2") + 1] = "154"
     assert cli.main(args + ["--force", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["a"]["scale"] > 1.02
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--speed", "inf", "--speed must be a finite number above 0, got inf"),
+    ("--accel", "-1e3", "--accel must be a finite number above 0, got -1000.0"),
+    ("--centre-x", "nan", "--centre-x must be a finite number, got nan"),
+    ("--d2", "nan", "D2 must be a number in (0, 1000], got nan"),
+])
+def test_pylon_errors_name_the_flag_that_was_typed(tmp_path, capsys, option, value,
+                                                   message):
+    out = tmp_path / "p.gcode"
+    assert cli.main(["ab-pylons", "-o", str(out), option, value]) == 2
+    assert capsys.readouterr().err == f"flowloop ab-pylons: error: {message}\n"
+    assert not out.exists()
 
 
 def test_cli_writes_pylon_gcode(tmp_path, capsys):
