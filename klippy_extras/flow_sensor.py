@@ -13,8 +13,9 @@ import dataclasses
 import logging
 import threading
 
+from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
-from flowloop.material.profile import FlowLine
+from flowloop.material.profile import FlowLine, profile_line
 from flowloop.sensor import ems22, twin
 from flowloop.sensor import grip as flow_grip
 
@@ -514,7 +515,8 @@ class SimulatedSource:
                                          maxval=high),
             noise_counts=config.getfloat('noise_counts',
                                          twin.DEFAULT_NOISE_COUNTS, minval=0.),
-            spi_mode=sensor.spi_mode, seed=config.getint('seed', 0))
+            spi_mode=sensor.spi_mode, seed=config.getint('seed', 0),
+            hotend=self._hotend(config))
         # The extruder's real rotation_distance (default: as configured)
         self.true_rotation_distance = config.getfloat(
             'true_rotation_distance', None, above=0.)
@@ -522,6 +524,26 @@ class SimulatedSource:
         self.rest_ticks = self.time_shift = 0
         self.stepper = self.motion_queuing = None
         self.mm_per_step = 0.
+        self.printer.register_event_handler('flowloop:profile_activated',
+                                            self._handle_profile)
+
+    @staticmethod
+    def _hotend(config):
+        # With heater_power the twin's nozzle heats, lags and sags
+        # (flowloop.control.hotend); without it it is at its target at once.
+        power = config.getfloat('heater_power', None)
+        if power is None:
+            return None
+        try:
+            return HotendModel(HotendParams(max_power_w=power))
+        except FlowloopError as e:
+            raise option_error(config, 'heater_power', str(e)) from None
+
+    def _handle_profile(self, extruder, profile, working_point):
+        # The twin melts what the active profile's line says (one melt line)
+        if extruder == self.sensor.extruder_name and profile is not None:
+            self.catch_up()
+            self.twin.melt = profile_line(profile, working_point)
 
     def commands(self):
         return [('SET_FLOW_SENSOR_SIMULATION',
@@ -549,8 +571,8 @@ class SimulatedSource:
         self.start_clock = self.mcu.print_time_to_clock(print_time)
 
     def temp_c(self, eventtime):
-        # The twin's hotend is at its target at once
-        return self.sensor.heater.get_status(eventtime)['target']
+        # The twin's nozzle: its hotend model's, else at its target at once
+        return self.twin.temp_c(self.sensor.heater.get_status(eventtime)['target'])
 
     def _flush(self, flush_time, step_gen_time):
         # Steps up to motion_queuing's last_step_gen_time exist already (it is
@@ -578,8 +600,9 @@ class SimulatedSource:
         # Filament the stepper really fed: its steps times the true mm/step
         steps = self.stepper.get_past_mcu_position
         fed = [steps(t) * self.mm_per_step for t in times]
-        temp_c = self.temp_c(self.printer.get_reactor().monotonic())
-        self.sensor.process(self.twin.messages(times, fed, temp_c))
+        # The heater's target: the nozzle's temperature, or its hotend's goal
+        target_c = self.sensor.heater.get_status(None)['target']
+        self.sensor.process(self.twin.messages(times, fed, target_c))
 
     def sync(self, until=None):
         # In batch mode steps are generated only when the reactor gets to
