@@ -44,6 +44,7 @@ BARRIER_COMMANDS = frozenset(("G28", "M109", "M190", "M191", "TEMPERATURE_WAIT",
                               "PAUSE", "M600", "M0", "M1"))
 # klippy/gcode.py: how Klipper splits a traditional command into words.
 _ARGS_R = re.compile(r"([A-Z_]+|[A-Z*])")
+_FAST_MOVES = (b"G1 ", b"G0 ")
 
 
 @dataclass(frozen=True)
@@ -221,13 +222,19 @@ class _Move:
             return
         # The extruder as Klipper's extra axis (kinematics/extruder.py).
         diff_r = self.axes_r[3] - prev_move.axes_r[3]
+        # min() of Klipper's candidates, written out (this runs for every move)
+        max_start_v2 = self.max_cruise_v2
         if diff_r:
-            ea_v2 = (instant_corner_v / abs(diff_r)) ** 2
-        else:
-            ea_v2 = self.max_cruise_v2
-        max_start_v2 = min(self.max_cruise_v2, prev_move.max_cruise_v2,
-                           prev_move.next_junction_v2,
-                           prev_move.max_start_v2 + prev_move.delta_v2, ea_v2)
+            ea_v2 = (instant_corner_v / diff_r) ** 2
+            if ea_v2 < max_start_v2:
+                max_start_v2 = ea_v2
+        if prev_move.max_cruise_v2 < max_start_v2:
+            max_start_v2 = prev_move.max_cruise_v2
+        if prev_move.next_junction_v2 < max_start_v2:
+            max_start_v2 = prev_move.next_junction_v2
+        reach_v2 = prev_move.max_start_v2 + prev_move.delta_v2
+        if reach_v2 < max_start_v2:
+            max_start_v2 = reach_v2
         axes_r = self.axes_r
         prev_axes_r = prev_move.axes_r
         junction_cos_theta = -(axes_r[0] * prev_axes_r[0]
@@ -243,11 +250,13 @@ class _Move:
             quarter_tan_theta_d2 = 0.25 * sin_theta_d2 / cos_theta_d2
             move_centripetal_v2 = self.delta_v2 * quarter_tan_theta_d2
             pmove_centripetal_v2 = prev_move.delta_v2 * quarter_tan_theta_d2
-            max_start_v2 = min(max_start_v2, move_jd_v2, pmove_jd_v2,
-                               move_centripetal_v2, pmove_centripetal_v2)
+            for v2 in (move_jd_v2, pmove_jd_v2, move_centripetal_v2,
+                       pmove_centripetal_v2):
+                if v2 < max_start_v2:
+                    max_start_v2 = v2
         self.max_start_v2 = max_start_v2
-        self.max_mcr_start_v2 = min(
-            max_start_v2, prev_move.max_mcr_start_v2 + prev_move.mcr_delta_v2)
+        mcr_v2 = prev_move.max_mcr_start_v2 + prev_move.mcr_delta_v2
+        self.max_mcr_start_v2 = mcr_v2 if mcr_v2 < max_start_v2 else max_start_v2
 
     def set_junction(self, start_v2: float, cruise_v2: float, end_v2: float) -> None:
         half_inv_accel = 0.5 / self.accel
@@ -280,11 +289,15 @@ class _LookAhead:
         for i in range(flush_count - 1, -1, -1):
             move = queue[i]
             reachable_start_v2 = next_start_v2 + move.delta_v2
-            start_v2 = min(move.max_start_v2, reachable_start_v2)
+            start_v2 = move.max_start_v2
+            if reachable_start_v2 < start_v2:
+                start_v2 = reachable_start_v2
             cruise_v2 = None
             pending_cv2_assign += 1
             reach_mcr_start_v2 = next_mcr_start_v2 + move.mcr_delta_v2
-            mcr_start_v2 = min(move.max_mcr_start_v2, reach_mcr_start_v2)
+            mcr_start_v2 = move.max_mcr_start_v2
+            if reach_mcr_start_v2 < mcr_start_v2:
+                mcr_start_v2 = reach_mcr_start_v2
             if mcr_start_v2 < reach_mcr_start_v2:
                 if (mcr_start_v2 + move.mcr_delta_v2 > next_mcr_start_v2
                         or pending_cv2_assign > 1):
@@ -375,12 +388,74 @@ class Planner:
         """Plan one line of G-code (bytes, with or without its newline)."""
         if b"\0" in raw:
             raise FlowloopError(f"line {number}: binary data, not G-code text")
+        end = offset + len(raw)
         cpos = raw.find(b";")
         if cpos >= 0:
             raw = raw[:cpos]
-        raw = raw.strip()
-        if not raw:
-            return []
+        if raw[:3] in _FAST_MOVES and self._fast_g1(raw, offset, number):
+            pass
+        else:
+            raw = raw.strip()
+            if not raw:
+                return []
+            self._slow_line(raw, offset, number, end)
+        if self._out:
+            out, self._out = self._out, []
+            return out
+        return []
+
+    def _fast_g1(self, raw: bytes, offset: int, number: int) -> bool:
+        """'G1 X.. Y.. E.. F..' as slicers write it; False: not that simple."""
+        x = y = z = e = f = None
+        try:
+            for word in raw.split()[1:]:
+                key = word[0]
+                if key == 88:            # X
+                    x = float(word[1:])
+                elif key == 89:          # Y
+                    y = float(word[1:])
+                elif key == 69:          # E
+                    e = float(word[1:])
+                elif key == 70:          # F
+                    f = float(word[1:])
+                elif key == 90:          # Z
+                    z = float(word[1:])
+        except ValueError:
+            return False
+        for v in (x, y, z, e, f):
+            if v is not None and not -MAX_ABS_VALUE <= v <= MAX_ABS_VALUE:
+                return False
+        self._number, self._offset = number, offset
+        last, base = self.last_position, self.base_position
+        if self.absolute_coord:
+            if x is not None:
+                last[0] = x + base[0]
+            if y is not None:
+                last[1] = y + base[1]
+            if z is not None:
+                last[2] = z + base[2]
+        else:
+            if x is not None:
+                last[0] += x
+            if y is not None:
+                last[1] += y
+            if z is not None:
+                last[2] += z
+        if e is not None:
+            e *= self.extrude_factor
+            if self.absolute_coord and self.absolute_extrude:
+                last[3] = e + base[3]
+            else:
+                last[3] += e
+        if f is not None:
+            if f <= 0.0:
+                self._text = raw.strip().decode("ascii", "replace")
+                raise self._error("invalid speed")
+            self.speed = f * self.speed_factor
+        self._move(last, self.speed)
+        return True
+
+    def _slow_line(self, raw: bytes, offset: int, number: int, end: int) -> None:
         try:
             text = raw.decode("ascii").upper()
         except UnicodeDecodeError:
@@ -390,22 +465,15 @@ class Planner:
         self._offset = offset
         words = text.split()
         cmd = words[0]
-        if cmd == "G1" or cmd == "G0":
-            self._g1(self._params(words))
-        else:
+        handler = self._handlers.get(cmd)
+        if handler is None:
+            cmd, words = self._resplit(text)
             handler = self._handlers.get(cmd)
-            if handler is None:
-                cmd, words = self._resplit(text)
-                handler = self._handlers.get(cmd)
-            if handler is not None:
-                handler(self, words)
-            if cmd in BARRIER_COMMANDS:
-                self._flush()
-                self._out.append(Barrier(self.print_time, offset + len(raw), cmd))
-        if self._out:
-            out, self._out = self._out, []
-            return out
-        return []
+        if handler is not None:
+            handler(self, words)
+        if cmd in BARRIER_COMMANDS:
+            self._flush()
+            self._out.append(Barrier(self.print_time, end, cmd))
 
     def finish(self) -> List[Event]:
         self._flush()
