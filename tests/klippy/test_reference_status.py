@@ -23,7 +23,8 @@ HERE = Path(__file__).resolve().parent
 # One run per config; together they load every klippy_extras module, on both
 # kinds of flow sensor source.
 CONFIGS = ("flow_sensor_sim.cfg", "flow_sensor_both.cfg",
-           "diff_ab_calibrate_corexy.cfg", "endstop_calibrate.cfg")
+           "diff_ab_calibrate_corexy.cfg", "endstop_calibrate.cfg",
+           "flowrate_limiter_loop.cfg")
 
 FACTS_MACRO = """
 [gcode_macro FLOWLOOP_REFERENCE_FACTS]
