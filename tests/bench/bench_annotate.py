@@ -1,0 +1,84 @@
+"""`flowloop annotate` throughput against preprocess_cancellation.
+
+preprocess_cancellation is the G-code processor Moonraker ships (its
+`check_objects` option runs it on every upload); `flowloop annotate` is meant
+to run in the same place. Both process the same large slicer file from a
+file on disk to a file on disk, alternately, ROUNDS times; the best time of
+each counts. Figure: flowloop's MB/s as a ratio of preprocess_cancellation's
+(goal: >= 1.0x).
+
+The file is the shared test data's largest slicer file
+(`../shared/data/gcode/parts.gcode`, beside the project) when it is there,
+else the shipped excerpt tests/data/gcode/block_layers_1_2.gcode repeated to
+about the same size. Neither carries object labels, so preprocess_cancellation
+only scans it and copies it (its lightest case).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import preprocess_cancellation
+
+from flowloop.gcode.annotate import annotate_file
+from flowloop.gcode.planner import Segment, plan_file
+
+PROJECT = Path(__file__).resolve().parents[2]
+SHARED = PROJECT.parent / "shared" / "data" / "gcode" / "parts.gcode"
+EXCERPT = PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
+TARGET_BYTES = 6_000_000
+ROUNDS = 3
+
+
+def large_file(folder: Path) -> Path:
+    path = folder / "large.gcode"
+    if SHARED.is_file():
+        path.write_bytes(SHARED.read_bytes())
+    else:
+        excerpt = EXCERPT.read_bytes()
+        path.write_bytes(excerpt * max(1, TARGET_BYTES // len(excerpt)))
+    return path
+
+
+def best_of(run, rounds: int = ROUNDS) -> float:
+    times = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def test_annotate_throughput_vs_preprocess_cancellation(tmp_path, bench):
+    logging.getLogger("prepropress_cancellation").setLevel(logging.WARNING)
+    src = large_file(tmp_path)
+    data = src.read_bytes()
+    megabytes = len(data) / 1e6
+    work = tmp_path / "ppc.gcode"
+    out = tmp_path / "annotated.gcode"
+
+    def ppc():
+        work.write_bytes(data)      # it rewrites the file in place
+        assert preprocess_cancellation.process_file_for_cancellation(work)
+
+    def flowloop():
+        assert annotate_file(src, out).annotated
+
+    def planner_only():
+        with open(src, "rb") as f:
+            assert sum(isinstance(e, Segment) for e in plan_file(f)) > 0
+
+    ppc_s = flowloop_s = None
+    for _ in range(ROUNDS):   # alternate, so drift on a shared machine hits both
+        t = best_of(ppc, 1)
+        ppc_s = t if ppc_s is None else min(ppc_s, t)
+        t = best_of(flowloop, 1)
+        flowloop_s = t if flowloop_s is None else min(flowloop_s, t)
+    planner_s = best_of(planner_only, 1)
+    bench.figure("annotate file", megabytes, " MB", goal="")
+    bench.ratio("annotate throughput", megabytes / flowloop_s,
+                megabytes / ppc_s, " MB/s", goal=">= 1.0x")
+    bench.ratio("planner alone throughput", megabytes / planner_s,
+                megabytes / ppc_s, " MB/s")
