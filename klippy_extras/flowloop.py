@@ -13,6 +13,7 @@ import flowloop
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
 from flowloop.material import profile as fl_profile
+from flowloop.material.active import Activation, working_point_arg
 from flowloop.sensor import ems22
 
 SECTIONS = ('flow_sensor', 'flowrate_limiter', 'autotemp',
@@ -24,7 +25,7 @@ class FlowloopHost:
         self.printer = config.get_printer()
         self.sensor_firmware = {}
         self.sections = ()  # flowloop sections loaded: known once connected
-        # extruder name -> (Profile, working point); status is rebuilt on change
+        # extruder name -> Activation; status is rebuilt on change
         self.active_profiles = {}
         self.profile_status = {}
         self.printer.register_event_handler('klippy:connect',
@@ -74,14 +75,14 @@ class FlowloopHost:
             web_request.send({'extruder': extruder, 'name': None})
             return
         try:
-            wp = fl_profile.check_working_point(web_request.get(
+            wp = working_point_arg(web_request.get(
                 'working_point', fl_profile.DEFAULT_WORKING_POINT))
             # Whatever the profile says, never above the heater's limit.
             profile = fl_profile.capped_to_heater(
                 fl_profile.profile_from_dict(data), heater.max_temp)
         except FlowloopError as e:
             raise web_request.error(f"flowloop: {e}") from None
-        self.active_profiles[extruder] = (profile, wp)
+        self.active_profiles[extruder] = Activation(profile, wp)
         self._update_status()
         self.printer.send_event('flowloop:profile_activated', extruder,
                                 profile, wp)
@@ -97,14 +98,15 @@ class FlowloopHost:
 
     def _update_status(self):
         status = {}
-        for extruder, (profile, wp) in sorted(self.active_profiles.items()):
-            entry = fl_profile.active_status(profile, wp)  # capped bounds
+        for extruder, active in sorted(self.active_profiles.items()):
+            entry = fl_profile.active_status(active.profile,  # capped bounds
+                                             active.working_point)
             entry['heater_max_temp_c'] = self._extruder_heater(extruder).max_temp
             status[extruder] = entry
         self.profile_status = status
 
     def get_active_profile(self, extruder='extruder'):
-        """(Profile, working point) active for an extruder, or None."""
+        """The Activation (profile, working_point) of an extruder, or None."""
         return self.active_profiles.get(extruder)
 
     def get_status(self, eventtime=None):

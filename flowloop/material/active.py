@@ -82,16 +82,19 @@ def number_arg(parameter: str, value: Any, accepts: str,
     if isinstance(number, bool) or not isinstance(number, (int, float)) \
             or not lo <= number <= hi:  # also refuses NaN
         got = repr(value) if isinstance(value, str) else _json_text(value)
+        if len(got) > 40:
+            got = got[:37] + "..."
         raise FlowloopError(f"{parameter}: got {got}; accepts {accepts}")
     return float(number)
 
 
 def _json_text(value: Any) -> str:
+    if isinstance(value, float):
+        return repr(value)  # nan and inf too, which JSON would show as null
     try:
-        text = msgspec.json.encode(value).decode()
+        return msgspec.json.encode(value).decode()
     except (TypeError, ValueError, OverflowError):
-        text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
+        return repr(value)
 
 
 def working_point_arg(value: Any, parameter: str = "working_point") -> float:

@@ -6,14 +6,17 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from typing import TYPE_CHECKING, Any, Dict, Optional
 
 from flowloop.errors import FlowloopError
 from flowloop.material import plot
 from flowloop.material import profile as fl_profile
-from flowloop.material.active import ActiveProfile, active_to_stored
+from flowloop.material.active import (
+    ActiveProfile,
+    active_to_stored,
+    working_point_arg,
+)
 
 from ...common import RequestType, WebRequest
 from .errors import one_line, quoted
@@ -23,6 +26,14 @@ from .store import ProfileStore, UnknownProfile
 
 if TYPE_CHECKING:
     from ...server import Server
+
+
+def _utf8(text: str) -> bytes:
+    try:
+        return text.encode("utf-8")
+    except UnicodeEncodeError as e:  # a lone surrogate, from a JSON "\ud800" escape
+        raise FlowloopError(f"not a JSON profile: the text holds an unpaired "
+                            f"surrogate at character {e.start}") from None
 
 
 class Api:
@@ -72,13 +83,10 @@ class Api:
         except FlowloopError as e:
             raise self._error(e) from None
 
-    def _wp_arg(self, web_request: WebRequest, default: float) -> float:
-        value = web_request.get("working_point", default)
+    def _wp_arg(self, value: Any) -> float:
         try:
-            if isinstance(value, str):
-                value = float(value)
-            return fl_profile.check_working_point(value)
-        except (ValueError, FlowloopError) as e:
+            return working_point_arg(value)
+        except FlowloopError as e:
             raise self._error(e) from None
 
     def _extruder_arg(self, extruder: Any) -> str:
@@ -90,25 +98,19 @@ class Api:
     def parse_profile(self, value: Any) -> fl_profile.Profile:
         if value is None:
             raise self._error("the profile is missing (argument 'profile')")
-        if isinstance(value, str):
-            try:
-                value = json.loads(value)
-            except ValueError:
-                raise self._error("the profile is not valid JSON") from None
         try:
+            if isinstance(value, str):  # JSON text: decoded without recursion
+                return fl_profile.decode_profile(_utf8(value))
             return fl_profile.profile_from_dict(value)
         except FlowloopError as e:
-            raise self._error(e) from None
-
-    def _entry(self, name: str, wp: Any) -> ActiveProfile:
-        try:
-            return ActiveProfile(name=name, working_point=wp)
-        except FlowloopError as e:
-            raise self._error(e) from None
+            raise self._error(f"argument 'profile': {e}") from None
+        except RecursionError:  # a nesting no profile has
+            raise self._error("argument 'profile': nested too deeply to be a "
+                              "profile") from None
 
     async def _activate(self, name: str, extruder: Any, wp: Any) -> Dict[str, Any]:
         extruder = self._extruder_arg(extruder)
-        entry = self._entry(name, wp)
+        entry = ActiveProfile(name=name, working_point=self._wp_arg(wp))
         try:
             return await self.profiles.activate(extruder, entry)
         except UnknownProfile:
@@ -139,14 +141,14 @@ class Api:
         name = self._name_arg(web_request)
         extruder = web_request.get("extruder", "extruder")
         entry = self.store.active.get(extruder) if isinstance(extruder, str) else None
-        wp = self._wp_arg(web_request, self.default_wp if entry is None
-                          else entry.working_point)
+        wp = web_request.get("working_point", self.default_wp if entry is None
+                             else entry.working_point)
         return await self._activate(name, extruder, wp)
 
     async def _handle_plot(self, web_request: WebRequest) -> str:
         name = self._name_arg(web_request)
         profile = self._known(name)
-        wp = self._wp_arg(web_request, self.default_wp)
+        wp = self._wp_arg(web_request.get("working_point", self.default_wp))
         return await self.eventloop.run_in_thread(plot.svg, profile, wp)
 
     async def _handle_info(self, web_request: WebRequest) -> Dict[str, Any]:
@@ -156,16 +158,18 @@ class Api:
 
     async def _remote_store_profile(self, profile: Any = None,
                                     activate_extruder: Optional[str] = None,
-                                    working_point: Optional[float] = None) -> None:
+                                    working_point: Any = None) -> None:
         # Called by klippy (action_call_remote_method): no one to answer, so
         # a refusal goes to the log and to clients as a notification.
         try:
             parsed = self.parse_profile(profile)
+            if activate_extruder is not None:  # checked before anything is stored
+                extruder = self._extruder_arg(activate_extruder)
+                wp = self._wp_arg(self.default_wp if working_point is None
+                                  else working_point)
             await self.profiles.store_profile(parsed, "klippy")
             if activate_extruder is not None:
-                await self._activate(parsed.name, activate_extruder,
-                                     self.default_wp if working_point is None
-                                     else working_point)
+                await self._activate(parsed.name, extruder, wp)
         except self.server.error as e:
             logging.info(f"flowloop_store_profile refused: {e}")
             self.profiles.notify("refused", "", source="klippy", reason=str(e))

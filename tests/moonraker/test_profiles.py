@@ -127,7 +127,7 @@ def test_crud_over_json_rpc(server, rpc):
     ({"profile": make(name="bad", air=(-0.1, 171.6, 7.5))},
      "lines.into_air.slope_mm3_s_per_c must be > 0"),
     ({"profile": dict(make(name="bad"), colour="red")}, "unknown field `colour`"),
-    ({"profile": "{not json"}, "the profile is not valid JSON"),
+    ({"profile": "{not json"}, "argument 'profile': not a JSON profile"),
     ({"profile": [1, 2]}, "must be a JSON object"),
     ({}, "the profile is missing (argument 'profile')"),
     ({"profile": make(name="bad", points=[
@@ -160,9 +160,9 @@ def test_unknown_names_answer_404(server):
 def test_bad_activation_arguments_answer_400(server):
     store(server, name="act-args")
     for args, message in (({"name": "act-args", "working_point": 1.5},
-                           "working point must be in 0..1"),
+                           "working_point: got 1.5; accepts"),
                           ({"name": "act-args", "working_point": "x"},
-                           "could not convert"),
+                           "working_point: got 'x'; accepts a number"),
                           ({"name": "act-args", "extruder": "heater_bed"},
                            "is not an extruder name"),
                           ({"name": "act-args", "extruder": "extruder\n"},
@@ -173,6 +173,96 @@ def test_bad_activation_arguments_answer_400(server):
         status, body = server.request("POST", "/server/flowloop/profile/activate",
                                       args)
         assert status == 400 and message in body["error"]["message"], body
+
+
+# --- profile text that cannot be decoded ---------------------------------------
+
+DEEP = 1000
+UNDECODABLE = [
+    pytest.param('{"identity": ' * DEEP + "1" + "}" * DEEP, id="objects-1000-deep"),
+    pytest.param("[" * DEEP + "]" * DEEP, id="arrays-1000-deep"),
+    pytest.param('{"a": ' * 100_000 + "1" + "}" * 100_000, id="objects-100000-deep"),
+    pytest.param('{"identity": {"name": "x"', id="truncated"),
+    pytest.param("", id="empty"),
+    pytest.param("NaN", id="nan"),
+    pytest.param('{"bounds": {"min_temp_c": 1e999}}', id="number-out-of-range"),
+    pytest.param("{} trailing", id="trailing-text"),
+    pytest.param('"\\ud800"', id="json-escaped-lone-surrogate"),
+    pytest.param("\x00{}", id="nul"),
+    pytest.param("\ufeff{}", id="byte-order-mark"),
+]
+
+
+def assert_one_line_400(status, body):
+    assert status == 400, body
+    message = body["error"]["message"]
+    assert message.startswith("argument 'profile': "), message
+    assert "\n" not in message and "Traceback" not in message and len(message) < 300
+
+
+@pytest.mark.parametrize("text", UNDECODABLE)
+def test_profile_text_that_cannot_be_decoded_is_one_line_400_over_http(server,
+                                                                        text):
+    before = server.request("GET", "/server/flowloop/profiles")[1]
+    status, body = server.request("POST", "/server/flowloop/profile",
+                                  {"profile": text})
+    assert_one_line_400(status, body)
+    assert server.request("GET", "/server/flowloop/profiles")[1] == before
+
+
+def test_profile_text_that_cannot_be_decoded_is_one_line_400_over_json_rpc(server,
+                                                                            rpc):
+    async def steps(client):
+        for param in UNDECODABLE:
+            answer = await client.call("server.flowloop.post_profile",
+                                       profile=param.values[0])
+            assert answer["error"]["code"] == 400, (param.id, answer)
+            assert_one_line_400(400, answer)
+    rpc(server.port, steps)
+
+
+def test_a_profile_sent_as_json_text_is_stored(server):
+    text = json.dumps(make(name="as text"))
+    status, body = server.request("POST", "/server/flowloop/profile",
+                                  {"profile": text})
+    assert status == 200, body
+    assert get(server, "as text")[0] == 200
+
+
+# --- numeric parameters -----------------------------------------------------------
+
+WP_ACCEPTS = "accepts a number from 0 (real print) to 1 (into air)"
+BAD_WORKING_POINTS = [("abc", "'abc'"), ("nan", "'nan'"), ("inf", "'inf'"),
+                      ("1.5", "'1.5'"), (1.5, "1.5"), (-0.1, "-0.1"), (True, "true"),
+                      ([0.5], "[0.5]"), ({"wp": 1}, '{"wp":1}'), (None, "null")]
+
+
+def test_bad_working_points_name_the_parameter_the_value_and_the_range(server,
+                                                                       rpc):
+    store(server, name="wp-args")
+    for value, shown in BAD_WORKING_POINTS:
+        expected = f"working_point: got {shown}; {WP_ACCEPTS}"
+        status, body = server.request("POST", "/server/flowloop/profile/activate",
+                                      {"name": "wp-args", "working_point": value})
+        assert status == 400 and body["error"]["message"] == expected, body
+        if isinstance(value, str):  # a query argument is always text
+            status, body = server.request(
+                "GET", "/server/flowloop/profile/plot?name=wp-args&working_point="
+                + quote(value))
+            assert status == 400 and body["error"]["message"] == expected, body
+
+    async def steps(client):
+        for value, shown in BAD_WORKING_POINTS:
+            expected = f"working_point: got {shown}; {WP_ACCEPTS}"
+            for method in ("server.flowloop.profile.activate",
+                           "server.flowloop.profile.plot"):
+                answer = await client.call(method, name="wp-args",
+                                           working_point=value)
+                assert answer["error"] == {"code": 400, "message": expected}, (
+                    method, value, answer)
+    rpc(server.port, steps)
+    active = server.request("GET", "/server/flowloop/profiles")[1]["result"]["active"]
+    assert "wp-args" not in [entry["name"] for entry in active.values()]
 
 
 # --- names ------------------------------------------------------------------
@@ -217,6 +307,38 @@ def test_names_that_cannot_be_one_line_are_refused(server, name):
     status, body = get(server, name)
     assert status in (400, 404)
     assert name not in listed_names(server)
+
+
+PADDED_NAMES = [" pad ", "pad ", " pad", "\u00a0nbsp", "nbsp\u00a0", "\u3000wide"]
+INVISIBLE_NAMES = ["rtl\u202eevil", "zero\u200bwidth", "\u2066isolate\u2069",
+                   "\u2067rtl", "\u2068first", "pop\u2069", "bom\ufeff",
+                   "soft\u00adhyphen"]
+
+
+@pytest.mark.parametrize("name", PADDED_NAMES + INVISIBLE_NAMES)
+def test_names_that_would_not_round_trip_or_show_as_another_are_refused(server, rpc,
+                                                                        name):
+    status, body = server.request("POST", "/server/flowloop/profile",
+                                  {"profile": make(name=name)})
+    assert status == 400, body
+    message = body["error"]["message"]
+    assert message.startswith("argument 'profile': ") and "profile name" in message
+    assert ("whitespace" if name in PADDED_NAMES else
+            f"U+{ord(next(c for c in name if not c.isalnum())):04X}") in message
+
+    async def steps(client):
+        stored = await client.call("server.flowloop.post_profile",
+                                   profile=make(name=name))
+        assert stored["error"]["code"] == 400
+        for method in ("server.flowloop.get_profile", "server.flowloop.delete_profile",
+                       "server.flowloop.profile.plot",
+                       "server.flowloop.profile.activate"):
+            answer = await client.call(method, name=name)
+            assert answer["error"]["code"] == 400, (method, answer)
+            assert "profile name" in answer["error"]["message"]
+    rpc(server.port, steps)
+    assert name not in listed_names(server) and name.strip() not in listed_names(
+        server)
 
 
 def test_database_api_cannot_write_around_validation(server):

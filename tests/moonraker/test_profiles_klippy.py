@@ -4,7 +4,9 @@ not G-code) and a klippy macro hands a profile over with flowloop_store_profile.
 
 from __future__ import annotations
 
+import json
 import shutil
+import socket
 from urllib.parse import quote
 
 import pytest
@@ -177,3 +179,35 @@ def test_a_klippy_macro_stores_a_profile_with_flowloop_store_profile(printer, rp
     assert stack.wait_until(
         lambda: klippy_profiles_or_none(printer) == "from-klippy", WAIT_S)
     assert klippy_profiles(printer)["extruder"]["working_point"] == 0.8
+
+
+def klippy_api(ps, method, params):
+    """One request on klippy's API socket (what Moonraker itself uses)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(10.0)
+        sock.connect(str(ps.klippy.api_socket))
+        sock.sendall(json.dumps({"id": 1, "method": method,
+                                 "params": params}).encode() + b"\x03")
+        data = b""
+        while not data.endswith(b"\x03"):
+            chunk = sock.recv(65536)
+            assert chunk, "klippy closed the API socket"
+            data += chunk
+    return json.loads(data[:-1])
+
+
+@pytest.mark.parametrize("value, shown", [("abc", "'abc'"), (1.5, "1.5"),
+                                          (True, "true"), ([0.5], "[0.5]")])
+def test_klippy_names_a_bad_working_point_and_keeps_the_active_profile(printer,
+                                                                       value,
+                                                                       shown):
+    store(printer, name="kept")
+    assert activate(printer, "kept", working_point=0.4)[0] == 200
+    answer = klippy_api(printer, "flowloop/set_active_profile", {
+        "extruder": "extruder", "profile": make(name="other"),
+        "working_point": value})
+    assert answer["error"]["message"] == (
+        f"flowloop: working_point: got {shown}; accepts a number from 0 (real "
+        f"print) to 1 (into air)")
+    shown_status = klippy_profiles(printer)["extruder"]
+    assert shown_status["name"] == "kept" and shown_status["working_point"] == 0.4
