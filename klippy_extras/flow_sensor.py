@@ -411,8 +411,7 @@ class Ems22Source:
         self.restart_pending = False
 
     def commands(self):
-        return [('FLOW_SENSOR_FEED', self.cmd_FLOW_SENSOR_FEED,
-                 self.cmd_FLOW_SENSOR_FEED_help)]
+        return []
 
     def _build_config(self):
         if not self.mcu.check_valid_response(ems22.QUERY_CMD):
@@ -470,25 +469,6 @@ class Ems22Source:
             self._restart_query()
 
     def sync(self, until=None):
-        self.catch_up()
-
-    cmd_FLOW_SENSOR_FEED_help = ("Feed one sensor_bulk_data payload (hex) to the"
-                                 " sensor's response handler (testing)")
-
-    def cmd_FLOW_SENSOR_FEED(self, gcmd):
-        data = gcmd.get('DATA')
-        sequence = gcmd.get_int('SEQUENCE', minval=0, maxval=0xffff)
-        try:
-            payload = bytes.fromhex(data)
-        except ValueError:
-            raise gcmd.error(f"DATA must be hex bytes, not '{data}'") from None
-        if len(payload) > bulk_sensor.MAX_BULK_MSG_SIZE:
-            raise gcmd.error("DATA is longer than a sensor_bulk_data message")
-        # The params the serial thread hands the handler (msgproto parses
-        # %*s to bytes); the format is checked against the dictionaries in
-        # tests/c.
-        self._handle_bulk({'#name': 'sensor_bulk_data', 'oid': self.oid,
-                           'sequence': sequence, 'data': payload})
         self.catch_up()
 
 

@@ -16,6 +16,48 @@ from flowloop.sensor import ems22
 HERE = Path(__file__).resolve().parent
 
 
+class Harnessed:
+    """The Klipper build, klippy started through flow_sensor_harness.py (a
+    window subscriber on every sensor, FLOW_SENSOR_FEED on ems22 ones)."""
+
+    def __init__(self, build):
+        self.tree, self.dict_dir = build.tree, build.dict_dir
+        self.klippy = HERE / "flow_sensor_harness.py"
+
+
+def test_real_format_payloads_reach_the_status(klipper_build, klippy_venv,
+                                               short_tmp):
+    run_file(HERE / "flow_sensor_feed.batch", Harnessed(klipper_build),
+             klippy_venv, short_tmp)
+
+
+def test_the_linux_mcu_hands_payloads_to_the_sensor(klipper_build, klippy_venv,
+                                                    short_tmp):
+    # flow_sensor_linux.cfg reads in SPI mode 1
+    read = ems22.spi_read_model(ems22.make_frame(100), 1)
+    payload = ems22.pack_messages(0, [(0, read)])[0].hex()
+    test = short_tmp / "linux.test"
+    test.write_text(
+        f"DICTIONARY linuxprocess.dict\nCONFIG {HERE / 'flow_sensor_linux.cfg'}\n"
+        f"FLOW_SENSOR_FEED SENSOR=host SEQUENCE=0 DATA={payload}\n"
+        "QUERY_FLOW_SENSOR SENSOR=host\n")
+    log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
+    # one good sample arrived: the position exists (none before any)
+    assert "flow_sensor host: grip not judged" in log
+    assert "filament position 0.000 mm" in log
+
+
+def test_a_real_sensor_offers_no_testing_command(klipper_build, klippy_venv,
+                                                 short_tmp):
+    test = short_tmp / "feed.test"
+    test.write_text(
+        f"DICTIONARY atmega2560.dict\nCONFIG {HERE / 'flow_sensor.cfg'}\n"
+        "FLOW_SENSOR_FEED SENSOR=filament SEQUENCE=0 DATA=0000028c9000\n")
+    log = run_file(test, klipper_build, klippy_venv, short_tmp,
+                   allow_unknown=True)
+    assert 'Unknown command:"FLOW_SENSOR_FEED"' in log
+
+
 def test_firmware_without_the_command_is_told_to_rebuild(klipper_build, klippy_venv,
                                                          short_tmp):
     data = json.loads(klipper_build.dictionary("atmega2560").read_text())
@@ -56,7 +98,7 @@ def test_on_fault_pause_leaves_an_idle_printer_alone(klipper_build, klippy_venv,
         f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE=0 DATA={MISSING_FRAMES}\n"
         f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE=1 DATA={MISSING_FRAMES}\n"
         "G4 P100\nQUERY_FLOW_SENSOR\n")
-    log = run_file(test, klipper_build, klippy_venv, short_tmp)
+    log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
     assert "fault missing" in log          # the query saw the fault
     # logged, then said on the console by the callback that would pause
     assert log.count("flow_sensor filament: fault 'missing'") == 2
@@ -104,16 +146,8 @@ def test_time_lost_by_the_mcu_restarts_the_query(klipper_build, klippy_venv,
         + _feed(fresh)
         + "ASSERT_FLOW SAMPLES=2 POSITION=0.3890 ERROR_KIND=lost_messages"
           " ERRORS=0 FAULT=none\n")
-    log = run_file(test, klipper_build, klippy_venv, short_tmp)
+    log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
     assert "fell 255 reads behind and lost count of them" in log
-
-
-class _Subscribed:
-    """The Klipper build, with klippy started through flow_sensor_subscriber.py."""
-
-    def __init__(self, build):
-        self.tree, self.dict_dir = build.tree, build.dict_dir
-        self.klippy = HERE / "flow_sensor_subscriber.py"
 
 
 def test_subscribers_get_every_window_with_flow_and_temperature(
@@ -130,7 +164,7 @@ def test_subscribers_get_every_window_with_flow_and_temperature(
         "G1 E10 F300\nM400\nG1 E10 F300\nM400\nQUERY_FLOW_SENSOR\n"
         "SET_FLOW_SENSOR_SIMULATION FAULT=none\n"
         "G1 E10 F125\nM400\nQUERY_FLOW_SENSOR\n")
-    log = run_file(test, _Subscribed(klipper_build), klippy_venv, short_tmp)
+    log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
     phases = [[]]
     for line in log.splitlines():
         if "GRIP_WINDOW " in line:

@@ -566,8 +566,8 @@ def test_the_code_facts_are_found(facts):
     by_module = {s.module: s for s in sections}
     sensor = by_module["flow_sensor"]
     assert sensor.prefix and not by_module["diff_ab_calibrate"].prefix
-    assert {"QUERY_FLOW_SENSOR", "SET_FLOW_SENSOR_SIMULATION",
-            "FLOW_SENSOR_FEED"} <= set(sensor.commands)
+    assert {"QUERY_FLOW_SENSOR", "SET_FLOW_SENSOR_SIMULATION"} <= \
+        set(sensor.commands)
     assert {"SENSOR", "LENGTH", "SPEEDS", "MAX_SPREAD"} <= \
         sensor.commands["CALIBRATE_FLOW_SENSOR"].params
     assert {"cs_pin", "spi_speed", "sensor_type", "seed"} <= sensor.options

@@ -1,0 +1,72 @@
+"""klippy as the flow_sensor tests need it: run in place of klippy.py (cwd:
+the Klipper tree) for the runs test_flow_sensor.py makes with `Harnessed`.
+
+- Every [flow_sensor] gets a subscriber that logs each grip window it
+  delivers through subscribe_grip_windows ("GRIP_WINDOW {json}"), as another
+  flowloop section would receive it, with the thread it arrived on.
+- Every ems22 sensor gets FLOW_SENSOR_FEED SENSOR= SEQUENCE= DATA=(hex): the
+  payload goes to the callback the sensor registered with the MCU's serial
+  reader for sensor_bulk_data (what the serial thread calls), then the
+  sensor processes its queue. In batch mode the MCU never answers, so this
+  is how real-format messages reach the real path. flowloop itself ships no
+  such command: a printer never needs it.
+"""
+
+import dataclasses
+import json
+import logging
+import os
+import runpy
+import sys
+import threading
+
+KLIPPY = os.path.join(os.getcwd(), "klippy", "klippy.py")
+sys.path.insert(0, os.path.dirname(KLIPPY))
+sys.argv[0] = KLIPPY
+
+import extras.bulk_sensor as bulk_sensor  # noqa: E402
+import extras.flow_sensor as flow_sensor  # noqa: E402
+
+load_config_prefix = flow_sensor.load_config_prefix
+
+
+def subscribe(sensor):
+    def record(window):
+        fields = dataclasses.asdict(window)
+        fields["sensor"] = sensor.name
+        fields["reactor_thread"] = (threading.current_thread()
+                                    is threading.main_thread())
+        logging.info("GRIP_WINDOW %s", json.dumps(fields))
+
+    sensor.subscribe_grip_windows(record)
+
+
+def add_feed(config, sensor):
+    source = sensor.source
+
+    def feed(gcmd):
+        payload = bytes.fromhex(gcmd.get("DATA"))
+        if len(payload) > bulk_sensor.MAX_BULK_MSG_SIZE:
+            raise gcmd.error("DATA is longer than a sensor_bulk_data message")
+        handler = source.mcu._serial.handlers["sensor_bulk_data", source.oid]
+        # the params msgproto hands the handler (%*s parsed to bytes)
+        handler({"#name": "sensor_bulk_data", "oid": source.oid,
+                 "sequence": gcmd.get_int("SEQUENCE", minval=0, maxval=0xffff),
+                 "data": payload})
+        source.sync()
+
+    gcode = config.get_printer().lookup_object("gcode")
+    gcode.register_mux_command("FLOW_SENSOR_FEED", "SENSOR", sensor.name, feed,
+                               desc="test harness: feed a sensor_bulk_data payload")
+
+
+def load_for_tests(config):
+    sensor = load_config_prefix(config)
+    subscribe(sensor)
+    if isinstance(sensor.source, flow_sensor.Ems22Source):
+        add_feed(config, sensor)
+    return sensor
+
+
+flow_sensor.load_config_prefix = load_for_tests
+runpy.run_path(KLIPPY, run_name="__main__")
