@@ -9,12 +9,15 @@ the G-code asked for; that floor is applied per move by the limiter). A
 lower cap is never raised by a slip.
 
 Between `min_grip` and `min_grip + hysteresis` the cap holds. At or above it,
-the cap rises by `recovery_per_s` of the flow that slipped per second of good
-window: the speed of the moves that slipped climbs back by at most that
-share of their G-code speed per second (0.2: from 0.5 to full speed in
-2.5 s), and the cap is released once it is back at the flow that slipped.
-ddPrint's rule is linear in 1/grip with no hysteresis, so it oscillates
-around the slip point; this one reacts at once and returns slowly.
+after a hold of good grip (RECOVERY_HOLD_S, doubled by every slip that comes
+while the cap is still on, up to MAX_RECOVERY_HOLD_S), the cap rises by
+`recovery_per_s` of the flow that slipped per second of good window: the
+speed of the moves that slipped climbs back by at most that share of their
+G-code speed per second (0.2: from 0.5 to full speed in 2.5 s), and the cap
+is released once it is back at the flow that slipped. ddPrint's rule follows
+grip with no memory and no hysteresis, so it oscillates around the slip
+point; this one reacts at once, returns slowly, and backs off when the
+hotend stays weak.
 """
 
 from __future__ import annotations
@@ -31,6 +34,9 @@ DEFAULT_RECOVERY_PER_S = 0.2
 # A window longer than this counts as this long for recovery (a pause is not
 # evidence that the hotend keeps up).
 MAX_RECOVERY_STEP_S = 1.0
+# Good grip needed before the cap starts to rise, doubled per repeated slip.
+RECOVERY_HOLD_S = 2.0
+MAX_RECOVERY_HOLD_S = 30.0
 
 
 def check_min_grip(value: float, what: str = "min_grip") -> float:
@@ -60,9 +66,13 @@ class ReactiveRule:
         self.settings = settings
         self.cap_mm3_s: Optional[float] = None
         self.slip_flow_mm3_s: Optional[float] = None  # the flow that slipped
+        self.hold_s = RECOVERY_HOLD_S
+        self.good_s = 0.0  # good grip since the last slip
 
     def reset(self) -> None:
         self.cap_mm3_s = self.slip_flow_mm3_s = None
+        self.hold_s = RECOVERY_HOLD_S
+        self.good_s = 0.0
 
     def on_window(self, grip: Optional[float], commanded_flow_mm3_s: float,
                   duration_s: float) -> Optional[float]:
@@ -78,9 +88,14 @@ class ReactiveRule:
                 self.cap_mm3_s = measured
             else:
                 self.cap_mm3_s = min(self.cap_mm3_s, measured)
+                if self.good_s > 0.0:  # slipped again on the way back
+                    self.hold_s = min(2.0 * self.hold_s, MAX_RECOVERY_HOLD_S)
+            self.good_s = 0.0
         elif grip >= s.min_grip + s.hysteresis and self.cap_mm3_s is not None:
             step = min(max(duration_s, 0.0), MAX_RECOVERY_STEP_S)
-            self.cap_mm3_s += s.recovery_per_s * step * self.slip_flow_mm3_s
+            held = min(step, max(0.0, self.good_s + step - self.hold_s))
+            self.good_s += step
+            self.cap_mm3_s += s.recovery_per_s * held * self.slip_flow_mm3_s
             if self.cap_mm3_s >= self.slip_flow_mm3_s:
                 self.reset()
         return self.cap_mm3_s

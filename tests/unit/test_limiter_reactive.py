@@ -8,7 +8,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from flowloop.control.reactive import ReactiveRule, ReactiveSettings
+from flowloop.control.reactive import (
+    MAX_RECOVERY_HOLD_S,
+    RECOVERY_HOLD_S,
+    ReactiveRule,
+    ReactiveSettings,
+)
 from flowloop.errors import FlowloopError
 
 SETTINGS = ReactiveSettings(min_grip=0.9, hysteresis=0.03, recovery_per_s=0.2)
@@ -30,18 +35,37 @@ def test_a_later_slip_lowers_but_never_raises_the_cap():
 def test_inside_the_hysteresis_band_the_cap_holds():
     rule = ReactiveRule(SETTINGS)
     rule.on_window(0.7, 20.0, 0.5)
-    assert rule.on_window(0.92, 14.0, 1.0) == pytest.approx(14.0)
+    for _ in range(10):
+        assert rule.on_window(0.92, 14.0, 1.0) == pytest.approx(14.0)
 
 
-def test_recovery_is_limited_in_rate_and_releases_at_the_flow_that_slipped():
+def test_recovery_waits_for_the_hold_then_is_limited_in_rate():
     rule = ReactiveRule(SETTINGS)
     rule.on_window(0.5, 20.0, 0.5)
-    # +0.2 of the slipped flow (20) per second of good window
+    # the first RECOVERY_HOLD_S (2 s) of good grip only hold the cap
+    assert rule.on_window(1.0, 10.0, 1.0) == pytest.approx(10.0)
+    assert rule.on_window(1.0, 10.0, 1.0) == pytest.approx(10.0)
+    # then +0.2 of the slipped flow (20) per second of good window
     assert rule.on_window(1.0, 10.0, 1.0) == pytest.approx(14.0)
     # a long window counts for one second only
     assert rule.on_window(1.0, 14.0, 5.0) == pytest.approx(18.0)
     assert rule.on_window(1.0, 18.0, 0.4) == pytest.approx(19.6)
+    # back at the flow that slipped: released
     assert rule.on_window(1.0, 19.6, 0.1) is None
+
+
+def test_a_slip_on_the_way_back_doubles_the_hold():
+    rule = ReactiveRule(SETTINGS)
+    rule.on_window(0.5, 20.0, 0.5)
+    for _ in range(3):
+        rule.on_window(1.0, 10.0, 1.0)
+    assert rule.cap_mm3_s == pytest.approx(14.0)
+    rule.on_window(0.8, 14.0, 0.5)          # slipped again while recovering
+    assert rule.cap_mm3_s == pytest.approx(0.8 * 14.0)
+    assert rule.hold_s == pytest.approx(2 * RECOVERY_HOLD_S)
+    for _ in range(4):                      # 4 s of good grip: still held
+        assert rule.on_window(1.0, 11.2, 1.0) == pytest.approx(11.2)
+    assert rule.on_window(1.0, 11.2, 1.0) == pytest.approx(15.2)
 
 
 def test_windows_not_judged_change_nothing():
@@ -98,8 +122,8 @@ def test_good_windows_always_release_the_cap(seq, grip, flow):
     for window in seq:
         rule.on_window(*window)
     rule.on_window(0.0, 40.0, 1.0)  # the deepest slip there is
-    # back to the slipped flow at +0.2 of it per second: 5 s of good windows
-    # (one more for rounding)
-    for _ in range(6):
+    # the longest hold, then back to the slipped flow at +0.2 of it per
+    # second: 5 s (one more for rounding)
+    for _ in range(int(MAX_RECOVERY_HOLD_S) + 6):
         rule.on_window(grip, flow, 1.0)
     assert rule.cap_mm3_s is None
