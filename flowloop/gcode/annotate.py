@@ -174,6 +174,8 @@ class _Annotator:
         start, flow = self.bin_start, quantise_flow(self.bin_peak)
         self.bin_start, self.bin_peak = end_s, 0.0
         if end_s <= start or (flow == 0.0 and not self.started):
+            # no window to announce; no later one goes before this point
+            self._prune(end_s - self.settings.placement_s)
             return
         self.started = True
         p = self.pending
@@ -188,12 +190,15 @@ class _Annotator:
     def _place(self, window_start_s: float) -> Tuple[int, float]:
         """The last move line at least placement_s before the window (or the
         first one left, after a barrier or at the start)."""
-        target = window_start_s - self.settings.placement_s
-        cands = self.candidates
-        while len(cands) > 1 and cands[1][0] <= target:
-            cands.popleft()
-        time_s, offset = cands[0]
+        self._prune(window_start_s - self.settings.placement_s)
+        time_s, offset = self.candidates[0]
         return offset, time_s
+
+    def _prune(self, target_s: float) -> None:
+        """Forget move lines before the last one at or before target_s."""
+        cands = self.candidates
+        while len(cands) > 1 and cands[1][0] <= target_s:
+            cands.popleft()
 
     def barrier(self, barrier: Barrier) -> None:
         self._advance_to(barrier.time_s)

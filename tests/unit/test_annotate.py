@@ -291,3 +291,31 @@ def test_announcements_cover_the_flow_of_any_file(moves, lead_window):
     settings_ = AnnotateSettings(*lead_window)
     result = annotated(data, settings_)
     assert_announcements_cover_the_flow(data, result, settings_)
+
+
+
+class Discard:
+    def write(self, data: bytes) -> int:
+        return len(data)
+
+
+def peak_memory_annotating(data: bytes) -> int:
+    import tracemalloc
+    lines, src = io.BytesIO(data), io.BytesIO(data)
+    tracemalloc.start()
+    try:
+        annotate_stream(plan_file(lines), src, Discard())
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize("extruding", [False, True])
+def test_memory_does_not_grow_with_the_file(extruding):
+    def file(lines: int) -> bytes:
+        e = " E0.05" if extruding else ""
+        return b"M83\n" + b"".join(f"G1 X{i % 2 * 10} Y{i % 7}{e} F3000\n".encode()
+                                   for i in range(lines))
+    small = peak_memory_annotating(file(800))
+    large = peak_memory_annotating(file(8000))
+    assert large < 1.5 * small
