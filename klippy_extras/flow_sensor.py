@@ -25,6 +25,8 @@ MIN_MSG_TIME = 0.100
 BATCH_INTERVAL = 0.100
 DUMP_INTERVAL = 0.100
 SAMPLE_WAIT_TIMEOUT = 2.0
+# Which way the counts run depends on the side of the filament the axle sits
+DIRECTIONS = {'forward': 1., 'reverse': -1.}
 REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: install "
                "flowloop ('flowloop install'), then rebuild and flash Klipper "
                "(cd ~/klipper; make menuconfig; make flash)")
@@ -58,6 +60,8 @@ class FlowSensor:
         self.extruder_name = config.get('extruder', 'extruder')
         self.counts_per_mm = config.getfloat(
             'counts_per_mm', ems22.DEFAULT_COUNTS_PER_MM, above=0.)
+        self.direction_sign = config.getchoice('direction', DIRECTIONS,
+                                               'forward')
         low, high = flow_grip.CALIBRATION_RANGE
         calibration = config.getfloat('calibration', 1., minval=low,
                                       maxval=high)
@@ -154,7 +158,8 @@ class FlowSensor:
                                          source.rest_ticks,
                                          source.time_shift)[valid]
             times = ems22.print_times(clocks, source.mcu.clock_to_print_time)
-            sensor_mm = samples.counts[valid] / self.counts_per_mm
+            sensor_mm = (self.direction_sign * samples.counts[valid]
+                         / self.counts_per_mm)
             find = self.extruder.find_past_position
             commanded = [find(t) for t in times]
             temp_c = source.temp_c(self.reactor.monotonic())
@@ -324,6 +329,9 @@ class FlowSensor:
             measured.append(m)
         try:
             fit = flow_grip.fit_calibration(speeds, commanded, measured, max_spread)
+        except flow_grip.ReversedSensor as e:
+            raise gcmd.error(self._reversed_message(e)
+                             + "; calibration unchanged") from None
         except FlowloopError as e:
             raise gcmd.error(
                 f"flow_sensor {self.name}: {e}; calibration unchanged") from None
@@ -352,6 +360,9 @@ class FlowSensor:
         try:
             change = flow_grip.rotation_distance_correction(
                 old_rd, commanded, measured)
+        except flow_grip.ReversedSensor as e:
+            raise gcmd.error(self._reversed_message(e)
+                             + "; nothing changed") from None
         except FlowloopError as e:
             raise gcmd.error(f"flow_sensor {self.name}: {e}; nothing changed") from None
         gcode = self.printer.lookup_object('gcode')
@@ -369,6 +380,11 @@ class FlowSensor:
             f" {change.rotation_distance:.6f}, sensor calibration"
             f" {old_cal:.5f} -> {change.calibration:.5f}"
             + _staged_note(paste)] + paste))
+
+    def _reversed_message(self, error):
+        other = 'reverse' if self.direction_sign > 0 else 'forward'
+        return (f"flow_sensor {self.name}: {error}; set direction: {other}"
+                f" in [{self.section}]")
 
     def _set_calibration(self, calibration, also_stage=()):
         """Use a new calibration now and stage it (with also_stage) for

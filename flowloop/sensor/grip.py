@@ -181,6 +181,18 @@ class SampleRate:
 
 # --- calibrations ------------------------------------------------------------
 
+class ReversedSensor(FlowloopError):
+    """The sensor counts the other way round: filament fed forward reads
+    backwards (which way it counts depends on the side the axle sits)."""
+
+
+def _check_direction(ratio: float) -> None:
+    low, high = CALIBRATION_RANGE
+    if low <= -ratio <= high:
+        raise ReversedSensor(f"the sensor counts backwards (ratio {ratio:.4f}):"
+                             " its direction is reversed")
+
+
 @dataclass(frozen=True)
 class CalibrationFit:
     calibration: float            # sensor mm per extruder mm
@@ -227,6 +239,7 @@ def fit_calibration(speeds: Sequence[float], commanded_mm: Sequence[float],
     ratios = [m / c for m, c in zip(measured_mm, commanded_mm)]
     num = sum(m * c for m, c in zip(measured_mm, commanded_mm))
     cal = num / sum(c * c for c in commanded_mm)
+    _check_direction(cal)
     if cal <= 0.05:
         raise FlowloopError(f"the sensor saw almost no filament (ratio {cal:.4f})")
     spread = (max(ratios) - min(ratios)) / cal
@@ -261,6 +274,7 @@ def rotation_distance_correction(rotation_distance: float, commanded_mm: float,
     if commanded_mm <= 0:
         raise FlowloopError("the extruder did not move forward")
     ratio = measured_mm / commanded_mm
+    _check_direction(ratio)
     if not 1 - max_change <= ratio <= 1 + max_change:
         raise FlowloopError(f"the sensor measured {measured_mm:.3f} mm for "
                             f"{commanded_mm:.3f} mm commanded (ratio {ratio:.4f}), "

@@ -118,6 +118,24 @@ def test_calibration_with_slipping_speeds_changes_nothing(klipper_build,
     assert "save_config: set [flow_sensor sim]" not in log
 
 
+def test_a_reversed_sensor_is_named_in_calibration(klipper_build, klippy_venv,
+                                                  short_tmp):
+    # the twin counts forward; configured reverse, it reads backwards
+    cfg = short_tmp / "reversed.cfg"
+    cfg.write_text(f"[include {HERE / 'flow_sensor_cal.cfg'}]\n"
+                   "[flow_sensor cal]\ndirection: reverse\n")
+    test = short_tmp / "reversed.test"
+    test.write_text(
+        f"DICTIONARY atmega2560.dict\nCONFIG {cfg}\nSHOULD_FAIL\n"
+        "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=210\n"
+        "CALIBRATE_FLOW_SENSOR SENSOR=cal LENGTH=5 SPEEDS=1,2\n")
+    log = run_file(test, klipper_build, klippy_venv, short_tmp)
+    assert ("the sensor counts backwards (ratio -1.0" in log
+            and "set direction: forward in [flow_sensor cal]; calibration"
+            " unchanged" in log)
+    assert "save_config: set [flow_sensor cal]" not in log
+
+
 def _feed(messages):
     return "".join(f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE={seq}"
                    f" DATA={payload.hex()}\n" for seq, payload in messages)

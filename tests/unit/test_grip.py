@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from flowloop.errors import FlowloopError
 from flowloop.sensor.grip import (
     GripEstimator,
+    ReversedSensor,
     SampleRate,
     fit_calibration,
     parse_speeds,
@@ -159,3 +160,13 @@ def test_rotation_distance_scales_by_what_the_sensor_measured(ratio, rd):
 def test_an_implausible_rotation_distance_change_is_refused():
     with pytest.raises(FlowloopError, match="more than 20% off"):
         rotation_distance_correction(7.7, 50.0, 30.0)
+
+
+@given(st.floats(0.6, 1.5))
+def test_a_sensor_counting_backwards_is_told_apart_from_no_filament(ratio):
+    with pytest.raises(ReversedSensor, match="counts backwards"):
+        fit_calibration([0.5, 1, 2], [20, 20, 20], [-20 * ratio] * 3)
+    with pytest.raises(ReversedSensor, match="counts backwards"):
+        rotation_distance_correction(7.7, 50.0, -50.0 * ratio)
+    with pytest.raises(FlowloopError, match="saw almost no filament"):
+        fit_calibration([0.5, 1], [20, 20], [0.1, -0.1])
