@@ -49,7 +49,9 @@ def run(args) -> int:
     out = args.output if args.output is not None else args.gcode
     summary = annotate_file(args.gcode, out, limits, settings)
     if not summary.annotated:
-        print(f"{args.gcode}: annotated already, unchanged"
+        peak = (f", peak flow {summary.peak_flow_mm3_s:.1f} mm^3/s"
+                if summary.windows else "")
+        print(f"{args.gcode}: annotated already{peak}, unchanged"
               + (f" (copied to {out})" if out != args.gcode else ""))
         return 0
     minutes, seconds = divmod(round(summary.print_time_s), 60)

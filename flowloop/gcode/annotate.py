@@ -30,7 +30,7 @@ import os
 import re
 import shutil
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import BinaryIO, Deque, Iterable, Optional, Tuple
 
@@ -78,6 +78,7 @@ class AnnotateSettings:
 @dataclass(frozen=True)
 class Summary:
     annotated: bool            # False: the file was annotated already, unchanged
+    # (then the figures are its summary line's, zero without one)
     peak_flow_mm3_s: float
     windows: int
     print_time_s: float
@@ -267,6 +268,21 @@ def annotate_stream(events: Iterable[Event], src: BinaryIO, out: BinaryIO,
     return summary
 
 
+_SUMMARY = re.compile(
+    re.escape(SUMMARY_PREFIX).encode() + rb" peak_flow_mm3_s=(?P<peak>[0-9.]+)"
+    rb" windows=(?P<windows>\d+) print_time_s=(?P<time>[0-9.]+)\s*$")
+
+
+def read_summary(tail: bytes) -> Optional[Summary]:
+    """The summary an annotated file ends with (give its last bytes), if any."""
+    lines = tail.rstrip().splitlines()
+    match = _SUMMARY.match(lines[-1]) if lines else None
+    if match is None:
+        return None
+    return Summary(True, float(match["peak"]), int(match["windows"]),
+                   float(match["time"]))
+
+
 def _newline_of(path: Path) -> bytes:
     with open(path, "rb") as f:
         first = f.readline(1 << 16)
@@ -288,7 +304,10 @@ def annotate_file(src: Path, dst: Optional[Path] = None,
     if is_annotated(head):
         if dst.resolve() != src.resolve():
             _replace_atomically(dst, lambda out: _copy(src, out), src)
-        return Summary(False, 0.0, 0, 0.0)
+        with open(src, "rb") as f:
+            f.seek(max(0, f.seek(0, os.SEEK_END) - 4096))
+            known = read_summary(f.read())
+        return replace(known, annotated=False) if known else Summary(False, 0.0, 0, 0.0)
     newline = _newline_of(src)
     summary = None
 

@@ -24,6 +24,7 @@ knows the time across it is not the time the printer will take.
 
 from __future__ import annotations
 
+import io
 import math
 import re
 from dataclasses import dataclass, fields
@@ -858,14 +859,6 @@ class Planner:
     }
 
 
-def iter_lines(f: BinaryIO) -> Iterator[tuple]:
-    """(offset, number, raw line) for every line of a binary file."""
-    offset = 0
-    for number, raw in enumerate(f, 1):
-        yield offset, number, raw
-        offset += len(raw)
-
-
 def plan_file(f: BinaryIO, limits: PrinterLimits = PrinterLimits()) -> Iterator[Event]:
     """Segments and barriers of a G-code file (opened in binary), in print time."""
     planner = Planner(limits)
@@ -881,5 +874,4 @@ def plan_file(f: BinaryIO, limits: PrinterLimits = PrinterLimits()) -> Iterator[
 
 def plan_text(text: str, limits: PrinterLimits = PrinterLimits()) -> List[Event]:
     """All events of G-code given as text (tests, small snippets)."""
-    import io
     return list(plan_file(io.BytesIO(text.encode()), limits))

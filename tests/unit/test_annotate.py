@@ -185,6 +185,9 @@ def test_annotating_twice_changes_nothing(tmp_path):
     once = path.read_bytes()
     second = annotate_file(path)
     assert first.annotated and not second.annotated
+    # the second run reports the file's own summary line
+    assert (second.peak_flow_mm3_s, second.windows) == (
+        first.peak_flow_mm3_s, first.windows)
     assert path.read_bytes() == once
     copy = tmp_path / "copy.gcode"
     assert not annotate_file(path, copy).annotated
@@ -229,8 +232,10 @@ def test_the_command_annotates_and_says_what_it_did(tmp_path, capsys):
     said = capsys.readouterr().out
     assert re.match(r".*out.gcode: \d+ windows, peak flow \d+\.\d mm\^3/s, print time"
                     r" 0:0\d:\d\d \(lead 10 s, window 1 s\)\n$", said)
+    peak = re.search(r"peak flow (\S+) mm", said).group(1)
     assert cli.main(["annotate", str(out)]) == 0
-    assert "annotated already, unchanged" in capsys.readouterr().out
+    assert capsys.readouterr().out == (
+        f"{out}: annotated already, peak flow {peak} mm^3/s, unchanged\n")
 
 
 def test_the_command_reads_limits_from_printer_cfg(tmp_path, capsys):
