@@ -13,6 +13,8 @@ import dataclasses
 import logging
 import threading
 
+import chelper
+
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import FlowLine, profile_line
@@ -163,7 +165,9 @@ class FlowSensor:
             find = self.extruder.find_past_position
             commanded = [find(t) for t in times]
             temp_c = source.temp_c(self.reactor.monotonic())
-            for window in self.grip.add(times, sensor_mm, commanded, temp_c):
+            nominal = self._nominal_positions(times)
+            for window in self.grip.add(times, sensor_mm, commanded, temp_c,
+                                        nominal):
                 started = self.faults.note_window(window.reason) or started
                 self._deliver(window)
             self.rate.add(times)
@@ -176,6 +180,22 @@ class FlowSensor:
         self._update_status()
         if started is not None:
             self._report_fault(started)
+
+    def _nominal_positions(self, times):
+        """The extruder's planned E position (its trapq, as motion_report
+        reads it: no pressure advance) at each time, or None."""
+        ffi_main, ffi_lib = chelper.get_ffi()
+        trapq = self.extruder.get_trapq()
+        moves, start, end = [], float(times[0]), float(times[-1]) + 1e-9
+        while trapq is not None:
+            data = ffi_main.new('struct pull_move[64]')
+            count = ffi_lib.trapq_extract_old(trapq, data, len(data), start, end)
+            moves.extend((m.print_time, m.move_t, m.start_v, m.accel,
+                          m.start_x, m.x_r) for m in data[0:count])
+            if count < len(data):
+                break
+            end = data[count - 1].print_time
+        return flow_grip.trapq_positions(moves, times)
 
     def _deliver(self, window):
         if self.faults.fault is not None:

@@ -8,7 +8,8 @@ by the sensor calibration (sensor mm per extruder mm measured where the
 feeder cannot slip), so a feeder that keeps up reads 1.0.
 
 A window is not judged (grip None) when it contains a retraction (the
-commanded position went back by more than `retract_tolerance_mm`), or when
+nominal E position, the planned motion without pressure advance, went back
+by more than `retract_tolerance_mm`), or when
 it took longer than `max_window_s` to collect `window_mm` (too little motion
 to say anything). A judged window in which the sensor did not move at all
 while the extruder did is reported as `stuck`: it is not grip 0, because a
@@ -20,6 +21,8 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass
 from typing import Deque, List, Optional, Sequence, Tuple
+
+import numpy as np
 
 from ..errors import FlowloopError
 
@@ -81,28 +84,37 @@ class GripEstimator:
         self._recent.clear()
 
     def add(self, times: Sequence[float], sensor_mm: Sequence[float],
-            commanded_mm: Sequence[float],
-            temp_c: Optional[float] = None) -> List[Window]:
+            commanded_mm: Sequence[float], temp_c: Optional[float] = None,
+            nominal_mm: Optional[Sequence[float]] = None) -> List[Window]:
         """Feed samples in time order; return the windows they closed.
 
         sensor_mm is raw sensor filament (counts / counts_per_mm); the
-        calibration is applied here. temp_c, the hotend temperature when the
-        batch was taken, is carried into the windows it closes.
+        calibration is applied here. commanded_mm is what the extruder
+        stepper was at (pressure advance included): grip is measured
+        against it. nominal_mm, the planned E position without pressure
+        advance (the extruder's trapq), decides what a retraction is, so the
+        ~0.1 mm that pressure advance pulls back at a slowing corner does not
+        close the window; without it the commanded position decides. temp_c,
+        the hotend temperature when the batch was taken, is carried into the
+        windows it closes.
         """
         self._temp_c = temp_c
+        if nominal_mm is None:
+            nominal_mm = commanded_mm
         closed = []
         cal = self.calibration
-        for t, s, c in zip(times, sensor_mm, commanded_mm):
+        for t, s, c, n in zip(times, sensor_mm, commanded_mm, nominal_mm):
             m = s / cal
             self._note_recent(t, m, c)
             if self._start is None:
-                self._start, self._high = (t, m, c), c
+                self._start, self._high = (t, m, c), n
                 continue
             t0, m0, c0 = self._start
-            if c < self._high - self.retract_tolerance_mm:
+            if n < self._high - self.retract_tolerance_mm:
                 closed.append(self._close(t, m, c, None, "retraction"))
+                self._high = n
                 continue
-            self._high = max(self._high, c)
+            self._high = max(self._high, n)
             if c - c0 >= self.window_mm:
                 measured = m - m0
                 if abs(measured) <= self.stuck_tolerance_mm:
@@ -119,7 +131,7 @@ class GripEstimator:
         window = Window(t0, t, c - c0, m - m0, grip, reason, flow, self._temp_c)
         self.last_window = window
         self.grip = grip
-        self._start, self._high = (t, m, c), c
+        self._start = (t, m, c)
         return window
 
     def _note_recent(self, t: float, m: float, c: float) -> None:
@@ -151,6 +163,24 @@ class GripEstimator:
             return 0.0, 0.0
         area = self.filament_area_mm2
         return (area * (m1 - m0) / (t1 - t0), area * (c1 - c0) / (t1 - t0))
+
+
+def trapq_positions(moves: Sequence[Tuple[float, float, float, float, float,
+                                             float]],
+                    times: Sequence[float]) -> Optional[np.ndarray]:
+    """The nominal position along one axis at each time, from trapq moves
+    (print_time, move_t, start_v, accel, start_position, axis_r) in any
+    order (Klipper's trapq_extract_old gives them newest first). Before the
+    first move the position is its start, after a move its end; None
+    without moves."""
+    if not len(moves):
+        return None
+    m = np.array(sorted(moves), dtype=np.float64)
+    start, move_t, start_v, accel, position, axis_r = m.T
+    times = np.asarray(times, dtype=np.float64)
+    i = np.clip(np.searchsorted(start, times, side="right") - 1, 0, len(m) - 1)
+    dt = np.clip(times - start[i], 0.0, move_t[i])
+    return position[i] + axis_r[i] * (start_v[i] + 0.5 * accel[i] * dt) * dt
 
 
 class SampleRate:

@@ -136,6 +136,31 @@ def test_a_reversed_sensor_is_named_in_calibration(klipper_build, klippy_venv,
     assert "save_config: set [flow_sensor cal]" not in log
 
 
+def test_pressure_advance_at_corners_is_not_a_retraction(klipper_build,
+                                                         klippy_venv, short_tmp):
+    # A zigzag of 0.4 x 0.2 mm lines at 50 mm/s (4 mm^3/s): each corner
+    # slows to the square corner velocity and pressure advance pulls the
+    # extruder stepper back ~0.07 mm; the planned E never goes back.
+    cfg = short_tmp / "pa.cfg"
+    cfg.write_text(f"[include {HERE / 'flow_sensor_sim.cfg'}]\n"
+                   "[extruder]\npressure_advance: 0.05\n")
+    e_per_line = 20 * 0.4 * 0.2 / 2.405
+    lines = "".join(f"G1 X{60 if i % 2 else 40} Y{40 + i} E{e_per_line:.4f}\n"
+                    for i in range(1, 41))
+    test = short_tmp / "pa.test"
+    test.write_text(
+        f"DICTIONARY atmega2560.dict\nCONFIG {cfg}\n"
+        "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=200\n"
+        "G28\nG1 X40 Y40 Z0.2 F6000\nM83\nG1 F3000\n" + lines
+        + "M400\nQUERY_FLOW_SENSOR\n")
+    log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
+    reasons = [json.loads(line.split("GRIP_WINDOW ", 1)[1])["reason"]
+               for line in log.splitlines() if "GRIP_WINDOW " in line]
+    # 40 lines of 0.665 mm of filament: about 21 windows of 1.25 mm
+    assert reasons.count("judged") >= 18
+    assert "retraction" not in reasons
+
+
 def _feed(messages):
     return "".join(f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE={seq}"
                    f" DATA={payload.hex()}\n" for seq, payload in messages)

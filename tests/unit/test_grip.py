@@ -15,6 +15,7 @@ from flowloop.sensor.grip import (
     fit_calibration,
     parse_speeds,
     rotation_distance_correction,
+    trapq_positions,
 )
 
 
@@ -170,3 +171,61 @@ def test_a_sensor_counting_backwards_is_told_apart_from_no_filament(ratio):
         rotation_distance_correction(7.7, 50.0, -50.0 * ratio)
     with pytest.raises(FlowloopError, match="saw almost no filament"):
         fit_calibration([0.5, 1], [20, 20], [0.1, -0.1])
+
+
+def _pressure_advance_corner(t):
+    """Nominal E at 3 mm/s with a slow stretch (a corner) at 0.4..0.6 s; the
+    stepper, with pressure advance 0.05 s, leads by 0.05 x velocity and so
+    steps back 0.1 mm where the print slows."""
+    velocity = np.where((t > 0.4) & (t < 0.6), 1.0, 3.0)
+    nominal = np.concatenate([[0.0], np.cumsum(velocity[1:] * np.diff(t))])
+    return nominal, nominal + 0.05 * velocity
+
+
+def test_pressure_advance_at_a_corner_is_not_a_retraction():
+    t = np.arange(0, 1.5, 0.001)
+    nominal, stepper = _pressure_advance_corner(t)
+    assert np.diff(stepper).min() < -0.09        # the stepper goes back
+    est = GripEstimator(window_mm=1.0)
+    windows = est.add(t, stepper, stepper, nominal_mm=nominal)
+    assert len(windows) >= 3 and all(w.reason == "judged" for w in windows)
+    # measured against the stepper position: what the feeder was asked to move
+    at = {round(x, 6): e for x, e in zip(t, stepper)}
+    for w in windows:
+        assert w.commanded_mm == pytest.approx(
+            at[round(w.end_time, 6)] - at[round(w.start_time, 6)])
+    # without the nominal motion the same samples close as a retraction
+    plain = GripEstimator(window_mm=1.0).add(t, stepper, stepper)
+    assert "retraction" in [w.reason for w in plain]
+
+
+def test_a_nominal_retraction_still_closes_the_window():
+    t = np.arange(0, 1.0, 0.001)
+    nominal = np.where(t < 0.3, 5 * t, 5 * 0.3 - 0.8)
+    windows = GripEstimator().add(t, nominal, nominal + 0.05, nominal_mm=nominal)
+    assert "retraction" in [w.reason for w in windows]
+
+
+@given(st.lists(st.tuples(st.floats(0.01, 0.5), st.floats(0.0, 50.0),
+                          st.floats(-2000.0, 2000.0), st.sampled_from([1.0, -1.0])),
+                min_size=1, max_size=6), st.floats(-10.0, 10.0))
+def test_trapq_positions_follow_the_moves_as_klipper_plans_them(segments, e0):
+    moves, start, position = [], 1.0, e0
+    for move_t, start_v, accel, axis_r in segments:
+        accel = max(accel, -start_v / move_t)    # never reverses in a move
+        moves.append((start, move_t, start_v, accel, position, axis_r))
+        position += axis_r * (start_v + 0.5 * accel * move_t) * move_t
+        start += move_t
+    times = np.linspace(0.5, start + 0.5, 200)
+    got = trapq_positions(list(reversed(moves)), times)
+    for t, p in zip(times, got):
+        if t <= 1.0:
+            assert p == pytest.approx(e0)
+        elif t >= start:
+            assert p == pytest.approx(position, abs=1e-6)
+        else:
+            m = max(m for m in moves if m[0] <= t)
+            dt = t - m[0]
+            assert p == pytest.approx(m[4] + m[5] * (m[2] + 0.5 * m[3] * dt) * dt,
+                                      abs=1e-6)
+    assert trapq_positions([], times) is None
