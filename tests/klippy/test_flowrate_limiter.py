@@ -4,14 +4,13 @@ rebuilt into flow over time (flowrate_limiter_steps.py)."""
 
 from __future__ import annotations
 
-import json
 import math
-import socket
 from pathlib import Path
 
 import pytest
 
 from devtools import stack
+from devtools.demo_flowrate_limiter import Api, print_closed_loop
 from devtools.klippy_test import run_file
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps, windowed_flow
@@ -105,38 +104,6 @@ mode: temperature
 """
 
 
-class Api:
-    """klippy's own API socket (JSON + 0x03), one request at a time."""
-
-    def __init__(self, path):
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.connect(str(path))
-        self.sock.settimeout(60)
-        self.buffer = b""
-        self.next_id = 0
-
-    def call(self, method, **params):
-        self.next_id += 1
-        self.sock.sendall(json.dumps({"id": self.next_id, "method": method,
-                                      "params": params}).encode() + b"\x03")
-        while True:
-            while b"\x03" not in self.buffer:
-                self.buffer += self.sock.recv(65536)
-            raw, self.buffer = self.buffer.split(b"\x03", 1)
-            msg = json.loads(raw)
-            if msg.get("id") == self.next_id:
-                if "error" in msg:
-                    raise AssertionError(f"{method}: {msg['error']}")
-                return msg["result"]
-
-    def gcode(self, script):
-        return self.call("gcode/script", script=script)
-
-    def limiter(self):
-        return self.call("objects/query", objects={"flowrate_limiter": None})[
-            "status"]["flowrate_limiter"]
-
-
 def _pass_time(api, seconds):
     # The batch-mode thermal model runs on move time: travel back and forth
     moves = int(seconds / 1.5)
@@ -153,14 +120,14 @@ def test_the_temperature_cap_follows_the_profile_at_the_hotend_temperature(
         klippy.wait_ready()
         api = Api(klippy.api_socket)
         stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
-        assert api.limiter()["reason"] == "none"
-        assert "no active profile" in api.limiter()["why"]
+        assert api.query("flowrate_limiter")["reason"] == "none"
+        assert "no active profile" in api.query("flowrate_limiter")["why"]
         api.call("flowloop/set_active_profile", extruder="extruder",
                  profile=make(), working_point=0.5)
         line = profile_line(profile_from_dict(make()), 0.5)
         api.gcode("G28\nM83\nSET_HEATER_TEMPERATURE HEATER=extruder TARGET=200")
         _pass_time(api, 3.0)
-        heating = api.limiter()
+        heating = api.query("flowrate_limiter")
         assert heating["profile"] == "herz-pla-red_80"
         assert heating["temperature"] < 150  # still heating: capped low
         assert heating["caps"]["temperature"] == pytest.approx(
@@ -168,7 +135,7 @@ def test_the_temperature_cap_follows_the_profile_at_the_hotend_temperature(
         for target in (200.0, 230.0):
             api.gcode(f"SET_HEATER_TEMPERATURE HEATER=extruder TARGET={target:g}")
             _pass_time(api, 150.0)
-            s = api.limiter()
+            s = api.query("flowrate_limiter")
             assert s["temperature"] == pytest.approx(target, abs=0.5)
             assert s["reason"] == "temperature"
             assert s["cap"] == pytest.approx(line.flow_mm3_s(s["temperature"]),
@@ -178,54 +145,20 @@ def test_the_temperature_cap_follows_the_profile_at_the_hotend_temperature(
             e_per_mm = 2 * s["cap"] / (AREA * 100.0)
             api.gcode(f"G1 X{10 if target == 200 else 160} E{150 * e_per_mm:.4f}"
                       " F6000")
-            assert api.limiter()["slowed_moves"] == slowed + 1
+            assert api.query("flowrate_limiter")["slowed_moves"] == slowed + 1
     finally:
         klippy.stop()
 
 
 # --- the closed loop: simulated sensor and hotend ------------------------------
 
-# A hotend that melts 4 mm^3/s at 200 C (0.1 more per degC): the block file's
-# infill asks for up to 6.4.
-WEAK = make(name="weak", air=(0.1, 200.0, 4.5), real=(0.1, 200.0, 3.5))
-CHUNK_LINES = 50
-
-
-def print_file_closed_loop(klipper_build, klippy_venv, tmp, enable):
-    """Print the slicer excerpt on the twin (flowrate_limiter_loop.cfg); the
-    limiter's grip_windows and the filament the twin really moved.
-
-    Batch mode never holds the G-code reader back as a printer does (about
-    1 s of moves ahead), so feedback would arrive only after the whole file:
-    an M400 every CHUNK_LINES lines bounds how far G-code runs ahead of the
-    steps the twin has seen."""
-    klippy = stack.Klippy(klipper_build, klippy_venv,
-                          HERE / "flowrate_limiter_loop.cfg", tmp,
-                          {"mcu": "atmega2560"})
-    try:
-        klippy.wait_ready()
-        api = Api(klippy.api_socket)
-        stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
-        api.call("flowloop/set_active_profile", extruder="extruder",
-                 profile=WEAK, working_point=0.5)
-        api.gcode(f"SET_FLOWRATE_LIMIT ENABLE={enable}")
-        lines = GCODE.read_text().splitlines()
-        for i in range(0, len(lines), CHUNK_LINES):
-            api.gcode("\n".join(lines[i:i + CHUNK_LINES] + ["M400"]))
-        moved = api.call("objects/query", objects={"flow_sensor sim": None})[
-            "status"]["flow_sensor sim"]["filament_position"]
-        return api.limiter(), moved
-    finally:
-        klippy.stop()
-
-
 def test_the_closed_loop_keeps_grip_where_the_uncapped_print_loses_it(
-        klipper_build, klippy_venv, tmp_path_factory):
+        klipper_build, klippy_venv):
     commanded = gcode_extrusion(GCODE)
-    on, moved_on = print_file_closed_loop(klipper_build, klippy_venv,
-                                          tmp_path_factory.mktemp("on"), 1)
-    off, moved_off = print_file_closed_loop(klipper_build, klippy_venv,
-                                            tmp_path_factory.mktemp("off"), 0)
+    # the demo's run (devtools/demo_flowrate_limiter.py): a hotend that melts
+    # 4 mm^3/s at 200 C where the file's infill asks for up to 6.4
+    on, moved_on = print_closed_loop(1, klipper_build, klippy_venv)
+    off, moved_off = print_closed_loop(0, klipper_build, klippy_venv)
     # without the limiter most windows slip and a fifth of the plastic is lost
     assert off["grip_windows"]["below_min_grip"] > 0.5 * off["grip_windows"][
         "judged"]
