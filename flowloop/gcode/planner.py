@@ -46,6 +46,9 @@ BARRIER_COMMANDS = frozenset(("G28", "M109", "M190", "M191", "TEMPERATURE_WAIT",
 # klippy/gcode.py: how Klipper splits a traditional command into words.
 _ARGS_R = re.compile(r"([A-Z_]+|[A-Z*])")
 _FAST_MOVES = (b"G1 ", b"G0 ")
+# A move whose numbers Python's float() reads exactly as Klipper splits them
+# (Klipper reads "X1E3" as X1 E3, float() as 1000: such lines go the slow way).
+_SIMPLE_MOVE = re.compile(rb"G[01](?:[ \t]+[XYZEF][-+]?[0-9.]+)*\s*")
 
 
 @dataclass(frozen=True)
@@ -393,7 +396,8 @@ class Planner:
         cpos = raw.find(b";")
         if cpos >= 0:
             raw = raw[:cpos]
-        if raw[:3] in _FAST_MOVES and self._fast_g1(raw, offset, number):
+        if raw[:3] in _FAST_MOVES and _SIMPLE_MOVE.fullmatch(raw) \
+                and self._fast_g1(raw, offset, number):
             pass
         else:
             raw = raw.strip()
@@ -464,14 +468,10 @@ class Planner:
                                 f"({raw[:40]!r})") from None
         self._number, self._text = number, text
         self._offset = offset
-        words = text.split()
-        cmd = words[0]
+        cmd, args = self._klipper_split(text)
         handler = self._handlers.get(cmd)
-        if handler is None:
-            cmd, words = self._resplit(text)
-            handler = self._handlers.get(cmd)
         if handler is not None:
-            handler(self, words)
+            handler(self, args)
         if cmd in BARRIER_COMMANDS:
             self._flush()
             self._out.append(Barrier(self.print_time, end, cmd))
@@ -484,17 +484,15 @@ class Planner:
     def _error(self, msg: str) -> FlowloopError:
         return FlowloopError(f"line {self._number}: {msg}: '{self._text}'")
 
-    def _resplit(self, text: str):
-        """Klipper's own split (klippy/gcode.py), for words written without
-        spaces ('G1X10Y5') or after a line number ('N10 G1 X5')."""
+    @staticmethod
+    def _klipper_split(text: str):
+        """Command and parameters as klippy/gcode.py splits a line."""
         parts = _ARGS_R.split(text)
         if "".join(parts[:2]) == "N":
             cmd = "".join(parts[3:5]).strip()
         else:
             cmd = "".join(parts[:3]).strip()
-        words = [cmd] + [parts[i] + parts[i + 1].strip()
-                         for i in range(1, len(parts) - 1, 2)]
-        return cmd, words
+        return cmd, {parts[i]: parts[i + 1].strip() for i in range(1, len(parts), 2)}
 
     def _number_value(self, key: str, text: str) -> float:
         try:
@@ -505,33 +503,17 @@ class Planner:
             raise self._error(f"absurd value {key}{text}")
         return value
 
-    def _params(self, words: List[str]) -> Dict[str, float]:
-        params = {}
-        for word in words[1:]:
-            key = word[0]
-            if key in "XYZEF":
-                try:
-                    value = float(word[1:])
-                except ValueError:
-                    # 'X10Y5' or a real error: Klipper's split decides
-                    _, resplit = self._resplit(self._text)
-                    return {w[0]: self._number_value(w[0], w[1:])
-                            for w in resplit[1:] if w[0] in "XYZEF"}
-                if not math.isfinite(value) or abs(value) > MAX_ABS_VALUE:
-                    raise self._error(f"absurd value {word}")
-                params[key] = value
-        return params
+    def _floats(self, args: Dict[str, str], keys: str) -> Dict[str, float]:
+        return {k: self._number_value(k, args[k]) for k in keys if k in args}
 
-    def _extended(self, words: List[str]) -> Dict[str, float]:
+    def _extended(self) -> Dict[str, float]:
+        """KEY=value parameters of an extended command (numbers only)."""
         params = {}
-        for word in words[1:]:
+        for word in self._text.split()[1:]:
             key, sep, value = word.partition("=")
             if sep:
                 params[key] = self._number_value(f"{key}=", value)
         return params
-
-    def _traditional(self, words: List[str]) -> Dict[str, float]:
-        return {w[0]: self._number_value(w[0], w[1:]) for w in words[1:] if w[1:]}
 
     # --- gcode_move -----------------------------------------------------------------
 
@@ -556,8 +538,8 @@ class Planner:
             self.speed = gcode_speed * self.speed_factor
         self._move(last, self.speed)
 
-    def _g92(self, words) -> None:
-        params = self._traditional(words)
+    def _g92(self, args) -> None:
+        params = self._floats(args, "XYZE")
         offsets = [params.get(a) for a in "XYZE"]
         for i, offset in enumerate(offsets):
             if offset is not None:
@@ -567,16 +549,16 @@ class Planner:
         if offsets == [None, None, None, None]:
             self.base_position[:4] = self.last_position[:4]
 
-    def _m220(self, words) -> None:
-        s = self._traditional(words).get("S", 100.0)
+    def _m220(self, args) -> None:
+        s = self._floats(args, "S").get("S", 100.0)
         if s <= 0.0:
             raise self._error("S must be above 0")
         value = s / (60.0 * 100.0)
         self.speed = self.speed / self.speed_factor * value
         self.speed_factor = value
 
-    def _m221(self, words) -> None:
-        s = self._traditional(words).get("S", 100.0)
+    def _m221(self, args) -> None:
+        s = self._floats(args, "S").get("S", 100.0)
         if s <= 0.0:
             raise self._error("S must be above 0")
         new_extrude_factor = s / 100.0
@@ -585,14 +567,13 @@ class Planner:
         self.base_position[3] = last_e_pos - e_value * new_extrude_factor
         self.extrude_factor = new_extrude_factor
 
-    def _g20(self, words) -> None:
+    def _g20(self, args) -> None:
         raise self._error("inches (G20) are not supported, as in Klipper")
 
-    def _g28(self, words) -> None:
+    def _g28(self, args) -> None:
         # Homed axes end at their endstops; the file does not say where: 0.
         self._flush()
-        axes = [i for i, a in enumerate("XYZ")
-                if any(w.startswith(a) for w in words[1:])]
+        axes = [i for i, a in enumerate("XYZ") if a in args]
         for i in axes or (0, 1, 2):
             self.commanded_pos[i] = self.last_position[i] = 0.0
 
@@ -603,8 +584,8 @@ class Planner:
         self.junction_deviation = scv2 * (math.sqrt(2.0) - 1.0) / self.max_accel
         self.mcr_pseudo_accel = self.max_accel * (1.0 - self.min_cruise_ratio)
 
-    def _set_velocity_limit(self, words) -> None:
-        params = self._extended(words)
+    def _set_velocity_limit(self, args) -> None:
+        params = self._extended()
         checks = (("VELOCITY", "max_velocity", 0.0, None),
                   ("ACCEL", "max_accel", 0.0, None),
                   ("SQUARE_CORNER_VELOCITY", "square_corner_velocity", None, 0.0),
@@ -620,8 +601,8 @@ class Planner:
             setattr(self, attr, value)
         self._calc_junction_deviation()
 
-    def _m204(self, words) -> None:
-        params = self._traditional(words)
+    def _m204(self, args) -> None:
+        params = self._floats(args, "SPT")
         accel = params.get("S")
         if accel is None:
             if "P" not in params or "T" not in params:
@@ -632,14 +613,14 @@ class Planner:
         self.max_accel = accel
         self._calc_junction_deviation()
 
-    def _g4(self, words) -> None:
-        delay = self._traditional(words).get("P", 0.0)
+    def _g4(self, args) -> None:
+        delay = self._floats(args, "P").get("P", 0.0)
         if delay < 0.0:
             raise self._error("P must be >= 0")
         self._flush()
         self.print_time += delay / 1000.0
 
-    def _m400(self, words) -> None:
+    def _m400(self, args) -> None:
         # The queue drains, and the next move starts BUFFER_TIME_START later.
         self._flush()
         self.print_time += BUFFER_TIME_START
@@ -743,19 +724,19 @@ class Planner:
         # RESTORE_GCODE_STATE keeps the G-code E position where it was.
         self.base_position[3] += self.last_position[3] - saved_e
 
-    def _g10(self, words) -> None:
+    def _g10(self, args) -> None:
         if not self.is_retracted:
             self._retract_move(-self.retract_length, self.retract_speed)
             self.is_retracted = True
 
-    def _g11(self, words) -> None:
+    def _g11(self, args) -> None:
         if self.is_retracted:
             self._retract_move(self.retract_length + self.unretract_extra_length,
                                self.unretract_speed)
             self.is_retracted = False
 
-    def _set_retraction(self, words) -> None:
-        params = self._extended(words)
+    def _set_retraction(self, args) -> None:
+        params = self._extended()
         for key, attr, low in (
                 ("RETRACT_LENGTH", "retract_length", 0.0),
                 ("RETRACT_SPEED", "retract_speed", 1.0),
@@ -769,11 +750,11 @@ class Planner:
 
     # --- gcode_arcs -----------------------------------------------------------------
 
-    def _arc(self, words, clockwise: bool) -> None:
+    def _arc(self, args, clockwise: bool) -> None:
         if not self.absolute_coord:
             raise self._error("G2/G3 does not support relative move mode")
-        params = self._params(words)
-        other = self._traditional(["G"] + [w for w in words[1:] if w[0] in "IJKR"])
+        params = self._floats(args, "XYZEF")
+        other = self._floats(args, "IJKR")
         if "R" in other:
             raise self._error("G2/G3 does not support R moves")
         ef = self.extrude_factor
@@ -833,23 +814,23 @@ class Planner:
             self._g1(g1)
 
     _handlers = {
-        "G0": lambda self, words: self._g1(self._params(words)),
-        "G1": lambda self, words: self._g1(self._params(words)),
-        "G2": lambda self, words: self._arc(words, True),
-        "G3": lambda self, words: self._arc(words, False),
+        "G0": lambda self, args: self._g1(self._floats(args, "XYZEF")),
+        "G1": lambda self, args: self._g1(self._floats(args, "XYZEF")),
+        "G2": lambda self, args: self._arc(args, True),
+        "G3": lambda self, args: self._arc(args, False),
         "G4": _g4,
         "G10": _g10,
         "G11": _g11,
-        "G17": lambda self, words: setattr(self, "arc_axes", (0, 1, 2)),
-        "G18": lambda self, words: setattr(self, "arc_axes", (0, 2, 1)),
-        "G19": lambda self, words: setattr(self, "arc_axes", (1, 2, 0)),
+        "G17": lambda self, args: setattr(self, "arc_axes", (0, 1, 2)),
+        "G18": lambda self, args: setattr(self, "arc_axes", (0, 2, 1)),
+        "G19": lambda self, args: setattr(self, "arc_axes", (1, 2, 0)),
         "G20": _g20,
         "G28": _g28,
-        "G90": lambda self, words: setattr(self, "absolute_coord", True),
-        "G91": lambda self, words: setattr(self, "absolute_coord", False),
+        "G90": lambda self, args: setattr(self, "absolute_coord", True),
+        "G91": lambda self, args: setattr(self, "absolute_coord", False),
         "G92": _g92,
-        "M82": lambda self, words: setattr(self, "absolute_extrude", True),
-        "M83": lambda self, words: setattr(self, "absolute_extrude", False),
+        "M82": lambda self, args: setattr(self, "absolute_extrude", True),
+        "M83": lambda self, args: setattr(self, "absolute_extrude", False),
         "M204": _m204,
         "M220": _m220,
         "M221": _m221,

@@ -252,7 +252,7 @@ def test_the_command_reads_limits_from_printer_cfg(tmp_path, capsys):
 @pytest.mark.parametrize("content, message", [
     (b"\x89PNG\r\n\x1a\n\x00\x00\x00", "line 1: not G-code text"),
     (b"G28\nGCDE\x01\x00\x00\x00", "line 2: binary data"),
-    (b"G1 X10 E1e400 F600\n", "absurd value"),
+    (b"G1 X10 E99999999999 F600\n", "absurd value"),
     (b"G1 X10 F-100\n", "invalid speed"),
 ])
 def test_bad_input_is_one_line_and_no_output(tmp_path, capsys, content, message):
