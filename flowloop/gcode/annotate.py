@@ -296,6 +296,9 @@ def annotate_file(src: Path, dst: Optional[Path] = None,
     at all (a temporary file beside it, then a rename)."""
     limits = limits if limits is not None else PrinterLimits()
     src, dst = Path(src), Path(dst if dst is not None else src)
+    if dst.is_symlink():
+        # write where the link points, as Moonraker's own processors do
+        dst = Path(os.path.realpath(dst))
     try:
         with open(src, "rb") as f:
             head = f.read(HEADER_BYTES)

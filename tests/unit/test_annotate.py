@@ -204,6 +204,15 @@ def test_in_place_and_output_file_give_the_same_bytes(tmp_path):
     assert src.read_bytes() == REAL.read_bytes()
 
 
+def test_a_linked_file_is_annotated_where_the_link_points(tmp_path):
+    target, link = tmp_path / "real.gcode", tmp_path / "link.gcode"
+    target.write_bytes(REAL.read_bytes())
+    link.symlink_to(target)
+    annotate_file(link)
+    assert link.is_symlink()
+    assert target.read_bytes().startswith(b"; flowloop autotemp annotations v1")
+
+
 def test_a_failure_leaves_input_and_output_as_they_were(tmp_path):
     src, out = tmp_path / "bad.gcode", tmp_path / "out.gcode"
     src.write_bytes(REAL.read_bytes() + b"G1 X10 F-5\n")
