@@ -525,8 +525,12 @@ class SimulatedSource:
             flow_mm3_s=config.getfloat('melt_flow',
                                        default.flow_mm3_s(melt_temp), above=0.))
         low, high = twin.SENSOR_SCALE_RANGE
+        low, high = twin.MELT_SCALE_RANGE
+        self.melt_scale = config.getfloat('melt_scale', 1., minval=low,
+                                          maxval=high)
         self.twin = twin.SimulatedEms22(
-            melt.line(), counts_per_mm=sensor.counts_per_mm,
+            twin.scaled_line(melt.line(), self.melt_scale),
+            counts_per_mm=sensor.counts_per_mm,
             sensor_scale=config.getfloat('sensor_scale', 1., minval=low,
                                          maxval=high),
             noise_counts=config.getfloat('noise_counts',
@@ -559,7 +563,8 @@ class SimulatedSource:
         # The twin melts what the active profile's line says (one melt line)
         if extruder == self.sensor.extruder_name and profile is not None:
             self.catch_up()
-            self.twin.melt = profile_line(profile, working_point)
+            self.twin.melt = twin.scaled_line(
+                profile_line(profile, working_point), self.melt_scale)
 
     def commands(self):
         return [('SET_FLOW_SENSOR_SIMULATION',

@@ -36,6 +36,17 @@ DEFAULT_NOISE_COUNTS = 0.34   # 0.12 deg RMS per the datasheet
 SENSOR_SCALE_RANGE = (0.5, 2.0)
 
 
+MELT_SCALE_RANGE = (0.1, 2.0)
+
+
+def scaled_line(line: Line, scale: float) -> Line:
+    """The same melt line melting `scale` times as much at every temperature
+    (a twin weaker or stronger than its profile says)."""
+    ceiling = None if line.ceiling is None else scaled_line(line.ceiling, scale)
+    return Line(scale * line.slope_mm3_s_per_c, scale * line.intercept_mm3_s,
+                ceiling)
+
+
 def melt_grip(melt: Line, demand_mm3_s: float, temp_c: float) -> float:
     """Share of commanded filament that moves at this demand."""
     capacity = max(0.0, melt.flow_mm3_s(temp_c))

@@ -114,3 +114,11 @@ def test_a_long_high_flow_sags_the_twin_s_nozzle():
     later = _twin_grip(twin, 230.0, 60.0, 25.0, start=2.0)
     assert first == pytest.approx(1.0)
     assert twin.temp_c(230.0) < 220.0 and later < 0.9
+
+
+def test_a_scaled_twin_melts_that_share_of_its_line():
+    from flowloop.sensor.twin import scaled_line
+    line = Line(0.2, -30.0, ceiling=Line(0.1, -5.0))
+    weak = scaled_line(line, 0.7)
+    for temp in (180.0, 220.0, 300.0):
+        assert weak.flow_mm3_s(temp) == pytest.approx(0.7 * line.flow_mm3_s(temp))
