@@ -5,12 +5,20 @@ flowloop component, both on 127.0.0.1, prints the Moonraker URL and what
 flowloop has loaded, then runs each feature's demo step (devtools/demo_*.py,
 each a `demo(ctx)` function). Ctrl-C stops everything. Without a Klipper
 checkout it says so and runs Moonraker alone, and the steps run offline.
+
+What it keeps: by default nothing. Its data directory (Moonraker's database
+with the profiles stored, G-code files, logs) is a new temporary one removed
+when the demo stops, and the port is new on every run. With
+FLOWLOOP_DEMO_DATA=DIR (or --data-dir DIR) the data directory is DIR: created
+if missing, kept when the demo stops, and used again by the next run (the
+config files in it are rewritten on every start, the database is not).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import shutil
 import signal
 import sys
@@ -20,6 +28,8 @@ from typing import Optional
 
 from devtools import stack
 from flowloop.host.info import describe
+
+DATA_ENV = "FLOWLOOP_DEMO_DATA"
 
 
 class DemoContext:
@@ -90,7 +100,15 @@ def main(argv=None) -> int:
                         help="stop after the steps instead of waiting for Ctrl-C")
     parser.add_argument("--step", choices=[name for name, _ in demo_steps()],
                         help="run only this feature's step")
+    parser.add_argument("--data-dir", type=Path,
+                        default=os.environ.get(DATA_ENV) or None,
+                        help=f"keep the data directory here and use it again on the "
+                             f"next run (default: ${DATA_ENV}, else a temporary one "
+                             f"removed at the end)")
     args = parser.parse_args(argv)
+    data_dir = args.data_dir.expanduser().resolve() if args.data_dir else None
+    if data_dir is not None:
+        data_dir.mkdir(parents=True, exist_ok=True)
     _stop_on_signals()
     reason = stack.missing_klipper_reason()
     if reason:
@@ -99,9 +117,14 @@ def main(argv=None) -> int:
               flush=True)
     print("Starting the local stack (first run builds Klipper and two "
           "virtualenvs: a few minutes)...", flush=True)
-    with stack.printer_stack(with_klippy=reason is None) as printer:
+    with stack.printer_stack(with_klippy=reason is None,
+                             data_dir=data_dir) as printer:
         status, body = printer.moonraker.request("GET", "/server/flowloop/info")
         print(f"\nMoonraker: {printer.moonraker.url}  (data: {printer.data_dir})")
+        print("  data directory " + (
+            "kept when the demo stops and used again by the next run"
+            if data_dir else f"removed when the demo stops (set {DATA_ENV}=DIR "
+                             f"or --data-dir DIR to keep it)"))
         print(f"  GET {printer.moonraker.url}/server/flowloop/info")
         print("  " + describe(body["result"]).replace("\n", "\n  "))
         failed = run_steps(DemoContext(printer), args.step)

@@ -341,12 +341,13 @@ class Moonraker(Process):
         self.data_dir = data_dir
         config_dir = data_dir / "config"
         config_dir.mkdir(parents=True, exist_ok=True)
-        conf = config_dir / "moonraker.conf"
-        if not conf.exists():
-            conf.write_text(MOONRAKER_CONF.format(
-                port=self.port,
-                klippy_uds=klippy_uds or data_dir / "comms" / "none.sock",
-                trusted=trusted, extra=extra_conf))
+        # Written on every start: a data directory kept from an earlier run
+        # (make demo with FLOWLOOP_DEMO_DATA) would otherwise name that run's
+        # port and sockets, and this Moonraker would listen where no one asks.
+        (config_dir / "moonraker.conf").write_text(MOONRAKER_CONF.format(
+            port=self.port,
+            klippy_uds=klippy_uds or data_dir / "comms" / "none.sock",
+            trusted=trusted, extra=extra_conf))
         cmd = [str(venv.python), "-m", "moonraker", "-d", str(data_dir),
                "-l", str(data_dir / "moonraker.log")]
         super().__init__("moonraker", cmd, data_dir / "moonraker.log")
@@ -419,7 +420,10 @@ def printer_stack(printer_cfg: Optional[Path] = None, with_klippy: bool = True,
     """Start Moonraker (and klippy with printer_cfg, default config/printer.cfg).
 
     The printer config in data_dir/config/printer.cfg includes the given file
-    and points virtual_sdcard at data_dir/gcodes, as Moonraker expects.
+    and points virtual_sdcard at data_dir/gcodes, as Moonraker expects. A
+    data_dir given is kept (and may be one an earlier stack used: its
+    database and G-code files carry over, its config files are rewritten);
+    without one, a temporary directory is used and removed.
     """
     own_dir = data_dir is None
     data_dir = data_dir or short_tempdir("fl-stack-")
@@ -428,6 +432,8 @@ def printer_stack(printer_cfg: Optional[Path] = None, with_klippy: bool = True,
     klippy = moonraker = None
     try:
         uds = data_dir / "comms" / "klippy.sock"
+        if uds.is_socket():  # left by an earlier run: not a sign klippy is up
+            uds.unlink()
         if with_klippy:
             cfg = data_dir / "config" / "printer.cfg"
             include = printer_cfg or PROJECT / "config" / "printer.cfg"

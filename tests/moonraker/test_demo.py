@@ -5,17 +5,20 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from devtools import stack
+from tests.samples import make
 
 
-def run_demo(env_extra):
+def run_demo(env_extra, *args):
     env = {**os.environ, **env_extra}
-    proc = subprocess.run([sys.executable, "-m", "devtools.demo", "--once"],
+    proc = subprocess.run([sys.executable, "-m", "devtools.demo", "--once", *args],
                           cwd=stack.PROJECT, capture_output=True, text=True,
                           timeout=600, env=env)
     return proc.returncode, proc.stdout + proc.stderr
@@ -45,3 +48,53 @@ def test_demo_without_klipper_says_so_and_runs_every_step_offline(moonraker_venv
     steps = re.findall(r"^=== (.+) ===$", out, re.MULTILINE)
     assert len(steps) == len(list(stack.PROJECT.glob("devtools/demo_*.py")))
     assert_all_stopped(out)
+
+
+def test_a_second_stack_on_the_same_data_directory_starts_and_keeps_profiles(
+        moonraker_venv):
+    data_dir = stack.short_tempdir("fl-keep-")
+    try:
+        with stack.printer_stack(with_klippy=False, data_dir=data_dir) as first:
+            status, _ = first.moonraker.request(
+                "POST", "/server/flowloop/profile", {"profile": make(name="kept")})
+            assert status == 200
+            first_port = first.moonraker.port
+        with stack.printer_stack(with_klippy=False, data_dir=data_dir) as second:
+            assert second.moonraker.port != first_port  # a new port, still ready
+            status, body = second.moonraker.request(
+                "GET", "/server/flowloop/profile?name=kept")
+            assert status == 200, body
+    finally:
+        shutil.rmtree(data_dir, ignore_errors=True)
+
+
+def test_the_demo_keeps_its_data_directory_when_asked_and_starts_on_it_again(
+        moonraker_venv):
+    data_dir = stack.short_tempdir("fl-demo-keep-")
+    try:
+        with stack.printer_stack(with_klippy=False, data_dir=data_dir) as before:
+            assert before.moonraker.request("POST", "/server/flowloop/profile", {
+                "profile": make(name="from an earlier demo")})[0] == 200
+        offline = {"KLIPPER_PATH": "/nonexistent/klipper"}
+        for _ in range(2):  # the second start is the one that used to fail
+            code, out = run_demo({**offline, "FLOWLOOP_DEMO_DATA": str(data_dir)},
+                                 "--step", "material_profiles")
+            assert code == 0, out[-5000:]
+            assert f"(data: {data_dir})" in out
+            assert "kept when the demo stops" in out
+            assert_all_stopped(out)
+        with stack.printer_stack(with_klippy=False, data_dir=data_dir) as after:
+            status, body = after.moonraker.request(
+                "GET", "/server/flowloop/profile?name=from%20an%20earlier%20demo")
+            assert status == 200, body
+    finally:
+        shutil.rmtree(data_dir, ignore_errors=True)
+
+
+def test_the_demo_says_it_removes_its_data_directory_and_does(moonraker_venv):
+    code, out = run_demo({"KLIPPER_PATH": "/nonexistent/klipper"},
+                         "--step", "material_profiles")
+    assert code == 0, out[-5000:]
+    assert "removed when the demo stops (set FLOWLOOP_DEMO_DATA=DIR" in out
+    data_dir = re.search(r"\(data: (\S+)\)", out).group(1)
+    assert not Path(data_dir).exists()
