@@ -82,7 +82,9 @@ class FlowSensor:
                                             calibration=calibration)
         self.faults = ems22.FaultMonitor(fault_samples)
         self.decoder = ems22.Decoder(
-            bit_offset=ems22.bit_offset_for_mode(self.spi_mode))
+            bit_offset=ems22.bit_offset_for_mode(self.spi_mode),
+            max_counts_per_record=ems22.max_counts_per_record(
+                self.sample_period, self.counts_per_mm))
         self.rate = flow_grip.SampleRate()
         self.window_callbacks = []
         self.dump_samples = None
@@ -167,7 +169,7 @@ class FlowSensor:
             temp_c = source.temp_c(self.reactor.monotonic())
             nominal = self._nominal_positions(times)
             for window in self.grip.add(times, sensor_mm, commanded, temp_c,
-                                        nominal):
+                                        nominal, samples.breaks[valid]):
                 started = self.faults.note_window(window.reason) or started
                 self._deliver(window)
             self.rate.add(times)

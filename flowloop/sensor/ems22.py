@@ -51,10 +51,10 @@ OCF, COF, LIN, MAGINC, MAGDEC = 1 << 5, 1 << 4, 1 << 3, 1 << 2, 1 << 1
 
 OK, MISSING, PARITY, NOT_READY, CORDIC, LINEARITY, MAGNET = range(7)
 # Host-only sample states (after the frame states of the header)
-MISALIGNED, OVERFLOW, SCHEDULE, SPI_TIME, TIME_LOST = 7, 8, 9, 10, 11
+MISALIGNED, OVERFLOW, SCHEDULE, SPI_TIME, TIME_LOST, JUMP = 7, 8, 9, 10, 11, 12
 STATUS_NAMES = ("ok", "missing", "parity", "not_ready", "cordic_overflow",
                 "linearity", "magnet", "misaligned", "overflow", "schedule",
-                "spi_time", "time_lost")
+                "spi_time", "time_lost", "jump")
 _MCU_ERRORS = {ERR_OVERFLOW: OVERFLOW, ERR_SCHEDULE: SCHEDULE,
                ERR_SPI_TIME: SPI_TIME}
 
@@ -66,8 +66,16 @@ MIN_SPI_HZ = 100_000
 # [flow_sensor] options and their limits: the adapter reads them from here
 DEFAULT_SPI_MODE = 2
 DEFAULT_SAMPLE_PERIOD_S = 0.001
-SAMPLE_PERIOD_RANGE_S = (0.0002, 0.1)
 DEFAULT_FAULT_SAMPLES = 100
+# The fastest plausible filament motion (a fast bowden retraction). A gap
+# between good reads in which it could turn the shaft half a turn (4.98 mm)
+# makes unwrapping ambiguous; a step faster than it is a bad read.
+MAX_FILAMENT_SPEED_MM_S = 120.0
+# Below the half turn with room for a few missed reads: at 120 mm/s a 10 ms
+# period is 1.2 mm (a quarter of the half turn) per read.
+SAMPLE_PERIOD_RANGE_S = (0.0002, 0.01)
+# Reading noise and quantisation allowed on top of the fastest motion
+JUMP_MARGIN_COUNTS = 4
 
 
 def parity_odd(frame: int) -> int:
@@ -197,6 +205,13 @@ class Samples:
     status: np.ndarray       # OK or one of the error states
     counts: np.ndarray       # unwrapped position (valid where status == OK)
     lost_messages: int = 0
+    # good samples after a gap too long to unwrap across (or a new query):
+    # their position may be off by whole turns, so grip restarts there
+    breaks: Optional[np.ndarray] = None
+
+    def __post_init__(self):
+        if self.breaks is None:
+            self.breaks = np.zeros(len(self.index), dtype=bool)
 
     @property
     def valid(self) -> np.ndarray:
@@ -208,6 +223,8 @@ class Samples:
         out = {STATUS_NAMES[v]: int(c) for v, c in zip(values, counts)}
         if self.lost_messages:
             out["lost_messages"] = self.lost_messages
+        if self.breaks.any():
+            out["discontinuity"] = int(self.breaks.sum())
         return out
 
 
@@ -225,13 +242,24 @@ class Decoder:
     read belongs to a later event than the record index says, and every
     time from there on is off by the events it lost count of. Those samples
     are TIME_LOST (never used) until reset(), after a new query.
+
+    Unwrapping takes the shorter way round between good reads, which is
+    only sure while the filament cannot have moved half a turn between
+    them. With max_counts_per_record (the most the filament can move per
+    record, see max_counts_per_record()), a good read after a gap in which
+    it could have is a break (Samples.breaks: used, but grip restarts
+    there), and a read that moved further than the filament can in its gap
+    is a JUMP (a bad read, e.g. two flipped bits that parity misses). The
+    first read after reset() is a break too. None checks nothing.
     """
     bit_offset: int = 1
+    max_counts_per_record: Optional[float] = None
     next_index: int = 0
     last_sequence: int = -1
     last_position: int = -1   # 10-bit raw position of the last good frame
     counts: int = 0           # unwrapped position of the last good frame
     time_lost: bool = False
+    last_good_index: Optional[int] = None  # record index of the last good frame
     _other: int = field(init=False, default=0)
     _overflow_run: int = field(init=False, default=0)
 
@@ -245,6 +273,7 @@ class Decoder:
         The position carries on (the encoder is absolute)."""
         self.next_index, self.last_sequence = 0, -1
         self.time_lost, self._overflow_run = False, 0
+        self.last_good_index = None
 
     def decode(self, messages: Sequence[Tuple[int, bytes]]) -> Samples:
         """Decode (sequence, payload) pairs, in arrival order."""
@@ -287,18 +316,48 @@ class Decoder:
             status[is_error] = [_MCU_ERRORS.get(int(c), SPI_TIME) for c in codes]
         self._mark_time_lost(status)
         counts = np.zeros(len(index), dtype=np.int64)
+        breaks = np.zeros(len(index), dtype=bool)
         good = np.flatnonzero(status == OK)
         if len(good):
             pos = (frame[good] >> POSITION_SHIFT).astype(np.int64)
-            prev = np.empty_like(pos)
-            prev[0] = pos[0] if self.last_position < 0 else self.last_position
-            prev[1:] = pos[:-1]
-            step = (pos - prev + POSITIONS // 2) % POSITIONS - POSITIONS // 2
-            unwrapped = self.counts + np.cumsum(step)
-            counts[good] = unwrapped
-            self.counts = int(unwrapped[-1])
-            self.last_position = int(pos[-1])
-        return Samples(index, tcode, status, counts)
+            if self.max_counts_per_record is None:
+                self._unwrap(pos, counts, good)
+            else:
+                self._unwrap_checked(index, pos, counts, good, status, breaks)
+        return Samples(index, tcode, status, counts, breaks=breaks)
+
+    def _unwrap(self, pos, counts, good) -> None:
+        prev = np.empty_like(pos)
+        prev[0] = pos[0] if self.last_position < 0 else self.last_position
+        prev[1:] = pos[:-1]
+        step = (pos - prev + POSITIONS // 2) % POSITIONS - POSITIONS // 2
+        unwrapped = self.counts + np.cumsum(step)
+        counts[good] = unwrapped
+        self.counts = int(unwrapped[-1])
+        self.last_position = int(pos[-1])
+        self.last_good_index = None
+
+    def _unwrap_checked(self, index, pos, counts, good, status, breaks) -> None:
+        limit = self.max_counts_per_record
+        half = POSITIONS // 2
+        for i, p in zip(good.tolist(), pos.tolist()):
+            step = 0
+            if self.last_position >= 0:
+                step = (p - self.last_position + half) % POSITIONS - half
+            if self.last_good_index is None:
+                # the first read, or the first after a new query: no gap known
+                breaks[i] = self.last_position >= 0
+            else:
+                gap = int(index[i]) - self.last_good_index
+                if gap * limit >= half:
+                    breaks[i] = True
+                elif abs(step) > gap * limit + JUMP_MARGIN_COUNTS:
+                    status[i] = JUMP
+                    continue
+            self.counts += step
+            self.last_position = p
+            self.last_good_index = int(index[i])
+            counts[i] = self.counts
 
     def _mark_time_lost(self, status: np.ndarray) -> None:
         start = 0 if self.time_lost else None
@@ -314,6 +373,12 @@ class Decoder:
         if start is not None:
             tail = status[start:]
             tail[tail == OK] = TIME_LOST
+
+
+def max_counts_per_record(sample_period_s: float, counts_per_mm: float) -> float:
+    """The most the filament can move between two consecutive reads, in
+    counts (Decoder.max_counts_per_record)."""
+    return MAX_FILAMENT_SPEED_MM_S * sample_period_s * counts_per_mm
 
 
 def time_shift_for(mcu_freq: float, span_s: float = 0.002) -> int:

@@ -85,7 +85,8 @@ class GripEstimator:
 
     def add(self, times: Sequence[float], sensor_mm: Sequence[float],
             commanded_mm: Sequence[float], temp_c: Optional[float] = None,
-            nominal_mm: Optional[Sequence[float]] = None) -> List[Window]:
+            nominal_mm: Optional[Sequence[float]] = None,
+            breaks: Optional[Sequence[bool]] = None) -> List[Window]:
         """Feed samples in time order; return the windows they closed.
 
         sensor_mm is raw sensor filament (counts / counts_per_mm); the
@@ -96,15 +97,23 @@ class GripEstimator:
         ~0.1 mm that pressure advance pulls back at a slowing corner does not
         close the window; without it the commanded position decides. temp_c,
         the hotend temperature when the batch was taken, is carried into the
-        windows it closes.
+        windows it closes. breaks marks samples whose sensor position may be
+        off by whole turns from the ones before (Samples.breaks): the open
+        window is dropped and a new one starts there.
         """
         self._temp_c = temp_c
         if nominal_mm is None:
             nominal_mm = commanded_mm
+        if breaks is None:
+            breaks = [False] * len(times)
         closed = []
         cal = self.calibration
-        for t, s, c, n in zip(times, sensor_mm, commanded_mm, nominal_mm):
+        for t, s, c, n, b in zip(times, sensor_mm, commanded_mm, nominal_mm,
+                                 breaks):
             m = s / cal
+            if b:
+                self._start = None
+                self._recent.clear()
             self._note_recent(t, m, c)
             if self._start is None:
                 self._start, self._high = (t, m, c), n

@@ -207,6 +207,65 @@ def test_time_is_rebuilt_exactly_after_a_lost_message():
     assert s.counts[12] - s.counts[11] == 24 - 11
 
 
+# 1 ms reads of the default shaft: 120 mm/s is 12.3 counts per read
+LIMIT = ems22.max_counts_per_record(0.001, ems22.DEFAULT_COUNTS_PER_MM)
+
+
+def _checked(frames_or_none):
+    """Decode one frame per record (None: a missing read), limits on."""
+    frames = [0xFFFF if f is None else f for f in frames_or_none]
+    return ems22.Decoder(max_counts_per_record=LIMIT).decode(_messages(frames))
+
+
+def test_a_fast_retraction_across_a_long_gap_is_a_break_not_a_silent_turn():
+    # 10 reads moving 3 counts each, then 60 missing reads in which a fast
+    # retraction pulls 600 counts back: the short way round says +424
+    path = [3 * i for i in range(10)] + [None] * 60 + [27 - 600, 27 - 597]
+    s = _checked([None if p is None else ems22.make_frame(p % 1024)
+                  for p in path])
+    good = np.flatnonzero(s.valid)
+    assert s.breaks[good].tolist() == [False] * 10 + [True, False]
+    assert s.error_counts()["discontinuity"] == 1
+    # after the break the position follows again from the new read
+    assert s.counts[good[-1]] - s.counts[good[-2]] == 3
+
+
+def test_a_short_gap_still_unwraps_across_a_wrap():
+    # 5 missing reads at 10 counts per read: 60 counts, well inside a half turn
+    path = [1000 + 10 * i for i in range(5)] + [None] * 5 + [1100]
+    s = _checked([None if p is None else ems22.make_frame(p % 1024)
+                  for p in path])
+    assert not s.breaks.any()
+    assert s.counts[s.valid].tolist() == [0, 10, 20, 30, 40, 100]
+
+
+@given(st.sampled_from([(6, 7), (6, 9), (8, 9), (5, 8)]),
+       st.integers(0, 1023))
+def test_two_flipped_bits_that_parity_misses_are_rejected_as_a_jump(bits, p0):
+    bad = ems22.make_frame(p0) ^ (1 << (bits[0] + 6)) ^ (1 << (bits[1] + 6))
+    assert ems22.frame_status(bad) == ems22.OK      # parity cannot see it
+    frames = [ems22.make_frame((p0 + i) % 1024) for i in range(3)]
+    s = _checked(frames[:2] + [bad] + frames[2:])
+    assert s.status.tolist() == [ems22.OK, ems22.OK, ems22.JUMP, ems22.OK]
+    assert s.counts[s.valid].tolist() == [0, 1, 2]
+    assert s.error_counts() == {"jump": 1}
+
+
+def test_the_first_read_of_a_new_query_is_a_break():
+    decoder = ems22.Decoder(max_counts_per_record=LIMIT)
+    decoder.decode(_messages([ems22.make_frame(5), ems22.make_frame(6)]))
+    decoder.reset()
+    s = decoder.decode(_messages([ems22.make_frame(400), ems22.make_frame(401)]))
+    assert s.breaks.tolist() == [True, False]
+
+
+def test_the_largest_sample_period_keeps_unwrapping_sure():
+    # even a missed read at the longest period stays inside half a turn
+    longest = ems22.SAMPLE_PERIOD_RANGE_S[1]
+    per_read = ems22.max_counts_per_record(longest, ems22.DEFAULT_COUNTS_PER_MM)
+    assert 2 * per_read < ems22.POSITIONS // 2
+
+
 def test_print_times_follow_a_linear_clock_conversion():
     clocks = np.array([16000.0, 32000.0, 1e9])
     times = ems22.print_times(clocks, lambda clock: 0.5 + clock / 16e6)
@@ -254,7 +313,8 @@ def test_the_docs_name_every_error_kind():
     doc = (Path(__file__).resolve().parents[2] / "docs" / "flow_sensor.md").read_text()
     row = next(line for line in doc.splitlines() if line.startswith("| `errors` |"))
     named = row.split("by kind:")[1].strip(" |").split(", ")
-    assert named == [*ems22.STATUS_NAMES[1:], "stuck", "lost_messages"]
+    assert named == [*ems22.STATUS_NAMES[1:], "stuck", "lost_messages",
+                     "discontinuity"]
 
 
 def test_default_counts_per_mm_is_the_3_17mm_axle():

@@ -229,3 +229,19 @@ def test_trapq_positions_follow_the_moves_as_klipper_plans_them(segments, e0):
             assert p == pytest.approx(m[4] + m[5] * (m[2] + 0.5 * m[3] * dt) * dt,
                                       abs=1e-6)
     assert trapq_positions([], times) is None
+
+
+def test_a_break_drops_the_open_window_and_starts_a_new_one():
+    t = np.arange(0, 1.0, 0.001)
+    commanded = 3.0 * t
+    sensor = commanded.copy()
+    sensor[500:] += 9.96                  # a whole turn lost across a gap
+    breaks = np.zeros(len(t), dtype=bool)
+    breaks[500] = True
+    windows = GripEstimator(window_mm=1.0).add(t, sensor, commanded,
+                                               breaks=breaks)
+    assert windows and all(w.grip == pytest.approx(1.0) for w in windows)
+    assert not any(w.start_time < 0.5 < w.end_time for w in windows)
+    # unmarked, the lost turn would be judged as grip
+    plain = GripEstimator(window_mm=1.0).add(t, sensor, commanded)
+    assert max(w.grip for w in plain) > 5
