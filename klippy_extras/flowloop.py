@@ -27,7 +27,7 @@ class FlowloopHost:
         self.sections = ()  # flowloop sections loaded: known once connected
         # extruder name -> Activation; status is rebuilt on change
         self.active_profiles = {}
-        self.profile_status = {}
+        self.status = self._status({})
         self.printer.register_event_handler('klippy:connect',
                                             self._handle_connect)
         webhooks = self.printer.lookup_object('webhooks')
@@ -60,6 +60,7 @@ class FlowloopHost:
         for name, mcu in self.printer.lookup_objects('mcu'):
             self.sensor_firmware[name] = mcu.check_valid_response(
                 ems22.QUERY_CMD)
+        self.status = self._status(self.status['profiles'])
 
     def _handle_set_active_profile(self, web_request):
         extruder = web_request.get_str('extruder', 'extruder')
@@ -103,17 +104,21 @@ class FlowloopHost:
                                              active.working_point)
             entry['heater_max_temp_c'] = self._extruder_heater(extruder).max_temp
             status[extruder] = entry
-        self.profile_status = status
+        self.status = self._status(status)
+
+    def _status(self, profiles):
+        # Built when something changes: get_status only hands it out.
+        return {'version': flowloop.__version__,
+                'sections': self.sections,
+                'sensor_firmware': dict(self.sensor_firmware),
+                'profiles': profiles}
 
     def get_active_profile(self, extruder='extruder'):
         """The Activation (profile, working_point) of an extruder, or None."""
         return self.active_profiles.get(extruder)
 
     def get_status(self, eventtime=None):
-        return {'version': flowloop.__version__,
-                'sections': self.sections,
-                'sensor_firmware': dict(self.sensor_firmware),
-                'profiles': self.profile_status}
+        return self.status
 
 
 def load_config(config):

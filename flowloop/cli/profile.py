@@ -10,10 +10,10 @@ from pathlib import Path
 
 from ..errors import FlowloopError
 from ..material import ddprint, plot
+from ..material.active import working_point_arg
 from ..material.profile import (
     DEFAULT_WORKING_POINT,
     Profile,
-    check_working_point,
     decode_profile,
     encode_profile,
     flow_at,
@@ -45,8 +45,8 @@ def load(path: Path) -> Profile:
 
 def _wp(text: str) -> float:
     try:
-        return check_working_point(float(text))
-    except (ValueError, FlowloopError) as e:
+        return working_point_arg(text, "")
+    except FlowloopError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 

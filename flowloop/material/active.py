@@ -84,7 +84,8 @@ def number_arg(parameter: str, value: Any, accepts: str,
         got = repr(value) if isinstance(value, str) else _json_text(value)
         if len(got) > 40:
             got = got[:37] + "..."
-        raise FlowloopError(f"{parameter}: got {got}; accepts {accepts}")
+        prefix = f"{parameter}: " if parameter else ""  # argparse names it itself
+        raise FlowloopError(f"{prefix}got {got}; accepts {accepts}")
     return float(number)
 
 

@@ -108,3 +108,12 @@ def test_any_value_is_a_working_point_or_a_one_line_refusal(value):
         assert str(e).startswith("working_point: got ") and "\n" not in str(e)
     else:
         assert 0.0 <= wp <= 1.0
+
+
+def test_the_cli_names_a_bad_wp_the_same_way(capsys):
+    from flowloop import cli
+    with pytest.raises(SystemExit):
+        cli.main(["profile", "show", "--wp", "abc", "any.json"])
+    err = capsys.readouterr().err
+    assert ("argument --wp: got 'abc'; accepts a number from 0 (real print) to 1 "
+            "(into air)") in err
