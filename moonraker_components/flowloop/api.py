@@ -66,11 +66,14 @@ class Api:
     def _error(self, msg: Any, code: int = 400) -> Exception:
         return self.server.error(one_line(msg), code)
 
+    def _not_found(self, name: str) -> Exception:
+        return self._error(f"no profile named {quoted(name)}", 404)
+
     def _known(self, name: str) -> fl_profile.Profile:
         try:
             return self.store.known(name)
         except UnknownProfile:
-            raise self._error(f"no profile named {quoted(name)}", 404) from None
+            raise self._not_found(name) from None
 
     def _name_arg(self, web_request: WebRequest) -> str:
         name = web_request.get("name", None)
@@ -113,8 +116,8 @@ class Api:
         entry = ActiveProfile(name=name, working_point=self._wp_arg(wp))
         try:
             return await self.profiles.activate(extruder, entry)
-        except UnknownProfile:
-            raise self._error(f"no profile named {quoted(name)}", 404) from None
+        except UnknownProfile:  # deleted meanwhile
+            raise self._not_found(name) from None
 
     # --- endpoints -----------------------------------------------------------
 
@@ -128,7 +131,7 @@ class Api:
             try:
                 return await self.profiles.delete_profile(name)
             except UnknownProfile:
-                raise self._error(f"no profile named {quoted(name)}", 404) from None
+                raise self._not_found(name) from None
         self._known(name)
         return {"name": name, "profile": self.store.profile_dicts[name]}
 
