@@ -196,6 +196,28 @@ def test_set_velocity_limit_and_m204_change_later_moves():
     assert slow.accel_s == pytest.approx(0.2)
 
 
+def test_m204_takes_the_lower_of_p_and_t_and_square_corner_velocity_can_change():
+    slow, = segments("M204 P800 T500\nG1 X100 F6000")
+    assert slow.accel_s == pytest.approx(0.2)
+    first, _ = segments("SET_VELOCITY_LIMIT SQUARE_CORNER_VELOCITY=10\n"
+                        "G1 X100 F6000\nG1 X100 Y100")
+    assert first.decel_s == pytest.approx((100 - 10) / 1000)
+
+
+def test_an_arc_in_the_xz_plane_moves_z():
+    segs = segments("G1 X0 Z0 F600\nG18\nG2 X20 Z0 I10 K0",
+                    PrinterLimits(max_velocity=300, max_accel=1000, max_z_velocity=50))
+    arc = [s for s in segs if s.offset > 0]
+    assert len(arc) == 31
+    assert sum(s.distance_mm for s in arc) == pytest.approx(10 * math.pi, rel=1e-3)
+
+
+def test_m400_drains_the_queue_and_restarts_a_quarter_second_later():
+    a, b = segments("G1 X10 F6000\nM400\nG1 X20")
+    assert a.decel_s > 0
+    assert b.start_s == pytest.approx(a.start_s + a.duration_s + 0.25)
+
+
 def test_comments_and_unknown_commands_are_ignored():
     segs = segments("; G1 X1000\nG1 X10 F6000 ; G1 X500\nM106 S255\nFOO_BAR X=1\n"
                     "g1 x20\nN10 G1 X30*55\nG1X40Y0")
