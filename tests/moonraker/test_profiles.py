@@ -511,3 +511,22 @@ def test_active_spool_activates_the_profile_of_its_filament(spoolman_server):
     spoolman_server.request("POST", "/server/spoolman/spool_id", {"spool_id": 8})
     time.sleep(1.0)
     assert active() == {"name": "spool pla", "working_point": 0.5}
+
+
+# --- configuration -----------------------------------------------------------------
+
+
+def test_a_bad_spoolman_extruder_names_the_section_and_option(moonraker_venv):
+    data_dir = stack.short_tempdir("fl-conf-")
+    mr = stack.Moonraker(moonraker_venv, data_dir,
+                         extra_conf="spoolman_extruder: heater_bed\n")
+    try:
+        mr.wait_ready()
+        info = mr.request("GET", "/server/info")[1]["result"]
+        assert "flowloop" in info["failed_components"]
+        log = (data_dir / "moonraker.log").read_text()
+        assert ("Section [flowloop], option spoolman_extruder: 'heater_bed' is not "
+                "an extruder name (extruder, extruder1, ...)") in log
+    finally:
+        mr.stop()
+        shutil.rmtree(data_dir, ignore_errors=True)
