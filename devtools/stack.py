@@ -336,7 +336,10 @@ validate_config: False
 class Moonraker(Process):
     def __init__(self, venv: Venv, data_dir: Path, klippy_uds: Optional[Path] = None,
                  extra_conf: str = "", port: Optional[int] = None,
-                 trusted: str = "127.0.0.0/8"):
+                 trusted: str = "127.0.0.0/8", moonraker_path: Optional[Path] = None):
+        """moonraker_path: a folder holding a `moonraker` package to run instead
+        of the venv's own (put first on PYTHONPATH; the venv still gives its
+        dependencies)."""
         self.port = port or free_port()
         self.data_dir = data_dir
         config_dir = data_dir / "config"
@@ -350,7 +353,10 @@ class Moonraker(Process):
             trusted=trusted, extra=extra_conf))
         cmd = [str(venv.python), "-m", "moonraker", "-d", str(data_dir),
                "-l", str(data_dir / "moonraker.log")]
-        super().__init__("moonraker", cmd, data_dir / "moonraker.log")
+        env = None
+        if moonraker_path is not None:
+            env = {**os.environ, "PYTHONPATH": str(moonraker_path)}
+        super().__init__("moonraker", cmd, data_dir / "moonraker.log", env=env)
 
     @property
     def url(self) -> str:

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+
 import pytest
 
 from devtools import stack
+from flowloop.host import install
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +65,6 @@ def test_installing_flowloop_moved_no_pinned_moonraker_package(moonraker_venv):
 
 
 def test_component_is_linked_the_way_flowloop_install_links_it(moonraker_venv):
-    from flowloop.host import install
     components = install.moonraker_components_dir(moonraker_venv.path)
     link = components / "flowloop"
     assert link.is_symlink()
@@ -77,3 +80,38 @@ def test_moonraker_loads_the_component_package(moonraker_only):
     assert "flowloop" not in result["failed_components"]
     log = (moonraker_only.data_dir / "moonraker.log").read_text()
     assert "moonraker.components.flowloop" not in log  # no import traceback
+
+
+def test_install_then_uninstall_in_a_moonraker_that_then_loads_it(moonraker_venv,
+                                                                   tmp_path):
+    """The installer on a copy of the real Moonraker package: after install that
+    Moonraker loads the component package; uninstall restores every byte."""
+    site = tmp_path / "site"
+    real = install.moonraker_components_dir(moonraker_venv.path).parent
+    shutil.copytree(real, site / "moonraker", symlinks=True,
+                    ignore=shutil.ignore_patterns("__pycache__", "flowloop",
+                                                  "flowloop.py"))
+
+    def snapshot():
+        return {str(p.relative_to(site)): (os.readlink(p) if p.is_symlink()
+                                           else p.read_bytes() if p.is_file()
+                                           else "dir")
+                for p in sorted(site.rglob("*")) if "__pycache__" not in p.parts}
+    before = snapshot()
+    install.apply(install.plan_moonraker(site, stack.PROJECT))
+    link = site / "moonraker" / "components" / "flowloop"
+    assert os.readlink(link) == str(stack.PROJECT / "moonraker_components" / "flowloop")
+    data_dir = stack.short_tempdir("fl-inst-")
+    mr = stack.Moonraker(moonraker_venv, data_dir, moonraker_path=site)
+    try:
+        mr.wait_ready()
+        result = mr.request("GET", "/server/info")[1]["result"]
+        assert "flowloop" in result["components"], result
+        assert "flowloop" not in result["failed_components"]
+        log = (data_dir / "moonraker.log").read_text()
+        assert str(site / "moonraker") in log  # it ran the copy, not the venv's
+    finally:
+        mr.stop()
+        shutil.rmtree(data_dir, ignore_errors=True)
+    install.apply(install.plan_moonraker(site, stack.PROJECT, uninstall=True))
+    assert snapshot() == before
