@@ -428,16 +428,14 @@ class Ems22Source:
         self.sensor = sensor
         self.printer = config.get_printer()
         self.reactor = self.printer.get_reactor()
-        speed = config.getint('spi_speed', ems22.MAX_SPI_HZ,
-                              minval=ems22.MIN_SPI_HZ, maxval=ems22.MAX_SPI_HZ)
+        self.spi_speed = config.getint('spi_speed', ems22.MAX_SPI_HZ,
+                                       minval=ems22.MIN_SPI_HZ,
+                                       maxval=ems22.MAX_SPI_HZ)
+        self.software_spi = config.get('spi_software_sclk_pin', None) is not None
         self.spi = bus.MCU_SPI_from_config(config, sensor.spi_mode,
-                                           default_speed=speed)
+                                           default_speed=self.spi_speed)
         self.mcu = mcu = self.spi.get_mcu()
         self.oid = mcu.create_oid()
-        mcu.add_config_cmd(
-            f"config_ems22 oid={self.oid} spi_oid={self.spi.get_oid()}")
-        mcu.add_config_cmd(f"query_ems22 oid={self.oid} clock=0 rest_ticks=0"
-                           " time_shift=0", on_restart=True)
         mcu.register_config_callback(self._build_config)
         mcu.register_serial_response(self._handle_bulk, ems22.BULK_DATA_MSG,
                                      self.oid)
@@ -452,13 +450,41 @@ class Ems22Source:
         return []
 
     def _build_config(self):
-        if not self.mcu.check_valid_response(ems22.QUERY_CMD):
+        mcu = self.mcu
+        if not (mcu.check_valid_response(ems22.QUERY_CMD)
+                and mcu.check_valid_response(ems22.CONFIG_CMD)):
             raise self.printer.config_error(
-                f"[{self.sensor.section}] "
-                + REBUILD_MSG.format(self.mcu.get_name()))
-        self.time_shift = ems22.time_shift_for(self.mcu.seconds_to_clock(1.))
-        self.query_cmd = self.mcu.lookup_command(
+                f"[{self.sensor.section}] " + REBUILD_MSG.format(mcu.get_name()))
+        mcu_freq = mcu.seconds_to_clock(1.)
+        self._check_read_time(mcu_freq)
+        max_read_ticks = ems22.max_read_ticks(self.spi_speed, self.software_spi,
+                                              mcu_freq)
+        mcu.add_config_cmd(f"config_ems22 oid={self.oid}"
+                           f" spi_oid={self.spi.get_oid()}"
+                           f" max_read_ticks={max_read_ticks}")
+        mcu.add_config_cmd(f"query_ems22 oid={self.oid} clock=0 rest_ticks=0"
+                           " time_shift=0", on_restart=True)
+        self.time_shift = ems22.time_shift_for(mcu_freq)
+        self.query_cmd = mcu.lookup_command(
             ems22.QUERY_CMD, cq=self.spi.get_command_queue())
+
+    def _check_read_time(self, mcu_freq):
+        period = self.sensor.sample_period
+        shortest = ems22.min_sample_period_s(self.spi_speed, self.software_spi,
+                                             mcu_freq)
+        if period >= shortest:
+            return
+        read_us = 1e6 * ems22.read_time_s(self.spi_speed, self.software_spi,
+                                          mcu_freq)
+        if self.software_spi:
+            option, fix = 'spi_software_sclk_pin', "use a hardware SPI bus"
+        else:
+            option, fix = 'spi_speed', "raise spi_speed"
+        raise self.printer.config_error(
+            f"Section [{self.sensor.section}], options {option} and"
+            f" sample_period: a read on this bus takes about {read_us:.0f} us,"
+            f" more than {100 * ems22.MAX_READ_SHARE:.0f}% of sample_period"
+            f" {period:g} s; {fix} or set sample_period >= {shortest:.4f}")
 
     def connect(self, sensor):
         pass

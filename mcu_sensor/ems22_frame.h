@@ -23,7 +23,8 @@
 // tcode EMS22_TCODE_ERROR marks an error record whose next byte is the code.
 #define EMS22_TCODE_ERROR 0xff
 enum {
-    EMS22_ERR_OVERFLOW = 1,   // timer fired again before the task read
+    EMS22_ERR_OVERFLOW = 1,   // timer fired again before the task read; the
+                              // next byte counts the events (record slots)
     EMS22_ERR_SCHEDULE = 2,   // read too late to encode its time
     EMS22_ERR_SPI_TIME = 3,   // the SPI transfer took too long
 };

@@ -17,14 +17,14 @@
 #include "sensor_bulk.h" // sensor_bulk_report
 #include "spicmds.h" // spidev_transfer
 
-// A 3-byte read takes 24us at 1MHz; much longer means it was interrupted
-#define MAX_SPI_READ_US 200
 // No record waits longer than this in the MCU (goal: 30ms at the host)
 #define MAX_BATCH_AGE_US 20000
 
 struct ems22 {
     struct timer timer;
-    uint32_t rest_ticks;
+    // A read that takes longer was interrupted: the host derives the limit
+    // from the bus (speed, software or hardware SPI)
+    uint32_t rest_ticks, max_read_ticks;
     struct spidev_s *spi;
     uint16_t next_index;
     // Timer events not yet read: more than one means the task fell behind
@@ -54,8 +54,10 @@ command_config_ems22(uint32_t *args)
     e->spi = spidev_oid_lookup(args[1]);
     if (!spidev_have_cs_pin(e->spi))
         shutdown("ems22 sensor requires cs pin");
+    e->max_read_ticks = args[2];
 }
-DECL_COMMAND(command_config_ems22, "config_ems22 oid=%c spi_oid=%c");
+DECL_COMMAND(command_config_ems22,
+             "config_ems22 oid=%c spi_oid=%c max_read_ticks=%u");
 
 // Append one record; a new message starts with the index of its first record
 static void
@@ -100,7 +102,7 @@ ems22_read(struct ems22 *e, uint8_t *raw, uint32_t *mtime)
     spidev_transfer(e->spi, 1, EMS22_READ_BYTES, raw);
     uint32_t mtime2 = timer_read_time();
     *mtime = mtime1;
-    return mtime2 - mtime1 <= timer_from_us(MAX_SPI_READ_US);
+    return mtime2 - mtime1 <= e->max_read_ticks;
 }
 
 // Frames are checked on the host: which bits hold the frame depends on the
@@ -168,10 +170,14 @@ ems22_task(void)
         uint_fast8_t overflow = e->pending - 1;
         e->pending = 0;
         irq_enable();
-        // Missed events take the earlier record slots; the read now belongs
-        // to the latest event (waketime already points at the next one)
-        while (overflow--)
-            ems22_add_error(e, oid, EMS22_ERR_OVERFLOW);
+        // Missed events take the earlier record slots, in one record that
+        // counts them (one message, not one per event, after a stall); the
+        // read now belongs to the latest event (waketime points at the next)
+        if (overflow) {
+            ems22_add(e, oid, EMS22_TCODE_ERROR, EMS22_ERR_OVERFLOW
+                      , overflow, 0);
+            e->next_index += overflow - 1;
+        }
         ems22_sample(e, oid, stime - e->rest_ticks);
     }
 }

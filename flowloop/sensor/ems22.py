@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import FlowloopError
 
-CONFIG_CMD = "config_ems22 oid=%c spi_oid=%c"
+CONFIG_CMD = "config_ems22 oid=%c spi_oid=%c max_read_ticks=%u"
 QUERY_CMD = "query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c"
 BULK_DATA_MSG = "sensor_bulk_data oid=%c sequence=%hu data=%*s"
 
@@ -191,8 +191,17 @@ def pack_messages(first_index: int, records: Sequence[Tuple[int, bytes]],
     return out
 
 
-def error_record(code: int) -> Tuple[int, bytes]:
-    return TCODE_ERROR, bytes((code, 0, 0))
+def error_record(code: int, count: int = 1) -> Tuple[int, bytes]:
+    """An MCU error record; an overflow record counts the timer events
+    (record slots) it stands for."""
+    return TCODE_ERROR, bytes((code, count if code == ERR_OVERFLOW else 0, 0))
+
+
+def record_slots(rec: np.ndarray) -> np.ndarray:
+    """Timer events (record indices) each raw record stands for: an
+    overflow record its count, every other record one."""
+    overflow = (rec[:, 0] == TCODE_ERROR) & (rec[:, 1] == ERR_OVERFLOW)
+    return np.where(overflow, np.maximum(rec[:, 2], 1), 1)
 
 
 # --- host decoder ------------------------------------------------------------
@@ -237,7 +246,7 @@ def _empty() -> Samples:
 class Decoder:
     """Turns sensor_bulk_data payloads into unwrapped counts, statefully.
 
-    time_lost: the MCU sent MAX_PENDING - 1 overflow records in a row, so its
+    time_lost: the MCU counted MAX_PENDING - 1 overflow slots in a row, so its
     count of unread timer events may have stopped at MAX_PENDING: its next
     read belongs to a later event than the record index says, and every
     time from there on is off by the events it lost count of. Those samples
@@ -288,14 +297,19 @@ class Decoder:
             first = payload[0] | (payload[1] << 8)
             index = self.next_index + ((first - self.next_index) & 0xFFFF)
             n = (len(payload) - HEADER_BYTES) // RECORD_BYTES
-            parts.append((index, payload[HEADER_BYTES:HEADER_BYTES + n * RECORD_BYTES]))
-            self.next_index = index + n
+            rec = np.frombuffer(payload[HEADER_BYTES:HEADER_BYTES + n * RECORD_BYTES],
+                                dtype=np.uint8).reshape(-1, RECORD_BYTES)
+            slots = record_slots(rec)
+            if (slots != 1).any():
+                # one record per timer event from here on
+                rec = np.repeat(rec, slots, axis=0)
+            parts.append((index, rec))
+            self.next_index = index + len(rec)
         if not parts:
             return _empty()
-        index = np.concatenate([np.arange(i, i + len(p) // RECORD_BYTES,
-                                          dtype=np.int64) for i, p in parts])
-        rec = np.frombuffer(b"".join(p for _, p in parts),
-                            dtype=np.uint8).reshape(-1, RECORD_BYTES)
+        index = np.concatenate([np.arange(i, i + len(r), dtype=np.int64)
+                                for i, r in parts])
+        rec = np.concatenate([r for _, r in parts])
         samples = self._decode_records(index, rec)
         samples.lost_messages = lost
         return samples
@@ -379,6 +393,40 @@ def max_counts_per_record(sample_period_s: float, counts_per_mm: float) -> float
     """The most the filament can move between two consecutive reads, in
     counts (Decoder.max_counts_per_record)."""
     return MAX_FILAMENT_SPEED_MM_S * sample_period_s * counts_per_mm
+
+
+# --- the SPI read's time budget ---------------------------------------------
+# Klipper's software SPI (src/spi_software.c) costs about 270 MCU cycles per
+# bit on an atmega2560 whatever spi_speed asks; faster MCUs need fewer.
+SOFTWARE_SPI_CYCLES_PER_BIT = 300
+# Chip select, the calls around the transfer, timer reads
+READ_OVERHEAD_S = 50e-6
+# A read may take at most this share of sample_period: the MCU has a printer
+# to run too
+MAX_READ_SHARE = 0.25
+
+
+def read_time_s(spi_speed_hz: float, software_spi: bool, mcu_freq_hz: float) -> float:
+    """How long one 24-bit read takes on the bus (expected)."""
+    bit_s = 1.0 / spi_speed_hz
+    if software_spi:
+        bit_s = max(bit_s, SOFTWARE_SPI_CYCLES_PER_BIT / mcu_freq_hz)
+    return READ_BYTES * 8 * bit_s + READ_OVERHEAD_S
+
+
+def max_read_ticks(spi_speed_hz: float, software_spi: bool,
+                   mcu_freq_hz: float) -> int:
+    """config_ems22's max_read_ticks: a read that takes longer was
+    interrupted. Twice the expected time: a hardware bus may round its clock
+    divider down to half the speed asked."""
+    return int(2 * read_time_s(spi_speed_hz, software_spi, mcu_freq_hz)
+               * mcu_freq_hz)
+
+
+def min_sample_period_s(spi_speed_hz: float, software_spi: bool,
+                        mcu_freq_hz: float) -> float:
+    """The shortest sample_period the bus can serve (see MAX_READ_SHARE)."""
+    return read_time_s(spi_speed_hz, software_spi, mcu_freq_hz) / MAX_READ_SHARE
 
 
 def time_shift_for(mcu_freq: float, span_s: float = 0.002) -> int:

@@ -3,6 +3,7 @@
 // script on stdin so that test_ems22_frame.py can decode what it sends with
 // flowloop.ems22 and compare it with what really happened:
 //
+//   c MAX_READ_TICKS                config_ems22 (first)
 //   q CLOCK REST_TICKS TIME_SHIFT   query_ems22 (REST_TICKS 0 stops)
 //   t N                             the timer fires N times
 //   r DELAY SPI_TICKS RAW24         the task runs DELAY ticks after the latest
@@ -103,12 +104,13 @@ sensor_bulk_report(struct sensor_bulk *sb, uint8_t oid)
 int
 main(void)
 {
-    uint32_t args[4] = { 0, 0, 0, 0 };
-    command_config_ems22(args);
     char op;
     while (scanf(" %c", &op) == 1) {
         unsigned long a, b, c;
-        if (op == 'q' && scanf("%lu %lu %lu", &a, &b, &c) == 3) {
+        if (op == 'c' && scanf("%lu", &a) == 1) {
+            uint32_t args[3] = { 0, 0, a };
+            command_config_ems22(args);
+        } else if (op == 'q' && scanf("%lu %lu %lu", &a, &b, &c) == 3) {
             uint32_t q[4] = { 0, a, b, c };
             command_query_ems22(q);
         } else if (op == 't' && scanf("%lu", &a) == 1) {

@@ -19,13 +19,16 @@ REST = 1000 * TICKS_PER_US            # 1 ms
 SHIFT = ems22.time_shift_for(TICKS_PER_US * 1e6)
 START = 1000
 SPI_TICKS = 24 * TICKS_PER_US         # 24 clocks at 1 MHz
+# what the host sends for a 1 MHz hardware bus on this MCU
+MAX_READ = ems22.max_read_ticks(1_000_000, False, TICKS_PER_US * 1e6)
 
 
 @pytest.fixture(scope="module")
 def firmware(compile_c):
     exe = compile_c("ems22_firmware_test.c", HERE / "klipper_stubs")
 
-    def run(script):
+    def run(script, max_read_ticks=MAX_READ):
+        script = f"c {max_read_ticks}\n" + script
         out = subprocess.run([str(exe)], input=script, capture_output=True,
                              text=True)
         assert out.returncode == 0, out.stdout
@@ -77,8 +80,12 @@ def test_a_batch_is_sent_before_its_first_read_waits_20ms(firmware, period_us):
 
 def test_missed_timer_events_keep_their_slots_as_overflow_records(firmware):
     script = (f"q {START} {REST} {SHIFT}\n" + _reads([100], [7])
-              + f"t 3\nr 900 {SPI_TICKS} {_raw(9)}\n" + _reads([100] * 8))
-    s = _decode(firmware(script))
+              + f"t 3\nr 900 {SPI_TICKS} {_raw(9)}\n" + _reads([100] * 9))
+    messages = firmware(script)
+    # one record counts both missed events: 12 records for 13 events
+    assert [(len(p) - ems22.HEADER_BYTES) // ems22.RECORD_BYTES
+            for _, p in messages] == [12]
+    s = _decode(messages)
     assert s.status[:4].tolist() == [ems22.OK, ems22.OVERFLOW, ems22.OVERFLOW,
                                      ems22.OK]
     # the read after the overflows belongs to the latest of the three events
@@ -87,7 +94,7 @@ def test_missed_timer_events_keep_their_slots_as_overflow_records(firmware):
 
 
 def test_slow_spi_and_late_reads_become_error_records(firmware):
-    slow = 200 * TICKS_PER_US + 1          # MAX_SPI_READ_US
+    slow = MAX_READ + 1                    # longer than the host allows
     late = ems22.TCODE_ERROR << SHIFT      # no tcode left to say when
     script = (f"q {START} {REST} {SHIFT}\n"
               + _reads([0, 0, late - 1, late, 0], spi_ticks=SPI_TICKS)
@@ -101,12 +108,15 @@ def test_slow_spi_and_late_reads_become_error_records(firmware):
 
 def test_a_task_too_far_behind_loses_time_until_the_query_restarts(firmware):
     # 300 timer events before the task runs: the pending count stops at 255,
-    # so the firmware sends 254 overflow records for 299 missed events
+    # so the firmware counts 254 overflow slots for 299 missed events
     behind = 300
     script = (f"q {START} {REST} {SHIFT}\n" + _reads([100])
               + f"t {behind}\nr 100 {SPI_TICKS} {_raw(3)}\n" + _reads([100] * 9))
+    messages = firmware(script)
+    # in one record: a stall costs one message, not 21 the serial link drops
+    assert len(messages) == 1
     decoder = ems22.Decoder(bit_offset=1)
-    s = _decode(firmware(script), decoder)
+    s = _decode(messages, decoder)
     assert s.error_counts()["overflow"] == ems22.MAX_PENDING - 1
     # the read after the run is record 255 but was made for timer event 300
     assert s.status[ems22.MAX_PENDING - 1] == ems22.OVERFLOW
@@ -128,3 +138,18 @@ def test_rest_ticks_zero_stops_the_reads(firmware):
     script = (f"q {START} {REST} {SHIFT}\n" + _reads([0] * 5)
               + "q 0 0 0\n" + _reads([0] * 20))
     assert firmware(script) == []
+
+
+@pytest.mark.parametrize("speed_hz, software", [(1_000_000, False),
+                                                (100_000, False),
+                                                (1_000_000, True)])
+def test_the_read_time_limit_the_host_sends_passes_a_read_on_that_bus(
+        firmware, speed_hz, software):
+    # a read as long as the bus makes it is trusted; twice as long is not
+    limit = ems22.max_read_ticks(speed_hz, software, TICKS_PER_US * 1e6)
+    read = int(ems22.read_time_s(speed_hz, software, TICKS_PER_US * 1e6)
+               * TICKS_PER_US * 1e6)
+    script = (f"q {START} {REST} {SHIFT}\n" + _reads([0] * 10)
+              + _reads([0], spi_ticks=read) + _reads([0], spi_ticks=2 * limit))
+    s = _decode(firmware(script, max_read_ticks=limit))
+    assert s.status[-2:].tolist() == [ems22.OK, ems22.SPI_TIME]
