@@ -30,12 +30,17 @@ class Rpc:
         return json.loads(msg)
 
     async def call(self, method, timeout=10.0, **params):
+        """The answer to one request, within timeout seconds in all (the
+        notifications Moonraker sends every second do not extend it)."""
         self.next_id += 1
         await self.ws.write_message(json.dumps(
             {"jsonrpc": "2.0", "method": method, "params": params, "id": self.next_id}))
+        deadline = time.monotonic() + timeout
         while True:
-            msg = await self._read(timeout)
-            if msg.get("id") == self.next_id:
+            msg = await self._read(max(0.01, deadline - time.monotonic()))
+            # A request that could not be parsed is answered with id null.
+            if msg.get("id") == self.next_id or (
+                    "error" in msg and msg.get("id") is None):
                 return msg
             self.notifications.append(msg)
 
