@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import shutil
 import socket
+from pathlib import Path
 from typing import Any, Dict, Tuple
 
 from devtools import stack
@@ -73,10 +74,12 @@ class Api:
 
 
 def print_closed_loop(enable: int, build=None, venv=None,
-                      profile: Dict[str, Any] = WEAK_PROFILE
+                      profile: Dict[str, Any] = WEAK_PROFILE,
+                      config: Path = CONFIG, mode: str = "predictive"
                       ) -> Tuple[Dict[str, Any], float]:
     """Print the slicer excerpt on the twin with the limiter on (1) or off
-    (0); the limiter's status and the filament the twin really moved.
+    (0) in `mode`; the limiter's status (with the toolhead's final
+    `print_time` added) and the filament the twin really moved.
 
     Batch mode never holds the G-code reader back as a printer does (about
     1 s of moves ahead), so feedback would arrive only after the whole file:
@@ -84,7 +87,7 @@ def print_closed_loop(enable: int, build=None, venv=None,
     steps the twin has seen."""
     workdir = stack.short_tempdir("fl-limiter-")
     klippy = stack.Klippy(build or stack.build_klipper(),
-                          venv or stack.klippy_venv(), CONFIG, workdir,
+                          venv or stack.klippy_venv(), config, workdir,
                           {"mcu": "atmega2560"})
     try:
         klippy.wait_ready()
@@ -93,12 +96,14 @@ def print_closed_loop(enable: int, build=None, venv=None,
             stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
             api.call("flowloop/set_active_profile", extruder="extruder",
                      profile=profile, working_point=0.5)
-            api.gcode(f"SET_FLOWRATE_LIMIT ENABLE={enable}")
+            api.gcode(f"SET_FLOWRATE_LIMIT ENABLE={enable} MODE={mode}")
             lines = GCODE.read_text().splitlines()
             for i in range(0, len(lines), CHUNK_LINES):
                 api.gcode("\n".join(lines[i:i + CHUNK_LINES] + ["M400"]))
             moved = api.query("flow_sensor sim")["filament_position"]
-            return api.query("flowrate_limiter"), moved
+            status = dict(api.query("flowrate_limiter"),
+                          print_time=api.query("toolhead")["print_time"])
+            return status, moved
         finally:
             api.close()
     finally:

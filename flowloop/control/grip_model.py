@@ -15,8 +15,10 @@ the most recent windows, pulled toward the seed (a prior worth
 `PRIOR_SPAN_C` on the slope), so a few windows at one temperature move the
 capacity but not the slope.
 
-The predictive cap is the flow at which predicted grip reaches min_grip:
-C(T) / min_grip.
+The predictive cap is C(T), the flow at which the model predicts the feeder
+starts to slip: it acts before grip falls, where the reactive rule (and
+min_grip, its threshold) acts after. Capping at C / min_grip instead would
+run every capped move at grip min_grip, under-extruding by design.
 """
 
 from __future__ import annotations
@@ -92,9 +94,9 @@ class GripModel:
         self.fitted = fit_capacity(self.seed, self.observations, self.prior_windows)
         return True
 
-    def cap_mm3_s(self, temp_c: float, min_grip: float) -> float:
-        """The flow at which predicted grip falls to min_grip."""
-        return self.fitted.at(temp_c) / min_grip
+    def cap_mm3_s(self, temp_c: float) -> float:
+        """The flow at which the feeder is predicted to start slipping."""
+        return self.fitted.at(temp_c)
 
     def status(self) -> Dict[str, Any]:
         f = self.fitted

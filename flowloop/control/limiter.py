@@ -7,8 +7,8 @@ answers one question per G-code move: at what speed may it run. The caps:
 - max_flow: a fixed cap (mm^3/s), no sensor or profile needed;
 - temperature: the active profile's melt line at the measured temperature;
 - grip: the reactive rule (flowloop.control.reactive) after a slip;
-- model: the predictive grip model (flowloop.control.grip_model) at the
-  measured temperature, before a slip.
+- model: the predictive grip model (flowloop.control.grip_model): the flow at
+  which it predicts the feeder starts to slip at the measured temperature.
 
 The mode says which caps may act; each mode adds one to the one before:
 static (max_flow), temperature, reactive, predictive. The lowest cap wins.
@@ -204,7 +204,7 @@ class FlowLimiter:
             caps["temperature"] = profile_line(
                 self.profile, self.working_point).flow_mm3_s(temp)
             if self.model is not None:
-                caps["model"] = self.model.cap_mm3_s(temp, self.min_grip)
+                caps["model"] = self.model.cap_mm3_s(temp)
         if self.sensor_fault is not None:
             why.append(f"sensor fault '{self.sensor_fault}': grip caps off")
             caps["grip"] = caps["model"] = None

@@ -87,9 +87,11 @@ def test_predictive_mode_caps_before_any_slip():
     lim.set_profile(PROFILE, 0.5)
     lim.set_temperature(210.0)
     s = lim.status()
-    # seeded at the profile's line (its grip 0.9 = this min_grip): equal caps,
-    # the temperature cap wins the tie
-    assert s["caps"]["model"] == pytest.approx(s["caps"]["temperature"], rel=1e-3)
+    # seeded from the profile's line, measured where grip fell to 0.9: the
+    # model caps where the slip starts, 0.9 of the line, before any window
+    assert s["reason"] == "model"
+    assert s["caps"]["model"] == pytest.approx(0.9 * s["caps"]["temperature"],
+                                               rel=1e-3)
     # a hotend weaker than its profile: the model learns and caps lower
     weak = 0.6 * LINE.flow_mm3_s(210.0)
     for _ in range(30):

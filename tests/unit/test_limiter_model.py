@@ -25,7 +25,8 @@ def test_the_seed_is_the_profile_line_at_its_grip():
     for temp in (200.0, 210.0, 230.0):
         assert seed.at(temp) == pytest.approx(0.9 * LINE.flow_mm3_s(temp))
     model = GripModel(seed)
-    assert model.cap_mm3_s(220.0, 0.9) == pytest.approx(LINE.flow_mm3_s(220.0))
+    # the cap is where the slip starts: below the line, where grip is 0.9
+    assert model.cap_mm3_s(220.0) == pytest.approx(0.9 * LINE.flow_mm3_s(220.0))
 
 
 def test_predicted_grip_is_capacity_over_demand():
