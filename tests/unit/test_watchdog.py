@@ -1,0 +1,88 @@
+"""The fixed-power heater's watchdog rules (flowloop.control.watchdog)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from flowloop.control import watchdog
+from flowloop.errors import FlowloopError
+
+pytestmark = pytest.mark.unit
+
+LIMITS = watchdog.WatchdogLimits(min_temp_c=190.0, max_temp_c=260.0)
+
+
+@given(st.floats(190.0, 260.0))
+def test_a_temperature_within_the_limits_goes_on(temp):
+    assert watchdog.stop_reason(LIMITS, temp_c=temp, now_s=0.0) is None
+
+
+@given(st.floats(260.001, 1000.0))
+def test_a_temperature_above_the_limit_ends_the_level(temp):
+    reason = watchdog.stop_reason(LIMITS, temp_c=temp, now_s=0.0)
+    assert "above the limit 260" in reason
+
+
+@given(st.floats(-50.0, 189.999))
+def test_a_temperature_below_the_profile_minimum_ends_the_level(temp):
+    reason = watchdog.stop_reason(LIMITS, temp_c=temp, now_s=0.0)
+    assert "below the profile's minimum 190" in reason
+
+
+def test_a_reading_that_is_not_a_number_ends_the_level():
+    assert "not a number" in watchdog.stop_reason(LIMITS, temp_c=math.nan,
+                                                  now_s=0.0)
+
+
+def test_rising_at_fixed_power_ends_the_level():
+    ok = watchdog.stop_reason(LIMITS, temp_c=219.0, now_s=10.0, settled_c=210.0,
+                              previous=(9.0, 218.0))
+    assert ok is None
+    reason = watchdog.stop_reason(LIMITS, temp_c=221.0, now_s=10.0,
+                                  settled_c=210.0, previous=(9.0, 220.0))
+    assert "rose to 221.0" in reason
+
+
+def test_falling_faster_than_a_hotend_cools_ends_the_level():
+    # sagging 2 degC/s under a rising flow is what a held heater does
+    assert watchdog.stop_reason(LIMITS, temp_c=206.0, now_s=10.0,
+                                settled_c=210.0, previous=(8.0, 210.0)) is None
+    reason = watchdog.stop_reason(LIMITS, temp_c=200.0, now_s=10.0,
+                                  settled_c=210.0, previous=(9.0, 210.0))
+    assert "fell 10.0 degC/s" in reason
+
+
+def test_a_sensor_fault_ends_the_level():
+    assert "flow sensor fault 'missing'" in watchdog.stop_reason(
+        LIMITS, temp_c=210.0, now_s=0.0, sensor_fault="missing")
+    assert watchdog.stop_reason(LIMITS, temp_c=210.0, now_s=0.0,
+                                sensor_fault=None) is None
+
+
+def test_a_lost_host_ends_the_level():
+    assert watchdog.stop_reason(LIMITS, temp_c=210.0, now_s=104.9,
+                                heartbeat_s=100.0) is None
+    reason = watchdog.stop_reason(LIMITS, temp_c=210.0, now_s=105.1,
+                                  heartbeat_s=100.0)
+    assert "has not answered for 5.1 s" in reason
+
+
+def test_the_temperature_rule_comes_first():
+    reason = watchdog.stop_reason(LIMITS, temp_c=300.0, now_s=100.0,
+                                  sensor_fault="missing", heartbeat_s=0.0)
+    assert "above the limit" in reason
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"min_temp_c": 200.0, "max_temp_c": 200.0}, "must be below"),
+    ({"min_temp_c": 200.0, "max_temp_c": math.nan}, "finite"),
+    ({"min_temp_c": 180.0, "max_temp_c": 200.0, "host_timeout_s": 0.0},
+     "host_timeout_s must be above 0"),
+])
+def test_bad_limits_are_refused(kwargs, message):
+    with pytest.raises(FlowloopError, match=message):
+        watchdog.WatchdogLimits(**kwargs)
