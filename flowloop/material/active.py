@@ -12,7 +12,7 @@ becomes active on the linked extruder, keeping that extruder's working point.
 from __future__ import annotations
 
 import math
-from typing import Any, Dict, Mapping, NamedTuple, Optional
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Tuple
 
 import msgspec
 
@@ -48,17 +48,24 @@ class Activation(NamedTuple):
     working_point: float
 
 
-def active_from_stored(value: Any) -> Dict[str, ActiveProfile]:
-    """The stored {extruder: {name, working_point}} record, validated."""
-    try:
-        active = msgspec.convert(value, Dict[str, ActiveProfile])
-    except msgspec.ValidationError as e:
-        raise FlowloopError(f"the active profiles record is invalid: {e}") from None
-    for extruder in active:
+def active_from_stored(value: Any) -> Tuple[Dict[str, ActiveProfile], List[str]]:
+    """The stored {extruder: {name, working_point}} record, validated entry by
+    entry: (the valid entries, one line for each entry left out), so one
+    damaged entry (say, written by an older flowloop) does not cost the rest."""
+    if not isinstance(value, dict):
+        raise FlowloopError(f"the active profiles record must be an object, got "
+                            f"{type(value).__name__}")
+    active: Dict[str, ActiveProfile] = {}
+    skipped: List[str] = []
+    for extruder, entry in value.items():
         if not is_extruder_name(extruder):
-            raise FlowloopError(f"the active profiles record names {extruder!r}, "
-                                f"which is not an extruder")
-    return active
+            skipped.append(f"{extruder!r} is not an extruder")
+            continue
+        try:
+            active[extruder] = msgspec.convert(entry, ActiveProfile)
+        except msgspec.ValidationError as e:
+            skipped.append(f"{extruder}: {e}")
+    return active, skipped
 
 
 def active_to_stored(active: Mapping[str, ActiveProfile]) -> Dict[str, Any]:

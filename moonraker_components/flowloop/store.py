@@ -61,9 +61,11 @@ class ProfileStore:
         for key, value in await self.db.items():
             if key == ACTIVE_KEY:
                 try:
-                    self.active = active_from_stored(value)
+                    self.active, skipped = active_from_stored(value)
                 except FlowloopError as e:
-                    logging.info(f"flowloop: stored active profiles skipped: {e}")
+                    skipped = [str(e)]
+                for reason in skipped:  # left in the database until the next write
+                    logging.info(f"flowloop: stored activation skipped: {reason}")
             elif key.startswith(PROFILE_PREFIX):
                 try:
                     profile = fl_profile.profile_from_dict(value)
