@@ -26,14 +26,22 @@ variable_profile: {profile!r}
 gcode:
   {{action_call_remote_method("flowloop_store_profile", profile=profile,
                               activate_extruder="extruder", working_point=0.8)}}
+
+[gcode_macro FLOWLOOP_TEST_STORE_BAD_WP]
+variable_profile: {bad_wp_profile!r}
+gcode:
+  {{action_call_remote_method("flowloop_store_profile", profile=profile,
+                              activate_extruder="extruder", working_point="abc")}}
 """
+BAD_WP_PROFILE = make(name="bad-wp-from-klippy")
 
 
 @pytest.fixture(scope="module")
 def printer(klipper_build, klippy_venv, moonraker_venv):
     cfg_dir = stack.short_tempdir("fl-pcfg-")
     cfg = cfg_dir / "profiles_printer.cfg"
-    cfg.write_text(PRINTER_CFG.format(project=stack.PROJECT, profile=MACRO_PROFILE))
+    cfg.write_text(PRINTER_CFG.format(project=stack.PROJECT, profile=MACRO_PROFILE,
+                                      bad_wp_profile=BAD_WP_PROFILE))
     try:
         with stack.printer_stack(printer_cfg=cfg) as ps:
             yield ps
@@ -179,6 +187,30 @@ def test_a_klippy_macro_stores_a_profile_with_flowloop_store_profile(printer, rp
     assert stack.wait_until(
         lambda: klippy_profiles_or_none(printer) == "from-klippy", WAIT_S)
     assert klippy_profiles(printer)["extruder"]["working_point"] == 0.8
+
+
+def test_a_profile_from_klippy_with_a_bad_working_point_is_refused_unstored(
+        printer, rpc):
+    def run_macro():
+        try:
+            printer.gcode("FLOWLOOP_TEST_STORE_BAD_WP")
+        except RuntimeError as e:  # Moonraker registers remote methods on ready
+            if "not registered" in str(e):
+                return False
+            raise
+        return True
+
+    async def steps(client):
+        assert await client.in_thread(lambda: stack.wait_until(run_macro, 15.0))
+        refused = await client.notification(
+            "notify_flowloop_profile_changed",
+            where=lambda p: p[0]["action"] == "refused")
+        return refused["params"][0]
+    refused = rpc(printer.moonraker.port, steps)
+    assert refused["reason"] == ("working_point: got 'abc'; accepts a number from 0 "
+                                 "(real print) to 1 (into air)")
+    assert request(printer, "GET", "/server/flowloop/profile?name="
+                   + quote("bad-wp-from-klippy"))[0] == 404
 
 
 def klippy_api(ps, method, params):
