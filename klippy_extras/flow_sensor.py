@@ -463,7 +463,7 @@ class Ems22Source:
                            f" spi_oid={self.spi.get_oid()}"
                            f" max_read_ticks={max_read_ticks}")
         mcu.add_config_cmd(f"query_ems22 oid={self.oid} clock=0 rest_ticks=0"
-                           " time_shift=0", on_restart=True)
+                           " time_shift=0 max_bytes=0", on_restart=True)
         self.time_shift = ems22.time_shift_for(mcu_freq)
         self.query_cmd = mcu.lookup_command(
             ems22.QUERY_CMD, cq=self.spi.get_command_queue())
@@ -500,8 +500,10 @@ class Ems22Source:
         self.sensor.decoder.reset()
         print_time = self.mcu.estimated_print_time(self.reactor.monotonic())
         self.start_clock = self.mcu.print_time_to_clock(print_time + MIN_MSG_TIME)
+        max_bytes = ems22.message_bytes(self.rest_ticks,
+                                        self.mcu.seconds_to_clock(1.))
         self.query_cmd.send([self.oid, self.start_clock & 0xffffffff,
-                             self.rest_ticks, self.time_shift],
+                             self.rest_ticks, self.time_shift, max_bytes],
                             reqclock=self.start_clock)
 
     def _restart_query(self):
@@ -511,7 +513,7 @@ class Ems22Source:
                         " lost count of them; restarting the sensor query",
                         self.sensor.name, self.mcu.get_name(), ems22.MAX_PENDING)
         self.restart_pending = True
-        self.query_cmd.send_wait_ack([self.oid, 0, 0, 0])
+        self.query_cmd.send_wait_ack([self.oid, 0, 0, 0, 0])
         with self.lock:
             self.raw_queue = []
         self._start_query()

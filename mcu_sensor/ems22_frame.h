@@ -19,6 +19,8 @@
 #define EMS22_HEADER_BYTES 2
 #define EMS22_RECORD_BYTES (1 + EMS22_READ_BYTES)
 #define EMS22_RECORDS_PER_MSG 12
+#define EMS22_MAX_MSG_BYTES (EMS22_HEADER_BYTES \
+                             + EMS22_RECORDS_PER_MSG * EMS22_RECORD_BYTES)
 // Record: tcode (read time - scheduled time, >> time_shift) then the raw read;
 // tcode EMS22_TCODE_ERROR marks an error record whose next byte is the code.
 #define EMS22_TCODE_ERROR 0xff

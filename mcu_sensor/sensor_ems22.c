@@ -17,9 +17,6 @@
 #include "sensor_bulk.h" // sensor_bulk_report
 #include "spicmds.h" // spidev_transfer
 
-// No record waits longer than this in the MCU (goal: 30ms at the host)
-#define MAX_BATCH_AGE_US 20000
-
 struct ems22 {
     struct timer timer;
     // A read that takes longer was interrupted: the host derives the limit
@@ -51,9 +48,8 @@ command_config_ems22(uint32_t *args)
 {
     struct ems22 *e = oid_alloc(args[0], command_config_ems22, sizeof(*e));
     e->timer.func = ems22_event;
+    // No cs pin check here: the host requires cs_pin (flash is scarce)
     e->spi = spidev_oid_lookup(args[1]);
-    if (!spidev_have_cs_pin(e->spi))
-        shutdown("ems22 sensor requires cs pin");
     e->max_read_ticks = args[2];
 }
 DECL_COMMAND(command_config_ems22,
@@ -137,23 +133,18 @@ command_query_ems22(uint32_t *args)
     e->timer.waketime = args[1];
     e->rest_ticks = args[2];
     e->time_shift = args[3];
-    // Records per message: as many as fit, unless the first would then wait
-    // MAX_BATCH_AGE_US or more (counted once here: no division on the MCU)
-    uint32_t rest_ticks = args[2], age = rest_ticks;
-    uint8_t max_bytes = EMS22_HEADER_BYTES + EMS22_RECORD_BYTES;
-    while (max_bytes < EMS22_HEADER_BYTES
-                       + EMS22_RECORDS_PER_MSG * EMS22_RECORD_BYTES
-           && age < timer_from_us(MAX_BATCH_AGE_US)) {
-        age += rest_ticks;
-        max_bytes += EMS22_RECORD_BYTES;
-    }
+    // Message size: the host keeps a batch's first record from waiting long
+    uint8_t max_bytes = args[4];
+    if (max_bytes > EMS22_MAX_MSG_BYTES)
+        max_bytes = EMS22_MAX_MSG_BYTES;
     e->max_bytes = max_bytes;
     e->next_index = 0;
     sensor_bulk_reset(&e->sb);
     sched_add_timer(&e->timer);
 }
 DECL_COMMAND(command_query_ems22,
-             "query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c");
+             "query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c"
+             " max_bytes=%c");
 
 void
 ems22_task(void)

@@ -31,7 +31,8 @@ import numpy as np
 from ..errors import FlowloopError
 
 CONFIG_CMD = "config_ems22 oid=%c spi_oid=%c max_read_ticks=%u"
-QUERY_CMD = "query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c"
+QUERY_CMD = ("query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c"
+             " max_bytes=%c")
 BULK_DATA_MSG = "sensor_bulk_data oid=%c sequence=%hu data=%*s"
 
 # --- mirrors mcu_sensor/ems22_frame.h ----------------------------------------
@@ -39,6 +40,9 @@ READ_BYTES = 3
 HEADER_BYTES = 2
 RECORD_BYTES = 1 + READ_BYTES
 RECORDS_PER_MSG = 12
+MAX_MSG_BYTES = HEADER_BYTES + RECORDS_PER_MSG * RECORD_BYTES
+# No record waits longer than this in the MCU (goal: 30 ms at the host)
+MAX_BATCH_AGE_S = 0.020
 TCODE_ERROR = 0xFF
 ERR_OVERFLOW, ERR_SCHEDULE, ERR_SPI_TIME = 1, 2, 3
 # The firmware's count of unread timer events stops here: a task that falls
@@ -427,6 +431,21 @@ def min_sample_period_s(spi_speed_hz: float, software_spi: bool,
                         mcu_freq_hz: float) -> float:
     """The shortest sample_period the bus can serve (see MAX_READ_SHARE)."""
     return read_time_s(spi_speed_hz, software_spi, mcu_freq_hz) / MAX_READ_SHARE
+
+
+def records_per_message(rest_ticks: int, ticks_per_s: float) -> int:
+    """Records the MCU batches per message (query_ems22's max_bytes): as
+    many as fit, unless the first would then wait MAX_BATCH_AGE_S or more."""
+    count, age = 1, rest_ticks
+    while count < RECORDS_PER_MSG and age < MAX_BATCH_AGE_S * ticks_per_s:
+        age += rest_ticks
+        count += 1
+    return count
+
+
+def message_bytes(rest_ticks: int, ticks_per_s: float) -> int:
+    return HEADER_BYTES + RECORD_BYTES * records_per_message(rest_ticks,
+                                                             ticks_per_s)
 
 
 def time_shift_for(mcu_freq: float, span_s: float = 0.002) -> int:

@@ -4,7 +4,8 @@
 // flowloop.ems22 and compare it with what really happened:
 //
 //   c MAX_READ_TICKS                config_ems22 (first)
-//   q CLOCK REST_TICKS TIME_SHIFT   query_ems22 (REST_TICKS 0 stops)
+//   q CLOCK REST_TICKS TIME_SHIFT MAX_BYTES
+//                                   query_ems22 (REST_TICKS 0 stops)
 //   t N                             the timer fires N times
 //   r DELAY SPI_TICKS RAW24         the task runs DELAY ticks after the latest
 //                                   timer event; its SPI read takes SPI_TICKS
@@ -106,12 +107,13 @@ main(void)
 {
     char op;
     while (scanf(" %c", &op) == 1) {
-        unsigned long a, b, c;
+        unsigned long a, b, c, d;
         if (op == 'c' && scanf("%lu", &a) == 1) {
             uint32_t args[3] = { 0, 0, a };
             command_config_ems22(args);
-        } else if (op == 'q' && scanf("%lu %lu %lu", &a, &b, &c) == 3) {
-            uint32_t q[4] = { 0, a, b, c };
+        } else if (op == 'q'
+                   && scanf("%lu %lu %lu %lu", &a, &b, &c, &d) == 4) {
+            uint32_t q[5] = { 0, a, b, c, d };
             command_query_ems22(q);
         } else if (op == 't' && scanf("%lu", &a) == 1) {
             while (a-- && armed) {

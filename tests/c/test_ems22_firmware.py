@@ -37,6 +37,12 @@ def firmware(compile_c):
     return run
 
 
+def _query(rest=REST):
+    """query_ems22 as the host sends it (the batch size is the host's)."""
+    max_bytes = ems22.message_bytes(rest, TICKS_PER_US * 1e6)
+    return f"q {START} {rest} {SHIFT} {max_bytes}\n"
+
+
 def _raw(position):
     return ems22.spi_read_model(ems22.make_frame(position), 2).hex()
 
@@ -55,7 +61,7 @@ def _decode(messages, decoder=None):
 def test_reads_are_timed_within_half_a_tcode_step(firmware):
     # the MCU truncates the delay to tcode << SHIFT; the host takes the middle
     delays = np.random.default_rng(5).integers(0, REST - SPI_TICKS, 36)
-    messages = firmware(f"q {START} {REST} {SHIFT}\n"
+    messages = firmware(_query()
                         + _reads(delays.tolist(), range(0, 36 * 30, 30)))
     assert [seq for seq, _ in messages] == [0, 1, 2]
     s = _decode(messages)
@@ -68,8 +74,9 @@ def test_reads_are_timed_within_half_a_tcode_step(firmware):
 
 @pytest.mark.parametrize("period_us", [200, 1000, 3000, 7000, 25000])
 def test_a_batch_is_sent_before_its_first_read_waits_20ms(firmware, period_us):
+    # the host's batch size, as the firmware applies it
     rest = period_us * TICKS_PER_US
-    messages = firmware(f"q {START} {rest} {SHIFT}\n" + _reads([50] * 120))
+    messages = firmware(_query(rest) + _reads([50] * 120))
     counts = [(len(p) - ems22.HEADER_BYTES) // ems22.RECORD_BYTES
               for _, p in messages]
     assert sum(counts) == 120 - 120 % counts[0]
@@ -79,7 +86,7 @@ def test_a_batch_is_sent_before_its_first_read_waits_20ms(firmware, period_us):
 
 
 def test_missed_timer_events_keep_their_slots_as_overflow_records(firmware):
-    script = (f"q {START} {REST} {SHIFT}\n" + _reads([100], [7])
+    script = (_query() + _reads([100], [7])
               + f"t 3\nr 900 {SPI_TICKS} {_raw(9)}\n" + _reads([100] * 9))
     messages = firmware(script)
     # one record counts both missed events: 12 records for 13 events
@@ -96,7 +103,7 @@ def test_missed_timer_events_keep_their_slots_as_overflow_records(firmware):
 def test_slow_spi_and_late_reads_become_error_records(firmware):
     slow = MAX_READ + 1                    # longer than the host allows
     late = ems22.TCODE_ERROR << SHIFT      # no tcode left to say when
-    script = (f"q {START} {REST} {SHIFT}\n"
+    script = (_query()
               + _reads([0, 0, late - 1, late, 0], spi_ticks=SPI_TICKS)
               .replace(f"r 0 {SPI_TICKS} ", f"r 0 {slow} ", 1)
               + _reads([0] * 7))
@@ -110,7 +117,7 @@ def test_a_task_too_far_behind_loses_time_until_the_query_restarts(firmware):
     # 300 timer events before the task runs: the pending count stops at 255,
     # so the firmware counts 254 overflow slots for 299 missed events
     behind = 300
-    script = (f"q {START} {REST} {SHIFT}\n" + _reads([100])
+    script = (_query() + _reads([100])
               + f"t {behind}\nr 100 {SPI_TICKS} {_raw(3)}\n" + _reads([100] * 9))
     messages = firmware(script)
     # in one record: a stall costs one message, not 21 the serial link drops
@@ -126,7 +133,7 @@ def test_a_task_too_far_behind_loses_time_until_the_query_restarts(firmware):
     assert (s.status[ems22.MAX_PENDING:] == ems22.TIME_LOST).all()
     # a new query starts the MCU's count again: times are right from there
     decoder.reset()
-    s = _decode(firmware(f"q {START} {REST} {SHIFT}\n" + _reads([100] * 12)),
+    s = _decode(firmware(_query() + _reads([100] * 12)),
                 decoder)
     assert s.valid.all() and not decoder.time_lost
     truth = START + np.arange(12) * REST + 100
@@ -135,8 +142,8 @@ def test_a_task_too_far_behind_loses_time_until_the_query_restarts(firmware):
 
 
 def test_rest_ticks_zero_stops_the_reads(firmware):
-    script = (f"q {START} {REST} {SHIFT}\n" + _reads([0] * 5)
-              + "q 0 0 0\n" + _reads([0] * 20))
+    script = (_query() + _reads([0] * 5)
+              + "q 0 0 0 0\n" + _reads([0] * 20))
     assert firmware(script) == []
 
 
@@ -149,7 +156,13 @@ def test_the_read_time_limit_the_host_sends_passes_a_read_on_that_bus(
     limit = ems22.max_read_ticks(speed_hz, software, TICKS_PER_US * 1e6)
     read = int(ems22.read_time_s(speed_hz, software, TICKS_PER_US * 1e6)
                * TICKS_PER_US * 1e6)
-    script = (f"q {START} {REST} {SHIFT}\n" + _reads([0] * 10)
+    script = (_query() + _reads([0] * 10)
               + _reads([0], spi_ticks=read) + _reads([0], spi_ticks=2 * limit))
     s = _decode(firmware(script, max_read_ticks=limit))
     assert s.status[-2:].tolist() == [ems22.OK, ems22.SPI_TIME]
+
+
+def test_a_batch_size_beyond_the_buffer_is_clamped(firmware):
+    script = f"q {START} {REST} {SHIFT} 255\n" + _reads([0] * 30)
+    sizes = [len(p) for _, p in firmware(script)]
+    assert sizes == [ems22.MAX_MSG_BYTES] * 2
