@@ -53,7 +53,6 @@ class FlowrateLimiter:
         self.settings = fl_limiter.LimiterSettings(**settings)
         self.limiter = None
         self.next_transform = None
-        self.last_position = [0., 0., 0., 0.]
         self.toolhead = self.heater = self.sensor = self.mcu = None
         self.hotend_model = None   # the nozzle estimate where none is measured
         printer.register_event_handler('klippy:connect', self._handle_connect)
@@ -119,13 +118,12 @@ class FlowrateLimiter:
 
     # --- the move transform --------------------------------------------------
     def get_position(self):
-        position = self.next_transform.get_position()
-        self.last_position = list(position)
-        return position
+        return self.next_transform.get_position()
 
     def move(self, newpos, speed):
-        shape = fl_caps.move_shape(self.last_position, newpos)
-        self.last_position = list(newpos)
+        # From where the toolhead really is: commands that move it directly
+        # (calibrations) leave no stale start behind.
+        shape = fl_caps.move_shape(self.next_transform.get_position(), newpos)
         ours = self.toolhead.get_extruder() is self.extruder
         if shape.extrudes and ours:
             self._update_inputs()
