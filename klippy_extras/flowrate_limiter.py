@@ -76,8 +76,8 @@ class FlowrateLimiter:
         self.heater = extruder.get_heater()
         self.toolhead = self.printer.lookup_object('toolhead')
         self.mcu = self.printer.lookup_object('mcu')
-        self.limiter = fl_limiter.FlowLimiter(
-            self.settings, getattr(extruder, 'filament_area', 2.405))
+        self.limiter = fl_limiter.FlowLimiter(self.settings,
+                                              extruder.filament_area)
         self.sensor = self._find_sensor()
         if self.sensor is not None:
             self.sensor.subscribe_grip_windows(self._handle_window)
