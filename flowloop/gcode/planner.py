@@ -384,7 +384,8 @@ class Planner:
         self.retracted_mm = 0.0
         self._out: List[Event] = []
         self._number = 0
-        self._text = ""
+        self._text = ""             # the line being planned (slow path)
+        self._raw = b""             # the line being planned, as read
 
     # --- reading lines ------------------------------------------------------------
 
@@ -430,7 +431,7 @@ class Planner:
         for v in (x, y, z, e, f):
             if v is not None and not -MAX_ABS_VALUE <= v <= MAX_ABS_VALUE:
                 return False
-        self._number, self._offset = number, offset
+        self._number, self._offset, self._raw = number, offset, raw
         last, base = self.last_position, self.base_position
         if self.absolute_coord:
             if x is not None:
@@ -454,7 +455,6 @@ class Planner:
                 last[3] += e
         if f is not None:
             if f <= 0.0:
-                self._text = raw.strip().decode("ascii", "replace")
                 raise self._error("invalid speed")
             self.speed = f * self.speed_factor
         self._move(last, self.speed)
@@ -466,7 +466,7 @@ class Planner:
         except UnicodeDecodeError:
             raise FlowloopError(f"line {number}: not G-code text "
                                 f"({raw[:40]!r})") from None
-        self._number, self._text = number, text
+        self._number, self._text, self._raw = number, text, raw
         self._offset = offset
         cmd, args = self._klipper_split(text)
         handler = self._handlers.get(cmd)
@@ -482,7 +482,8 @@ class Planner:
         return out
 
     def _error(self, msg: str) -> FlowloopError:
-        return FlowloopError(f"line {self._number}: {msg}: '{self._text}'")
+        text = self._raw.strip().decode("ascii", "replace")
+        return FlowloopError(f"line {self._number}: {msg}: '{text}'")
 
     @staticmethod
     def _klipper_split(text: str):

@@ -256,8 +256,9 @@ def test_segments_carry_the_offset_of_their_line():
     ("G2 X10 Y0 R5", "does not support R moves"),
     ("G91\nG2 X10 Y0 I5", "relative move mode"),
     ("G20", "inches"),
-    ("M83\nG1 X1 E5 F600", "move exceeds maximum extrusion"),
-    ("M83\nG1 E60 F600", "max_extrude_only_distance"),
+    ("M83\nG1 X1 E5 F600", "line 2: move exceeds maximum extrusion (12.026 mm^2 vs"
+                          " 0.640 mm^2, max_extrude_cross_section): 'G1 X1 E5 F600'"),
+    ("M83\nG1 E60 F600", "max_extrude_only_distance): 'G1 E60 F600'"),
     ("M220 S0", "S must be above 0"),
 ])
 def test_bad_input_is_one_line_naming_the_line(text, message):
