@@ -73,11 +73,11 @@ class ProfileStore:
                     # Kept in the database untouched: a newer flowloop may read it.
                     logging.info(f"flowloop: stored profile {key} skipped: {e}")
                     continue
-                self._hold(profile)
+                self._hold(profile, fl_profile.profile_to_dict(profile))
 
-    def _hold(self, profile: fl_profile.Profile) -> None:
+    def _hold(self, profile: fl_profile.Profile, as_dict: Dict[str, Any]) -> None:
         self.profiles[profile.name] = profile
-        self.profile_dicts[profile.name] = fl_profile.profile_to_dict(profile)
+        self.profile_dicts[profile.name] = as_dict
 
     def known(self, name: str) -> fl_profile.Profile:
         profile = self.profiles.get(name)
@@ -94,9 +94,9 @@ class ProfileStore:
         name = profile.name
         async with self.write_lock:
             action = "updated" if name in self.profiles else "created"
-            await self.db.insert(profile_key(name),
-                                 fl_profile.profile_to_dict(profile))
-            self._hold(profile)
+            as_dict = fl_profile.profile_to_dict(profile)
+            await self.db.insert(profile_key(name), as_dict)
+            self._hold(profile, as_dict)
         return action
 
     async def remove(self, name: str) -> List[str]:
