@@ -111,6 +111,11 @@ class Api:
             raise self._error("argument 'profile': nested too deeply to be a "
                               "profile") from None
 
+    async def parse_profile_off_loop(self, value: Any) -> fl_profile.Profile:
+        # Validating a large profile takes milliseconds of CPU: in a thread,
+        # Moonraker keeps answering other clients meanwhile.
+        return await self.eventloop.run_in_thread(self.parse_profile, value)
+
     async def _activate(self, name: str, extruder: Any, wp: Any) -> Dict[str, Any]:
         extruder = self._extruder_arg(extruder)
         entry = ActiveProfile(name=name, working_point=self._wp_arg(wp))
@@ -124,7 +129,8 @@ class Api:
     async def _handle_profile(self, web_request: WebRequest) -> Dict[str, Any]:
         req_type = web_request.get_request_type()
         if req_type == RequestType.POST:
-            profile = self.parse_profile(web_request.get("profile", None))
+            profile = await self.parse_profile_off_loop(
+                web_request.get("profile", None))
             return await self.profiles.store_profile(profile, "api")
         name = self._name_arg(web_request)
         if req_type == RequestType.DELETE:
@@ -165,7 +171,7 @@ class Api:
         # Called by klippy (action_call_remote_method): no one to answer, so
         # a refusal goes to the log and to clients as a notification.
         try:
-            parsed = self.parse_profile(profile)
+            parsed = await self.parse_profile_off_loop(profile)
             if activate_extruder is not None:  # checked before anything is stored
                 extruder = self._extruder_arg(activate_extruder)
                 wp = self._wp_arg(self.default_wp if working_point is None

@@ -26,6 +26,7 @@ import threading
 import time
 
 from devtools import stack
+from flowloop.material.profile import MAX_POINTS
 from tests.samples import make
 
 ROUNDS = 6
@@ -126,3 +127,40 @@ def test_profile_get_latency_and_throughput_vs_database_item(moonraker_venv, ben
                      " req/s")
         bench.ratio("GET profile time per request under load", 1e3 / rps_ours,
                     1e3 / rps_theirs, " ms", goal="<= 1.2x")
+
+
+def test_profile_list_latency_while_another_client_stores_large_profiles(
+        moonraker_venv, bench):
+    """A profile store validates off Moonraker's event loop: other clients'
+    requests wait for it as little as possible (largest profile: MAX_POINTS)."""
+    big = json.dumps({"profile": make(name="big", points=[
+        {"kind": "into_air", "temp_c": 200.0 + i / 10, "flow_mm3_s": 10.0 + i / 100,
+         "grip": 0.9} for i in range(MAX_POINTS)])}).encode()
+    with stack.printer_stack(with_klippy=False) as ps:
+        port = ps.moonraker.port
+        stop = threading.Event()
+
+        def store_big():
+            conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+            while not stop.is_set():
+                conn.request("POST", "/server/flowloop/profile", big,
+                             {"Content-Type": "application/json"})
+                resp = conn.getresponse()
+                resp.read()
+                assert resp.status == 200
+            conn.close()
+        path = "/server/flowloop/profiles"
+        timed_gets(port, path, 50)
+        idle = timed_gets(port, path, 300)
+        writer = threading.Thread(target=store_big)
+        writer.start()
+        try:
+            busy = timed_gets(port, path, 300)
+        finally:
+            stop.set()
+            writer.join()
+        bench.ratio("GET profiles median latency while 1000-point profiles are "
+                    "stored", statistics.median(busy) * 1e3,
+                    statistics.median(idle) * 1e3, " ms")
+        bench.ratio("GET profiles p95 latency while 1000-point profiles are stored",
+                    p95_ms(busy), p95_ms(idle), " ms")
