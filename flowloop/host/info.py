@@ -26,6 +26,11 @@ def fetch_info(url: str, timeout: float = 5.0) -> dict:
 
 def describe(info: dict) -> str:
     lines = [f"flowloop {info['version']} in Moonraker"]
+    active = info.get("active_profiles") or {}
+    lines.append(f"profiles: {info.get('profiles', 0)} stored; active: " + (", ".join(
+        f"{ext} {json.dumps(entry['name'])} at working point {entry['working_point']:g}"
+        for ext, entry in sorted(active.items())) or "none")
+        + ("; follows the Spoolman spool" if info.get("spoolman_link") else ""))
     if not info["klippy_connected"]:
         lines.append("klippy: not connected")
         return "\n".join(lines)
