@@ -129,8 +129,9 @@ class _Annotator:
         self.out = out
         self.newline = newline
         self.copied = 0                  # bytes of src written to out
-        # (print time, byte offset) of move lines a command may go before
-        self.candidates: Deque[Tuple[float, int]] = collections.deque()
+        # (print time, byte offset) of lines a command may go before: move
+        # lines, the file's first line and the line after each barrier
+        self.candidates: Deque[Tuple[float, int]] = collections.deque([(0.0, 0)])
         self.bin_start = 0.0
         self.bin_peak = 0.0
         self.pending: Optional[_Window] = None
@@ -138,6 +139,7 @@ class _Annotator:
         self.windows = 0
         self.peak = 0.0
         self.end_s = 0.0
+        self.last_byte = newline[-1:]    # of what was copied last
 
     # --- windows ------------------------------------------------------------------
 
@@ -189,8 +191,8 @@ class _Annotator:
         self.pending = _Window(start, end_s, flow, offset, time_s)
 
     def _place(self, window_start_s: float) -> Tuple[int, float]:
-        """The last move line at least placement_s before the window (or the
-        first one left, after a barrier or at the start)."""
+        """The last line at least placement_s before the window (or the first
+        one left, just after a barrier or at the start)."""
         self._prune(window_start_s - self.settings.placement_s)
         time_s, offset = self.candidates[0]
         return offset, time_s
@@ -207,6 +209,7 @@ class _Annotator:
             self._close_bin(barrier.time_s)
         self._finish_pending()
         self.candidates.clear()
+        self.candidates.append((barrier.time_s, barrier.offset))
         self.bin_start, self.bin_peak = barrier.time_s, 0.0
 
     def finish(self) -> None:
@@ -223,6 +226,8 @@ class _Annotator:
             return
         self.pending = None
         start = max(p.start_s, p.insert_time_s)
+        if p.end_s <= start:
+            return      # over before any line could announce it (a wait, a dwell)
         line = command_line(p.flow, start - p.insert_time_s, p.end_s - start)
         self.copy_to(p.insert_offset)
         self.out.write(line.encode() + self.newline)
@@ -250,7 +255,6 @@ def annotate_stream(events: Iterable[Event], src: BinaryIO, out: BinaryIO,
     src is read from its start as the events reach further into it.
     """
     a = _Annotator(settings, src, out, newline)
-    a.last_byte = newline[-1:]
     out.write(marker_line(settings).encode() + newline)
     for event in events:
         if isinstance(event, Barrier):
