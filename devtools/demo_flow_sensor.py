@@ -55,7 +55,7 @@ def offline(ctx) -> None:
     for flow, temp_c in ((5, 200), (8, 200), (16, 200), (20, 200), (20, 250)):
         sim = SimulatedEms22(DEFAULT_MELT_LINE, seed=1)
         decoder = ems22.Decoder(bit_offset=sim.bit_offset)
-        times = np.arange(0, 3.0, 0.001)
+        times = np.arange(0, 3.0, ems22.DEFAULT_SAMPLE_PERIOD_S)
         commanded = (flow / AREA) * times
         samples = decoder.decode(sim.messages(times, commanded, temp_c))
         est = GripEstimator()

@@ -164,8 +164,8 @@ class FlowSensor:
             times = ems22.print_times(clocks, source.mcu.clock_to_print_time)
             sensor_mm = (self.direction_sign * samples.counts[valid]
                          / self.counts_per_mm)
-            find = self.extruder.find_past_position
-            commanded = [find(t) for t in times]
+            commanded = flow_grip.positions_at(times,
+                                               self.extruder.find_past_position)
             temp_c = source.temp_c(self.reactor.monotonic())
             nominal = self._nominal_positions(times)
             for window in self.grip.add(times, sensor_mm, commanded, temp_c,
@@ -178,7 +178,7 @@ class FlowSensor:
                 self.dump_samples.extend(
                     (round(t, 6), round(s / cal, 5), round(c, 5))
                     for t, s, c in zip(times.tolist(), sensor_mm.tolist(),
-                                       commanded))
+                                       commanded.tolist()))
         self._update_status()
         if started is not None:
             self._report_fault(started)

@@ -145,13 +145,14 @@ class GripEstimator:
 
     def _note_recent(self, t: float, m: float, c: float) -> None:
         recent = self._recent
-        # Points >= 5 ms apart over the last second are enough for flows; the
-        # newest sample always replaces the last point if it is too close.
+        # Points >= 5 ms apart over the last FLOW_PERIOD_S are enough for
+        # flows; the newest sample always replaces the last point if it is
+        # too close.
         if len(recent) >= 2 and t - recent[-2][0] < 0.005:
             recent[-1] = (t, m, c)
             return
         recent.append((t, m, c))
-        while recent[0][0] < t - 1.0:
+        while len(recent) > 2 and recent[1][0] <= t - FLOW_PERIOD_S:
             recent.popleft()
 
     @property
@@ -163,7 +164,8 @@ class GripEstimator:
         return self._recent[-1][0] if self._recent else None
 
     def flows(self, period_s: float = FLOW_PERIOD_S) -> Tuple[float, float]:
-        """(measured, commanded) volumetric flow in mm^3/s over the last period."""
+        """(measured, commanded) volumetric flow in mm^3/s over the last
+        period (at most FLOW_PERIOD_S: no older points are kept)."""
         if len(self._recent) < 2:
             return 0.0, 0.0
         t1, m1, c1 = self._recent[-1]
@@ -172,6 +174,28 @@ class GripEstimator:
             return 0.0, 0.0
         area = self.filament_area_mm2
         return (area * (m1 - m0) / (t1 - t0), area * (c1 - c0) / (t1 - t0))
+
+
+# The extruder stepper's position is read this often and interpolated in
+# between: over 10 ms a hotend's E acceleration (~100 mm/s^2) bends it by a
+# few micrometres, and a host call per sample (1000/s) is what it saves.
+COMMANDED_SPACING_S = 0.010
+
+
+def positions_at(times: Sequence[float], position_at,
+                 spacing_s: float = COMMANDED_SPACING_S) -> np.ndarray:
+    """position_at(t) (e.g. klippy's extruder.find_past_position) at each
+    time, called about every spacing_s (and at the last time) and linearly
+    interpolated in between."""
+    times = np.asarray(times, dtype=np.float64)
+    if not len(times):
+        return np.zeros(0)
+    slot = np.floor((times - times[0]) / spacing_s)
+    first_in_slot = np.diff(slot, prepend=-1.0) != 0
+    first_in_slot[-1] = True
+    picks = np.flatnonzero(first_in_slot)
+    at = times[picks]
+    return np.interp(times, at, [position_at(t) for t in at.tolist()])
 
 
 def trapq_positions(moves: Sequence[Tuple[float, float, float, float, float,

@@ -7,6 +7,16 @@
 - Decode: flowloop's decoder (records -> unwrapped counts -> print times, as
   klippy_extras/flow_sensor.py runs it) against Klipper's own angle.py
   `_extract_samples` decoding the same number of samples. Goal: <= 1.0x.
+- Host CPU per second of data: klippy (batch mode, through the klippy-tier
+  harness) runs real-format messages of a filament moving at 5 mm/s through
+  the ems22 sensor's real path; the CPU time in its process() (decode,
+  times, commanded and nominal E, grip, status) per second of sensor data,
+  processed in 100 ms batches as the reactor timer does, against the same
+  data processed one MCU message at a time (how it was done before).
+  Goal: <= 5 ms per second of data at the default sample_period.
+- Link: bytes per second the sensor puts on the MCU's serial link (Klipper's
+  framing: 5 bytes per block, message id, oid, sequence, data length),
+  against a 250000 baud link (10 bits per byte). Goal: <= 10 %.
 - Age: the firmware's batching rule (12 records, or fewer when 12 would make
   the first wait 20 ms) replayed at 1 kHz with task
   jitter, plus serial time at 250000 baud and the measured host decode time
@@ -178,3 +188,96 @@ def test_worst_sample_age_at_the_host(bench):
         goal = "<= 30 ms" if period == 0.001 else ""
         bench.figure(f"flow_sensor worst sample age at {period * 1000:g} ms period",
                      worst * 1000, " ms", goal=goal)
+
+
+HARNESS = Path(__file__).resolve().parents[1] / "klippy"
+TICKS_PER_S = 16e6   # atmega2560
+
+
+def _harnessed(klipper_build):
+    return types.SimpleNamespace(tree=klipper_build.tree,
+                                 dict_dir=klipper_build.dict_dir,
+                                 klippy=HARNESS / "flow_sensor_harness.py")
+
+
+def _feed_run(klipper_build, klippy_venv, workdir, period_s, seconds,
+              messages_per_sync):
+    """PROCESS_CPU (cpu seconds, samples) of one harnessed klippy run."""
+    from devtools.klippy_test import run_file
+    rest = round(period_s * TICKS_PER_S)
+    per_message = ems22.records_per_message(rest, TICKS_PER_S)
+    n = int(seconds / period_s)
+    positions = np.rint(np.arange(n) * 5.0 * period_s
+                        * ems22.DEFAULT_COUNTS_PER_MM).astype(int) % 1024
+    frames = (positions << 6) | ems22.OCF
+    frames |= ems22.parity_bits(frames)
+    records = [(3, ems22.spi_read_model(int(f), 2)) for f in frames]
+    lines = []
+    for i, payload in enumerate(ems22.pack_messages(0, records, per_message)):
+        lines.append(f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE={i & 0xffff}"
+                     f" DATA={payload.hex()} SYNC=0")
+        if (i + 1) % messages_per_sync == 0:
+            lines.append("QUERY_FLOW_SENSOR")
+    cfg = workdir / "rate.cfg"
+    cfg.write_text(f"[include {HARNESS / 'flow_sensor.cfg'}]\n"
+                   f"[flow_sensor filament]\nsample_period: {period_s}\n")
+    test = workdir / "rate.test"
+    test.write_text(f"DICTIONARY atmega2560.dict\nCONFIG {cfg}\n"
+                    + "\n".join(lines) + "\nQUERY_FLOW_SENSOR\n")
+    log = run_file(test, _harnessed(klipper_build), klippy_venv, workdir)
+    line = next(ln for ln in log.splitlines() if ln.startswith("PROCESS_CPU"))
+    _, _, cpu, samples, _ = line.split()
+    assert int(samples) == n
+    return float(cpu), int(samples)
+
+
+def test_host_cpu_per_second_of_data(klipper_build, klippy_venv, bench, tmp_path,
+                                     monkeypatch):
+    monkeypatch.setenv("FLOW_SENSOR_PROFILE", "1")
+    seconds = 10.0
+    for period in (0.001, ems22.DEFAULT_SAMPLE_PERIOD_S):
+        rest = round(period * TICKS_PER_S)
+        per_message_s = ems22.records_per_message(rest, TICKS_PER_S) * period
+        per_100ms = max(1, round(0.1 / per_message_s))
+        batched, _ = _feed_run(klipper_build, klippy_venv, tmp_path, period,
+                               seconds, per_100ms)
+        single, _ = _feed_run(klipper_build, klippy_venv, tmp_path, period,
+                              seconds, 1)
+        goal = "<= 5 ms" if period == ems22.DEFAULT_SAMPLE_PERIOD_S else ""
+        bench.figure(f"flow_sensor host CPU per second of data at"
+                     f" {period * 1000:g} ms period (100 ms batches)",
+                     1000 * batched / seconds, " ms", goal=goal)
+        bench.ratio(f"flow_sensor host CPU at {period * 1000:g} ms period,"
+                    " 100 ms batches vs one message at a time",
+                    1000 * batched / seconds, 1000 * single / seconds, " ms")
+
+
+def _vlq_bytes(value):
+    """Bytes of Klipper's variable-length integer encoding (msgproto)."""
+    for n, limit in enumerate((0x60, 0x3000, 0x180000, 0xc000000), 1):
+        if -limit // 2 <= value < limit:
+            return n
+    return 5
+
+
+def link_bytes_per_s(period_s, ticks_per_s=TICKS_PER_S, msg_id=80):
+    """sensor_bulk_data bytes per second on the wire for one sensor."""
+    rest = round(period_s * ticks_per_s)
+    records = ems22.records_per_message(rest, ticks_per_s)
+    data = ems22.HEADER_BYTES + records * ems22.RECORD_BYTES
+    messages_per_s = 1.0 / (records * period_s)
+    # block: length, sequence, crc16, sync; message: id, oid, sequence
+    # (average over 0..65535), data length, data
+    sequence = sum(_vlq_bytes(s) for s in range(0, 65536, 97)) / len(
+        range(0, 65536, 97))
+    per_message = 5 + _vlq_bytes(msg_id) + 1 + sequence + 1 + data
+    return per_message * messages_per_s
+
+
+def test_link_bytes_per_second(bench):
+    link = 250000 / 10.0
+    for period in (0.001, 0.002, ems22.DEFAULT_SAMPLE_PERIOD_S):
+        goal = "<= 0.10x" if period == ems22.DEFAULT_SAMPLE_PERIOD_S else ""
+        bench.ratio(f"flow_sensor link bytes per second at {period * 1000:g} ms"
+                    " period vs a 250 kbaud link", link_bytes_per_s(period), link,
+                    " B/s", goal=goal)

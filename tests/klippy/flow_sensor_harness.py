@@ -4,14 +4,19 @@ the Klipper tree) for the runs test_flow_sensor.py makes with `Harnessed`.
 - Every [flow_sensor] gets a subscriber that logs each grip window it
   delivers through subscribe_grip_windows ("GRIP_WINDOW {json}"), as another
   flowloop section would receive it, with the thread it arrived on.
-- Every ems22 sensor gets FLOW_SENSOR_FEED SENSOR= SEQUENCE= DATA=(hex): the
-  payload goes to the callback the sensor registered with the MCU's serial
-  reader for sensor_bulk_data (what the serial thread calls), then the
-  sensor processes its queue. In batch mode the MCU never answers, so this
-  is how real-format messages reach the real path. flowloop itself ships no
-  such command: a printer never needs it.
+- Every ems22 sensor gets FLOW_SENSOR_FEED SENSOR= SEQUENCE= DATA=(hex)
+  [SYNC=1]: the payload goes to the callback the sensor registered with the
+  MCU's serial reader for sensor_bulk_data (what the serial thread calls),
+  then (SYNC=1) the sensor processes its queue, as its reactor timer would.
+  In batch mode the MCU never answers, so this is how real-format messages
+  reach the real path. flowloop itself ships no such command: a printer
+  never needs it.
+- With FLOW_SENSOR_PROFILE=1 in the environment, the CPU time spent in each
+  sensor's process() (decode, timing, commanded positions, grip) is summed
+  and printed at exit: "PROCESS_CPU name seconds samples calls".
 """
 
+import atexit
 import dataclasses
 import json
 import logging
@@ -19,6 +24,7 @@ import os
 import runpy
 import sys
 import threading
+import time
 
 KLIPPY = os.path.join(os.getcwd(), "klippy", "klippy.py")
 sys.path.insert(0, os.path.dirname(KLIPPY))
@@ -53,16 +59,38 @@ def add_feed(config, sensor):
         handler({"#name": "sensor_bulk_data", "oid": source.oid,
                  "sequence": gcmd.get_int("SEQUENCE", minval=0, maxval=0xffff),
                  "data": payload})
-        source.sync()
+        if gcmd.get_int("SYNC", 1):
+            source.sync()
 
     gcode = config.get_printer().lookup_object("gcode")
     gcode.register_mux_command("FLOW_SENSOR_FEED", "SENSOR", sensor.name, feed,
                                desc="test harness: feed a sensor_bulk_data payload")
 
 
+def profile(sensor):
+    totals = {"cpu": 0.0, "samples": 0, "calls": 0}
+    process = sensor.process
+
+    def timed(messages):
+        samples = sensor.rate.total
+        start = time.process_time()
+        process(messages)
+        totals["cpu"] += time.process_time() - start
+        totals["samples"] += sensor.rate.total - samples
+        totals["calls"] += 1
+
+    sensor.process = timed
+    atexit.register(lambda: sys.stderr.write(
+        f"PROCESS_CPU {sensor.name} {totals['cpu']:.6f} {totals['samples']}"
+        f" {totals['calls']}\n"))
+
+
 def load_for_tests(config):
     sensor = load_config_prefix(config)
-    subscribe(sensor)
+    if os.environ.get("FLOW_SENSOR_PROFILE"):
+        profile(sensor)    # no logging subscriber in the measured time
+    else:
+        subscribe(sensor)
     if isinstance(sensor.source, flow_sensor.Ems22Source):
         add_feed(config, sensor)
     return sensor

@@ -325,3 +325,26 @@ def test_default_counts_per_mm_is_the_3_17mm_axle():
 if __name__ == "__main__":
     VECTORS.write_text(json.dumps(build_vectors(), indent=0) + "\n")
     print(f"wrote {VECTORS}")
+
+
+@settings(max_examples=200)
+@given(st.lists(st.booleans(), min_size=1, max_size=300), st.integers(1, 20),
+       st.lists(st.integers(1, 40), min_size=1, max_size=20))
+def test_faults_follow_runs_of_bad_samples_however_batches_are_cut(bad, limit, cuts):
+    # reference: a fault starts when `limit` bad samples in a row are seen and
+    # clears at the next good one
+    monitor, run, expect, i = ems22.FaultMonitor(limit), 0, None, 0
+    for size in cuts * (len(bad) // sum(cuts) + 1):
+        part = bad[i:i + size]
+        if not part:
+            break
+        status = np.where(part, ems22.MISSING, ems22.OK)
+        n = len(part)
+        monitor.update(ems22.Samples(np.arange(n), np.zeros(n, int), status,
+                                     np.zeros(n, int)))
+        for b in part:
+            run = run + 1 if b else 0
+            expect = "missing" if run >= limit else (expect if b else None)
+        assert monitor.fault == expect
+        i += size
+    assert monitor.errors.get("missing", 0) == sum(bad)

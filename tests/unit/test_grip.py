@@ -14,6 +14,7 @@ from flowloop.sensor.grip import (
     SampleRate,
     fit_calibration,
     parse_speeds,
+    positions_at,
     rotation_distance_correction,
     trapq_positions,
 )
@@ -245,3 +246,22 @@ def test_a_break_drops_the_open_window_and_starts_a_new_one():
     # unmarked, the lost turn would be judged as grip
     plain = GripEstimator(window_mm=1.0).add(t, sensor, commanded)
     assert max(w.grip for w in plain) > 5
+
+
+@given(st.floats(0.0002, 0.01), st.integers(1, 400), st.floats(0.001, 0.05))
+def test_positions_are_read_about_every_spacing_and_interpolated(period, n,
+                                                                 spacing):
+    times = 3.0 + period * np.arange(n)
+    calls = []
+
+    def position_at(t):
+        calls.append(t)
+        return 2.0 * t + 0.5 * 40.0 * t * t      # accelerating filament
+
+    got = positions_at(times, position_at, spacing)
+    assert calls[0] == times[0] and calls[-1] == times[-1]
+    assert len(calls) <= (times[-1] - times[0]) / spacing + 2
+    assert np.all(np.diff(calls) > 0)
+    # linear between reads at most `spacing` (plus a period) apart
+    gap = spacing + period
+    assert np.abs(got - position_at(times)).max() <= 40.0 * gap * gap / 8 + 1e-9
