@@ -4,8 +4,9 @@ With Klipper: a batch-mode klippy prints the first two layers of a real
 PrusaSlicer file (tests/data/gcode/block_layers_1_2.gcode) on the simulated
 sensor, whose twin is a 40 W hotend melting what a weak material profile
 says (4 mm^3/s at 200 C; the infill asks for up to 6.4). Once without the
-limiter, once with it (mode predictive): grip windows below min_grip, the
-filament that really moved, the time the limiter added. Offline: the
+limiter, once with it (mode predictive), after heating the nozzle as M109 would: grip
+windows below min_grip, the filament that really moved, the time the limiter
+added. Offline: the
 reactive rule against ddPrint's on the scenario of docs/flowrate_limiter.md.
 """
 
@@ -33,7 +34,18 @@ WEAK_PROFILE = {
                "max_temp_c": 260.0},
     "provenance": {"method": "manual"},
 }
-CHUNK_LINES = 50
+CHUNK_LINES = 10
+WARM_UP_C = 200.0
+
+
+def warm_up(api, target_c: float, seconds: float = 100.0) -> None:
+    """What M109 does on a printer, which batch mode skips: heat the nozzle
+    before the file starts. Travel passes the time, so that the twin's
+    hotend and the limiter's thermal model both see it (a dwell would pass
+    only the twin's)."""
+    moves = [f"G1 X{10 if i % 2 else 160} F6000" for i in range(int(seconds / 1.5))]
+    api.gcode("\n".join(["G28", f"SET_HEATER_TEMPERATURE HEATER=extruder"
+                          f" TARGET={target_c:g}"] + moves + ["M400"]))
 
 
 class Api:
@@ -78,8 +90,9 @@ def print_closed_loop(enable: int, build=None, venv=None,
                       config: Path = CONFIG, mode: str = "predictive"
                       ) -> Tuple[Dict[str, Any], float]:
     """Print the slicer excerpt on the twin with the limiter on (1) or off
-    (0) in `mode`; the limiter's status (with the toolhead's final
-    `print_time` added) and the filament the twin really moved.
+    (0) in `mode`, after warming the nozzle up; the limiter's status (with
+    the toolhead's final `print_time` added) and the filament the twin really
+    moved while printing the file.
 
     Batch mode never holds the G-code reader back as a printer does (about
     1 s of moves ahead), so feedback would arrive only after the whole file:
@@ -97,12 +110,15 @@ def print_closed_loop(enable: int, build=None, venv=None,
             api.call("flowloop/set_active_profile", extruder="extruder",
                      profile=profile, working_point=0.5)
             api.gcode(f"SET_FLOWRATE_LIMIT ENABLE={enable} MODE={mode}")
+            warm_up(api, WARM_UP_C)
+            before = api.query("flow_sensor sim")["filament_position"] or 0.0
+            start = api.query("toolhead")["print_time"]
             lines = GCODE.read_text().splitlines()
             for i in range(0, len(lines), CHUNK_LINES):
                 api.gcode("\n".join(lines[i:i + CHUNK_LINES] + ["M400"]))
-            moved = api.query("flow_sensor sim")["filament_position"]
+            moved = api.query("flow_sensor sim")["filament_position"] - before
             status = dict(api.query("flowrate_limiter"),
-                          print_time=api.query("toolhead")["print_time"])
+                          print_time=api.query("toolhead")["print_time"] - start)
             return status, moved
         finally:
             api.close()

@@ -163,10 +163,9 @@ def test_the_closed_loop_keeps_grip_where_the_uncapped_print_loses_it(
     assert off["grip_windows"]["below_min_grip"] > 0.5 * off["grip_windows"][
         "judged"]
     assert moved_off < 0.8 * commanded
-    # with it, grip stays above min_grip (the twin heats from cold: M109 does
-    # not wait in batch mode, so the first extrusion finds a cold nozzle)
-    assert on["grip_windows"]["below_min_grip"] <= 0.02 * on["grip_windows"][
+    # with it, grip stays above min_grip and (nearly) all the plastic moves
+    assert on["grip_windows"]["below_min_grip"] <= 0.01 * on["grip_windows"][
         "judged"]
-    assert moved_on > 0.95 * commanded
+    assert moved_on > 0.99 * commanded
     assert on["slowed_moves"] > 100 and on["reason"] in ("temperature", "model")
     assert on["model"]["windows"] > 0
