@@ -150,6 +150,16 @@ class FlowSensor:
         the reactor (it may run inside motion_queuing's flush)."""
         self.window_callbacks.append(callback)
 
+    def sync(self, until=None):
+        """Process the samples up to print time `until` now (after the
+        caller's wait_moves; in batch mode the steps are generated first)."""
+        self.source.sync(until)
+
+    def hotend_reading(self, eventtime):
+        """(temperature degC, heater power 0..1) of the hotend the sensor's
+        windows are stamped with: the heater's, or the twin's hotend."""
+        return self.source.temp_c(eventtime), self.source.power(eventtime)
+
     # --- sample path (both sources, on the reactor) --------------------------
     def process(self, messages):
         """Decode (sequence, payload) pairs from the source and judge them."""
@@ -496,6 +506,9 @@ class Ems22Source:
     def temp_c(self, eventtime):
         return self.sensor.heater.get_temp(eventtime)[0]
 
+    def power(self, eventtime):
+        return self.sensor.heater.get_status(eventtime)['power']
+
     def _start_query(self):
         self.sensor.decoder.reset()
         print_time = self.mcu.estimated_print_time(self.reactor.monotonic())
@@ -576,6 +589,8 @@ class SimulatedSource:
         self.mm_per_step = 0.
         self.printer.register_event_handler('flowloop:profile_activated',
                                             self._handle_profile)
+        self.printer.register_event_handler('flowloop:heater_fixed_power',
+                                            self._handle_fixed_power)
 
     @staticmethod
     def _hotend(config):
@@ -595,6 +610,15 @@ class SimulatedSource:
             self.catch_up()
             self.twin.melt = twin.scaled_line(
                 profile_line(profile, working_point), self.melt_scale)
+
+    def _handle_fixed_power(self, extruder, power):
+        # A fixed-power measurement holds the twin's heater at power (0..1 of
+        # heater_power), or gives it back to its controller (None).
+        hotend = self.twin.hotend
+        if extruder == self.sensor.extruder_name and hotend is not None:
+            self.catch_up()
+            hotend.fixed_power_w = (None if power is None
+                                    else power * hotend.params.max_power_w)
 
     def commands(self):
         return [('SET_FLOW_SENSOR_SIMULATION',
@@ -624,6 +648,12 @@ class SimulatedSource:
     def temp_c(self, eventtime):
         # The twin's nozzle: its hotend model's, else at its target at once
         return self.twin.temp_c(self.sensor.heater.get_status(eventtime)['target'])
+
+    def power(self, eventtime):
+        hotend = self.twin.hotend
+        if hotend is None:
+            return self.sensor.heater.get_status(eventtime)['power']
+        return hotend.power_w / hotend.params.max_power_w
 
     def _flush(self, flush_time, step_gen_time):
         # Steps up to motion_queuing's last_step_gen_time exist already (it is

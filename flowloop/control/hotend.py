@@ -77,6 +77,9 @@ class HotendModel:
         self.temp_c = params.ambient_c if temp_c is None else float(temp_c)
         self.time_s = float(time_s)
         self.power_w = 0.0
+        # Set: the heater holds this power, no controller (a fixed-power
+        # measurement); the temperature then settles where loss meets it.
+        self.fixed_power_w: Optional[float] = None
         # (time the target was set, target): the controller sees each one
         # dead_time_s later.
         self._targets: Deque[Tuple[float, float]] = collections.deque(
@@ -104,13 +107,16 @@ class HotendModel:
             target = self.target_seen_at(self.time_s)
             rise = self.temp_c - p.ambient_c
             hold = k * rise
-            if target <= 0.0:
+            fixed = self.fixed_power_w
+            if fixed is not None:
+                power = fixed
+            elif target <= 0.0:
                 power = 0.0  # heater off
             else:
                 drive = p.heat_capacity_j_per_c / p.time_constant_s
                 power = hold + drive * (target - self.temp_c)
             power = min(p.max_power_w, max(0.0, power))
-            if 0.0 < power < p.max_power_w and target > 0.0:
+            if 0.0 < power < p.max_power_w and target > 0.0 and fixed is None:
                 # Within the heater's limits: the exact first-order lag step.
                 self.temp_c = target + (self.temp_c - target) * math.exp(
                     -dt / p.time_constant_s)

@@ -1,0 +1,170 @@
+"""The decisions of an into-air profile measurement (MEASURE_MATERIAL_PROFILE).
+
+Pure: the klippy adapter heats, swaps the heater's control, extrudes and
+collects the flow sensor's grip windows; this module says which levels and
+flows to run, whether a hotend has settled, what a step of the ramp
+measured, and which point a level gives.
+
+The procedure (ddPrint's, on Klipper): for each level (a temperature, or a
+heater power), hold the heater at a fixed power, extrude into air at a flow
+rising by STEP from START_FLOW, and stop when the grip of a step falls
+below MIN_GRIP. The level's point is that step: the flow the sensor
+measured (what the hotend really melted while the feeder slipped), the
+hotend temperature over the step, and the heater power.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass
+from typing import Iterator, Optional, Sequence, Tuple
+
+from ..errors import FlowloopError
+from ..sensor.grip import Window
+from .profile import MeasuredPoint
+
+DEFAULT_START_FLOW_MM3_S = 2.0
+DEFAULT_STEP_MM3_S = 0.5
+DEFAULT_MAX_FLOW_MM3_S = 30.0
+DEFAULT_MIN_GRIP = 0.9
+MIN_LEVELS = 2
+MAX_LEVELS = 10
+MAX_STEPS = 200
+# [measure_profile] options and their limits: the adapter reads them here
+DEFAULT_STEP_TIME_S = 4.0
+STEP_TIME_RANGE_S = (1.0, 30.0)
+DEFAULT_SETTLE_TIME_S = 10.0
+SETTLE_TIME_RANGE_S = (2.0, 120.0)
+DEFAULT_MAX_SETTLE_TIME_S = 300.0
+MAX_SETTLE_TIME_RANGE_S = (30.0, 1800.0)
+SETTLE_BAND_C = 1.0
+# Windows in the first part of a step are the transient: not judged.
+STEP_TRANSIENT_SHARE = 0.3
+PWM_MAX = 255.0          # the profile's PWM scale (ddPrint's)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a MEASURE_MATERIAL_PROFILE runs."""
+    by: str                          # "temperature" or "power"
+    levels: Tuple[float, ...]        # degC, or heater power 0..1
+    start_flow_mm3_s: float
+    step_mm3_s: float
+    max_flow_mm3_s: float
+    min_grip: float
+
+    def flows(self) -> Iterator[float]:
+        """START_FLOW, START_FLOW + STEP, ... up to MAX_FLOW."""
+        i = 0
+        while True:
+            flow = self.start_flow_mm3_s + i * self.step_mm3_s
+            if flow > self.max_flow_mm3_s + 1e-9:
+                return
+            yield flow
+            i += 1
+
+    def describe_level(self, level: float) -> str:
+        if self.by == "temperature":
+            return f"{level:g} degC"
+        return f"power {level:.0%}"
+
+
+def _positive(name: str, value: float) -> float:
+    if not (math.isfinite(value) and value > 0):
+        raise FlowloopError(f"{name}: must be a number above 0, got {value}")
+    return value
+
+
+def make_plan(temps: Optional[Sequence[float]], powers: Optional[Sequence[float]],
+              start_flow: float, step: float, max_flow: float, min_grip: float,
+              min_temp_c: float, max_temp_c: float) -> Plan:
+    """The plan, or FlowloopError naming the parameter. Temperatures must lie
+    within the profile's bounds (min_temp_c..max_temp_c, the heater's
+    max_temp already applied), powers within 0..1 (share of max_power)."""
+    if (temps is None) == (powers is None):
+        raise FlowloopError("give TEMPS= or POWERS= (one of them)")
+    name = "TEMPS" if temps is not None else "POWERS"
+    levels = tuple(temps if temps is not None else powers)
+    if not MIN_LEVELS <= len(levels) <= MAX_LEVELS:
+        raise FlowloopError(f"{name}: needs {MIN_LEVELS} to {MAX_LEVELS} levels,"
+                            f" got {len(levels)}")
+    if len(set(levels)) != len(levels):
+        raise FlowloopError(f"{name}: each level once")
+    for level in levels:
+        if temps is not None and not min_temp_c <= level <= max_temp_c:
+            raise FlowloopError(
+                f"TEMPS: {level:g} degC is outside the profile's "
+                f"{min_temp_c:g}..{max_temp_c:g} degC")
+        if powers is not None and not 0.0 < level <= 1.0:
+            raise FlowloopError(f"POWERS: {level:g} must be in 0..1 (share of "
+                                f"the heater's max_power)")
+    _positive("START_FLOW", start_flow)
+    _positive("STEP", step)
+    _positive("MAX_FLOW", max_flow)
+    if max_flow < start_flow:
+        raise FlowloopError(f"MAX_FLOW: {max_flow:g} is below START_FLOW "
+                            f"{start_flow:g}")
+    if (max_flow - start_flow) / step + 1 > MAX_STEPS:
+        raise FlowloopError(f"STEP: {step:g} mm^3/s from {start_flow:g} to "
+                            f"{max_flow:g} is more than {MAX_STEPS} steps")
+    if not 0.0 < min_grip < 1.0:
+        raise FlowloopError(f"MIN_GRIP: must be in 0..1 (exclusive), got "
+                            f"{min_grip:g}")
+    return Plan("temperature" if temps is not None else "power",
+                tuple(sorted(levels)), start_flow, step, max_flow, min_grip)
+
+
+def settled(readings: Sequence[Tuple[float, float]], hold_s: float,
+            band_c: float = SETTLE_BAND_C) -> bool:
+    """True when the (time_s, temp_c) readings of the last hold_s stay within
+    band_c of each other (and cover hold_s)."""
+    if not readings:
+        return False
+    end = readings[-1][0]
+    if end - readings[0][0] < hold_s:
+        return False
+    recent = [temp for t, temp in readings if t >= end - hold_s]
+    return max(recent) - min(recent) <= band_c
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """One step of the ramp, judged from the sensor's windows in it."""
+    commanded_mm3_s: float
+    grip: float
+    measured_mm3_s: float
+    temp_c: Optional[float]
+    windows: int
+
+    def describe(self) -> str:
+        temp = "" if self.temp_c is None else f" at {self.temp_c:.1f} degC"
+        return (f"flow {self.commanded_mm3_s:.2f} mm^3/s: grip {self.grip:.3f},"
+                f" measured {self.measured_mm3_s:.2f} mm^3/s{temp}")
+
+
+def judge_step(windows: Sequence[Window], start_time: float, end_time: float,
+               commanded_mm3_s: float) -> Optional[StepResult]:
+    """The step from its judged windows after the transient (None: none)."""
+    after = start_time + STEP_TRANSIENT_SHARE * (end_time - start_time)
+    judged = [w for w in windows
+              if w.grip is not None and w.start_time >= after
+              and w.end_time <= end_time + 1e-6]
+    if not judged:
+        return None
+    flows = [w.flow_mm3_s for w in judged if w.flow_mm3_s is not None]
+    temps = [w.temp_c for w in judged if w.temp_c is not None]
+    grip = statistics.median(w.grip for w in judged)
+    measured = statistics.fmean(flows) if flows else commanded_mm3_s * grip
+    return StepResult(commanded_mm3_s, float(grip), float(measured),
+                      statistics.fmean(temps) if temps else None, len(judged))
+
+
+def limit_point(step: StepResult, power: float, fallback_temp_c: float
+                ) -> MeasuredPoint:
+    """The level's point: the step whose grip fell below MIN_GRIP."""
+    temp = step.temp_c if step.temp_c is not None else fallback_temp_c
+    return MeasuredPoint(kind="into_air", temp_c=round(temp, 2),
+                         flow_mm3_s=round(step.measured_mm3_s, 4),
+                         grip=round(min(2.0, max(0.0, step.grip)), 4),
+                         heater_pwm=round(min(1.0, max(0.0, power)) * PWM_MAX, 2))

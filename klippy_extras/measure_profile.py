@@ -1,0 +1,512 @@
+# [measure_profile]: MEASURE_MATERIAL_PROFILE measures a material profile's
+# into-air line with the flow sensor (ddPrint's procedure): for each level
+# the heater is held at a fixed power, the extruder pushes filament into air
+# at a rising flow until the grip falls below MIN_GRIP, and the lines fitted
+# to those points are handed to Moonraker (flowloop_store_profile).
+#
+# The fixed power is a heater control object swapped in as PID_CALIBRATE
+# swaps its own, and given back on every way out (success, error,
+# CANCEL_MATERIAL_PROFILE, shutdown). The plan, settling, step judging,
+# fits and watchdog rules live in flowloop (material.measure, material.fit,
+# control.watchdog); this module drives the printer.
+#
+# This file may be distributed under the terms of the GNU GPLv3 license.
+import logging
+
+from flowloop.calibrate.numbers import parse_numbers
+from flowloop.control import watchdog
+from flowloop.errors import FlowloopError
+from flowloop.host.klipper_config import option_message
+from flowloop.material import fit as fl_fit
+from flowloop.material import measure as fl_measure
+from flowloop.material import profile as fl_profile
+
+HEARTBEAT_INTERVAL = 0.5
+READING_INTERVAL = 1.0      # s between temperature readings while waiting
+MAX_MOVE_TIME = 1.0         # s per extrude-only move of a step
+MAX_STEP_RETRIES = 2        # a step without a judged window runs again
+STORE_METHOD = "flowloop_store_profile"
+NAME = "MEASURE_MATERIAL_PROFILE"
+
+
+class MeasurementStopped(Exception):
+    """The run ends early: nothing is stored."""
+
+
+class FixedPowerControl:
+    """A heater control that holds one PWM (runs in the heater's thread:
+    no reactor or G-code calls). On every reading it applies the watchdog's
+    temperature and host rules and cuts the power if one says stop."""
+
+    def __init__(self, heater, pwm, limits):
+        self.heater = heater
+        self.pwm = pwm
+        self.limits = limits
+        self.heartbeat = None    # print time of the reactor's last heartbeat
+        self.stopped = None      # why the power was cut (the reactor reports)
+
+    def temperature_update(self, read_time, temp, target_temp):
+        if self.stopped is None:
+            self.stopped = (watchdog.temperature_stop(self.limits, temp)
+                            or watchdog.host_stop(self.limits, read_time,
+                                                  self.heartbeat))
+        self.heater.set_pwm(read_time, 0. if self.stopped else self.pwm)
+
+    def check_busy(self, eventtime, smoothed_temp, target_temp):
+        return False
+
+
+def _option(config, name, default, limits):
+    low, high = limits
+    return config.getfloat(name, default, minval=low, maxval=high)
+
+
+class MeasureProfile:
+    def __init__(self, config):
+        self.printer = printer = config.get_printer()
+        self.host = printer.load_object(config, 'flowloop')
+        self.reactor = printer.get_reactor()
+        self.section = config.get_name()
+        self.sensor_name = config.get('sensor', None)
+        self.step_time = _option(config, 'step_time',
+                                 fl_measure.DEFAULT_STEP_TIME_S,
+                                 fl_measure.STEP_TIME_RANGE_S)
+        self.settle_time = _option(config, 'settle_time',
+                                   fl_measure.DEFAULT_SETTLE_TIME_S,
+                                   fl_measure.SETTLE_TIME_RANGE_S)
+        self.max_settle_time = _option(config, 'max_settle_time',
+                                       fl_measure.DEFAULT_MAX_SETTLE_TIME_S,
+                                       fl_measure.MAX_SETTLE_TIME_RANGE_S)
+        self.host_timeout = config.getfloat(
+            'host_timeout', watchdog.DEFAULT_HOST_TIMEOUT_S, minval=1.,
+            maxval=60.)
+        if self.max_settle_time < self.settle_time:
+            raise config.error(option_message(
+                self.section, 'max_settle_time',
+                f"{self.max_settle_time:g} is below settle_time"
+                f" {self.settle_time:g}"))
+        self.run = None              # the measurement in progress, or None
+        self.cancel_reason = None
+        self.status = {}
+        self._set_status('idle', message='')
+        printer.register_event_handler('klippy:connect', self._handle_connect)
+        printer.register_event_handler('klippy:shutdown', self._handle_shutdown)
+        gcode = printer.lookup_object('gcode')
+        gcode.register_command(NAME, self.cmd_MEASURE_MATERIAL_PROFILE,
+                               desc=self.cmd_MEASURE_MATERIAL_PROFILE_help)
+        gcode.register_command('CANCEL_MATERIAL_PROFILE',
+                               self.cmd_CANCEL_MATERIAL_PROFILE,
+                               desc=self.cmd_CANCEL_MATERIAL_PROFILE_help)
+        # A running measurement holds the G-code queue (as PID_CALIBRATE
+        # does): this endpoint reaches it at once, the G-code only between.
+        printer.lookup_object('webhooks').register_endpoint(
+            'measure_profile/cancel', self._handle_cancel_request)
+
+    # --- status ---------------------------------------------------------------
+    def _set_status(self, state, **changes):
+        status = dict(self.status, state=state, **changes)
+        status.setdefault('points', [])
+        status.setdefault('result', None)
+        status.setdefault('heater_control', None)
+        self.status = status
+
+    def get_status(self, eventtime=None):
+        return self.status
+
+    # --- grip windows (every flow sensor; the run keeps its own sensor's) ------
+    def _handle_connect(self):
+        for name, sensor in self.printer.lookup_objects('flow_sensor'):
+            if name.startswith('flow_sensor '):
+                sensor.subscribe_grip_windows(
+                    lambda window, sensor=sensor: self._handle_window(sensor,
+                                                                      window))
+
+    def _handle_window(self, sensor, window):
+        # In the reactor, possibly inside a flush: only collect.
+        run = self.run
+        if run is not None and run.sensor is sensor:
+            run.windows.append(window)
+
+    # --- cancel and shutdown ----------------------------------------------------
+    cmd_CANCEL_MATERIAL_PROFILE_help = (
+        "Stop a running MEASURE_MATERIAL_PROFILE (nothing is stored)")
+
+    def cmd_CANCEL_MATERIAL_PROFILE(self, gcmd):
+        if self.run is None:
+            gcmd.respond_info("CANCEL_MATERIAL_PROFILE: no measurement running")
+            return
+        self.cancel_reason = "cancelled (CANCEL_MATERIAL_PROFILE)"
+
+    def _handle_cancel_request(self, web_request):
+        running = self.run is not None
+        if running:
+            self.cancel_reason = "cancelled (measure_profile/cancel)"
+        web_request.send({'cancelled': running})
+
+    def _handle_shutdown(self):
+        if self.run is not None:
+            self.run.restore_heater()
+
+    # --- the command ------------------------------------------------------------
+    cmd_MEASURE_MATERIAL_PROFILE_help = (
+        "Measure a material profile's into-air line with the flow sensor:"
+        " NAME= EXTRUDER= TEMPS= or POWERS= START_FLOW= STEP= MAX_FLOW="
+        " MIN_GRIP= [ACTIVATE=1] [MIN_TEMP= MAX_TEMP=]")
+
+    def cmd_MEASURE_MATERIAL_PROFILE(self, gcmd):
+        if self.run is not None:
+            raise gcmd.error(f"{NAME}: a measurement is running already")
+        run = self._prepare(gcmd)
+        self.run, self.cancel_reason = run, None
+        self._set_status('running', name=run.name, level=None,
+                         levels=len(run.plan.levels), flow=None, points=[],
+                         result=None, message='')
+        try:
+            points = run.measure()
+            profile, fitted = run.result(points)
+        except (MeasurementStopped, FlowloopError) as e:
+            message = f"{NAME}: {e}; nothing stored"
+            self._set_status('aborted', message=message,
+                             heater_control=run.control_name())
+            raise gcmd.error(message) from None
+        except Exception:
+            self._set_status('aborted', message=f"{NAME}: internal error",
+                             heater_control=run.control_name())
+            raise
+        finally:
+            run.finish()
+            self.run = None
+        for line in fitted.lines():
+            gcmd.respond_info(f"{NAME}: {line}")
+        self._set_status('measured', heater_control=run.control_name(),
+                         result=self._result_status(profile))
+        self._store(gcmd, run, profile)
+
+    def _result_status(self, profile):
+        line = profile.lines.into_air
+        return {'name': profile.name,
+                'slope_mm3_s_per_c': line.slope_mm3_s_per_c,
+                'temp_c': line.temp_c, 'flow_mm3_s': line.flow_mm3_s,
+                'note': profile.provenance.note}
+
+    def _store(self, gcmd, run, profile):
+        webhooks = self.printer.lookup_object('webhooks')
+        try:
+            webhooks.call_remote_method(
+                STORE_METHOD, profile=fl_profile.profile_to_dict(profile),
+                activate_extruder=run.extruder_name if run.activate else None)
+        except self.printer.command_error as e:
+            message = (f"{NAME}: profile '{profile.name}' measured but not"
+                       f" stored ({e}): is Moonraker's [flowloop] component"
+                       " loaded?")
+            self._set_status('measured', message=message)
+            raise gcmd.error(message) from None
+        message = (f"{NAME}: profile '{profile.name}' handed to Moonraker"
+                   + (f" and activated on {run.extruder_name}"
+                      if run.activate else ""))
+        self._set_status('stored', message=message)
+        gcmd.respond_info(message)
+
+    def _prepare(self, gcmd):
+        """Everything checked before anything changes (bad input: one line)."""
+        name = gcmd.get('NAME')
+        extruder_name = gcmd.get('EXTRUDER', 'extruder')
+        try:
+            fl_profile.check_name(name)
+            extruder, heater = self._extruder(extruder_name)
+            sensor = self._sensor(extruder_name)
+            base = self.host.get_active_profile(extruder_name)
+            base = None if base is None else base.profile
+            bounds = self._bounds(gcmd, base, heater)
+            plan = fl_measure.make_plan(
+                self._levels(gcmd, 'TEMPS'), self._levels(gcmd, 'POWERS'),
+                gcmd.get_float('START_FLOW',
+                               fl_measure.DEFAULT_START_FLOW_MM3_S),
+                gcmd.get_float('STEP', fl_measure.DEFAULT_STEP_MM3_S),
+                gcmd.get_float('MAX_FLOW', fl_measure.DEFAULT_MAX_FLOW_MM3_S),
+                gcmd.get_float('MIN_GRIP', self._default_min_grip(base)),
+                bounds.min_temp_c, bounds.max_temp_c)
+            limits = watchdog.WatchdogLimits(
+                min_temp_c=bounds.min_temp_c, max_temp_c=bounds.max_temp_c,
+                host_timeout_s=self.host_timeout)
+        except FlowloopError as e:
+            raise gcmd.error(f"{NAME}: {e}; nothing changed") from None
+        toolhead = self.printer.lookup_object('toolhead')
+        if toolhead.get_extruder() is not extruder:
+            raise gcmd.error(f"{NAME}: {extruder_name} is not the active"
+                             f" extruder (activate it first); nothing changed")
+        return Run(self, gcmd, name, extruder_name, extruder, heater, sensor,
+                   base, bounds, plan, limits,
+                   bool(gcmd.get_int('ACTIVATE', 0, minval=0, maxval=1)))
+
+    @staticmethod
+    def _levels(gcmd, param):
+        text = gcmd.get(param, None)
+        if text is None:
+            return None
+        return parse_numbers(text, param, what="level")
+
+    @staticmethod
+    def _default_min_grip(base):
+        if base is not None and base.provenance.min_grip:
+            return base.provenance.min_grip
+        return fl_measure.DEFAULT_MIN_GRIP
+
+    def _extruder(self, name):
+        extruder = None
+        if fl_profile.is_extruder_name(name):
+            extruder = self.printer.lookup_object(name, None)
+        if extruder is None or not hasattr(extruder, 'get_heater'):
+            raise FlowloopError(f"EXTRUDER: no extruder named '{name}'")
+        return extruder, extruder.get_heater()
+
+    def _sensor(self, extruder_name):
+        sensors = [obj for name, obj in self.printer.lookup_objects('flow_sensor')
+                   if name.startswith('flow_sensor ')]
+        for sensor in sensors:
+            if self.sensor_name is not None:
+                if sensor.name == self.sensor_name:
+                    return sensor
+            elif sensor.extruder_name == extruder_name:
+                return sensor
+        which = (f"[flow_sensor {self.sensor_name}]" if self.sensor_name
+                 else f"a [flow_sensor] on {extruder_name}")
+        raise FlowloopError(f"EXTRUDER: {which} is needed to judge grip")
+
+    @staticmethod
+    def _bounds(gcmd, base, heater):
+        """The profile's bounds (the active one's, else MIN_TEMP=/MAX_TEMP=),
+        never above the heater's max_temp."""
+        min_temp = gcmd.get_float('MIN_TEMP', None)
+        max_temp = gcmd.get_float('MAX_TEMP', None)
+        if base is not None:
+            b = base.bounds
+            min_temp = b.min_temp_c if min_temp is None else min_temp
+            max_temp = b.max_temp_c if max_temp is None else max_temp
+        if min_temp is None or max_temp is None:
+            raise FlowloopError(
+                "no active profile on this extruder gives the temperature "
+                "limits: activate one, or give MIN_TEMP= and MAX_TEMP=")
+        max_temp = min(max_temp, heater.max_temp)
+        if not min_temp < max_temp:
+            raise FlowloopError(f"MIN_TEMP: {min_temp:g} degC is not below the"
+                                f" maximum {max_temp:g} degC")
+        recommended = ((min_temp + max_temp) / 2. if base is None
+                       else base.bounds.recommended_temp_c)
+        return fl_profile.Bounds(
+            min_temp_c=min_temp, max_temp_c=max_temp,
+            recommended_temp_c=min(max(recommended, min_temp), max_temp))
+
+
+class Run:
+    """One MEASURE_MATERIAL_PROFILE: the levels, the heater swap, the ramp."""
+
+    def __init__(self, owner, gcmd, name, extruder_name, extruder, heater,
+                 sensor, base, bounds, plan, limits, activate):
+        self.owner, self.gcmd = owner, gcmd
+        self.printer, self.reactor = owner.printer, owner.reactor
+        self.name, self.extruder_name = name, extruder_name
+        self.extruder, self.heater, self.sensor = extruder, heater, sensor
+        self.base, self.bounds, self.plan = base, bounds, plan
+        self.limits, self.activate = limits, activate
+        self.toolhead = self.printer.lookup_object('toolhead')
+        self.pheaters = self.printer.lookup_object('heaters')
+        self.area = extruder.filament_area
+        self.old_target = heater.get_status(self.reactor.monotonic())['target']
+        self.windows = []
+        self.old_control = self.control = None
+        self.heartbeat_timer = self.reactor.register_timer(
+            self._heartbeat, self.reactor.NOW)
+
+    # --- heater -----------------------------------------------------------------
+    def _heartbeat(self, eventtime):
+        control = self.control
+        if control is not None:
+            mcu = self.printer.lookup_object('mcu')
+            control.heartbeat = mcu.estimated_print_time(eventtime)
+        return eventtime + HEARTBEAT_INTERVAL
+
+    def hold_power(self, pwm):
+        self.control = FixedPowerControl(self.heater, pwm, self.limits)
+        self._heartbeat(self.reactor.monotonic())
+        self.old_control = self.heater.set_control(self.control)
+        # set_pwm drives nothing without a target; at the profile's minimum
+        # it also keeps verify_heater watching the floor.
+        self.heater.set_temp(self.limits.min_temp_c)
+        self.printer.send_event('flowloop:heater_fixed_power',
+                                self.extruder_name, pwm)
+
+    def restore_heater(self):
+        """Give the heater its own control back (idempotent; any thread)."""
+        if self.old_control is None:
+            return
+        self.heater.set_control(self.old_control)
+        self.old_control = self.control = None
+        self.printer.send_event('flowloop:heater_fixed_power',
+                                self.extruder_name, None)
+
+    def control_name(self):
+        return type(self.heater.control).__name__
+
+    def finish(self):
+        self.restore_heater()
+        self.reactor.unregister_timer(self.heartbeat_timer)
+        if not self.printer.is_shutdown():
+            self.heater.set_temp(self.old_target)
+            self.printer.lookup_object('gcode_move').reset_last_position()
+
+    # --- time and readings --------------------------------------------------------
+    def _pass_time(self, seconds):
+        """Let print time advance (dwell), then read what the sensor saw."""
+        self.toolhead.dwell(seconds)
+        self._wait()
+
+    def _wait(self):
+        self.toolhead.wait_moves()
+        self.sensor.sync(self.toolhead.get_last_move_time())
+        # Let the reactor serve endpoints (measure_profile/cancel) and timers
+        self.reactor.pause(self.reactor.monotonic() + 0.001)
+
+    def _reading(self):
+        temp, power = self.sensor.hotend_reading(self.reactor.monotonic())
+        return self.toolhead.get_last_move_time(), temp, power
+
+    def _check(self, settled_c=None, previous=None):
+        """Raise MeasurementStopped when the run must end; the reading."""
+        if self.printer.is_shutdown():
+            raise MeasurementStopped("Klipper shut down")
+        if self.owner.cancel_reason:
+            raise MeasurementStopped(self.owner.cancel_reason)
+        now, temp, power = self._reading()
+        control = self.control
+        reason = (control.stopped if control is not None else None) \
+            or watchdog.stop_reason(
+                self.limits, temp_c=temp, now_s=now, settled_c=settled_c,
+                previous=previous,
+                sensor_fault=self.sensor.get_status()['fault'])
+        if reason:
+            raise MeasurementStopped(reason)
+        return now, temp, power
+
+    def _say(self, text):
+        self.gcmd.respond_info(f"{NAME}: {text}")
+
+    # --- the procedure --------------------------------------------------------------
+    def measure(self):
+        points = []
+        for i, level in enumerate(self.plan.levels):
+            where = (f"level {i + 1}/{len(self.plan.levels)}"
+                     f" ({self.plan.describe_level(level)})")
+            self.owner._set_status('running', level=i + 1, flow=None)
+            try:
+                point = self._level(where, level)
+            finally:
+                self.restore_heater()
+            points.append(point)
+            self.owner._set_status('running', points=[
+                {'temp_c': p.temp_c, 'flow_mm3_s': p.flow_mm3_s,
+                 'grip': p.grip, 'heater_pwm': p.heater_pwm} for p in points])
+            self._say(f"{where}: limit {point.flow_mm3_s:.2f} mm^3/s at"
+                      f" {point.temp_c:.1f} degC, grip {point.grip:.3f}")
+        return points
+
+    def _level(self, where, level):
+        if self.plan.by == "temperature":
+            self._say(f"{where}: heating to {level:g} degC")
+            pwm = self._heat_and_settle(level)
+        else:
+            self._say(f"{where}: heating to {self.bounds.recommended_temp_c:g}"
+                      f" degC")
+            self._heat_and_settle(self.bounds.recommended_temp_c)
+            pwm = level * self.heater.get_max_power()
+        self._say(f"{where}: heater held at {pwm:.1%} power, settling")
+        self.hold_power(pwm)
+        settled_c = self._settle(fixed=True)[-1][1]
+        return self._ramp(where, pwm, settled_c)
+
+    def _heat_and_settle(self, temp_c):
+        """Heat with the heater's own control; the mean power that held
+        temp_c once settled."""
+        self.pheaters.set_temperature(self.heater, temp_c)
+        readings = self._settle(fixed=False, target_c=temp_c)
+        recent = [p for t, _, p in readings
+                  if t >= readings[-1][0] - self.owner.settle_time]
+        return sum(recent) / len(recent)
+
+    def _settle(self, fixed, target_c=None):
+        """Readings (time, temp, power) until the temperature holds still
+        (and, heating, is near target_c)."""
+        start = None
+        readings = []
+        while True:
+            if fixed:
+                now, temp, power = self._check()
+            else:
+                if self.printer.is_shutdown() or self.owner.cancel_reason:
+                    self._check()
+                now, temp, power = self._reading()
+            start = now if start is None else start
+            readings.append((now, temp, power))
+            near = target_c is None or abs(temp - target_c) <= \
+                fl_measure.SETTLE_BAND_C
+            if near and fl_measure.settled([(t, c) for t, c, _ in readings],
+                                           self.owner.settle_time):
+                return readings
+            if now - start > self.owner.max_settle_time:
+                raise MeasurementStopped(
+                    f"the temperature did not settle within"
+                    f" {self.owner.max_settle_time:g} s (at {temp:.1f} degC)")
+            self._pass_time(READING_INTERVAL)
+
+    def _ramp(self, where, pwm, settled_c):
+        previous = None
+        for flow in self.plan.flows():
+            self.owner._set_status('running', flow=flow)
+            now, temp, _ = self._check(settled_c, previous)
+            previous = (now, temp)
+            step = self._step(flow)
+            self._say(f"{where}: {step.describe()}")
+            now, temp, _ = self._check(settled_c, previous)
+            previous = (now, temp)
+            if step.grip < self.plan.min_grip:
+                return fl_measure.limit_point(step, pwm, temp)
+        raise MeasurementStopped(
+            f"{where}: grip stayed above {self.plan.min_grip:g} up to MAX_FLOW"
+            f" {self.plan.max_flow_mm3_s:g} mm^3/s (raise MAX_FLOW)")
+
+    def _step(self, flow):
+        """Extrude into air at flow for step_time; the step judged."""
+        speed = flow / self.area
+        for _ in range(MAX_STEP_RETRIES + 1):
+            start = self.toolhead.get_last_move_time()
+            first = len(self.windows)
+            left = self.owner.step_time
+            while left > 1e-9:
+                chunk = min(MAX_MOVE_TIME, left)
+                pos = self.toolhead.get_position()
+                pos[3] += speed * chunk
+                self.toolhead.move(pos, speed)
+                left -= chunk
+            end = self.toolhead.get_last_move_time()
+            self._wait()
+            step = fl_measure.judge_step(self.windows[first:], start, end, flow)
+            if step is not None:
+                return step
+        raise MeasurementStopped(
+            f"no grip window was judged at {flow:g} mm^3/s (a longer"
+            f" step_time in [{self.owner.section}]?)")
+
+    # --- the result ---------------------------------------------------------------
+    def result(self, points):
+        fitted = fl_fit.fit_points("into_air", points, fl_measure.PWM_MAX)
+        nozzle = getattr(self.extruder, 'nozzle_diameter', 0.4)
+        diameter = (4. * self.area / 3.141592653589793) ** .5
+        profile = fl_fit.measured_profile(
+            self.name, self.base, fitted, points, self.bounds, nozzle,
+            round(diameter, 3), self.plan.min_grip, NAME)
+        logging.info("%s: %s", NAME, "; ".join(fitted.lines()))
+        return profile, fitted
+
+
+def load_config(config):
+    return MeasureProfile(config)

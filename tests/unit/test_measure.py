@@ -1,0 +1,112 @@
+"""The decisions of MEASURE_MATERIAL_PROFILE (flowloop.material.measure) and
+the fixed-power hotend the twin simulates it with."""
+
+from __future__ import annotations
+
+import pytest
+
+from flowloop.control.hotend import HotendModel, HotendParams
+from flowloop.errors import FlowloopError
+from flowloop.material import measure
+from flowloop.sensor.grip import Window
+
+pytestmark = pytest.mark.unit
+
+
+def plan(**kw):
+    args = dict(temps=(200.0, 230.0), powers=None, start_flow=2.0, step=0.5,
+                max_flow=20.0, min_grip=0.9, min_temp_c=190.0, max_temp_c=260.0)
+    args.update(kw)
+    return measure.make_plan(**args)
+
+
+def test_a_plan_runs_its_levels_in_order_and_flows_up_to_max_flow():
+    p = plan(temps=(240.0, 200.0, 220.0), start_flow=2.0, step=0.5, max_flow=3.0)
+    assert p.by == "temperature"
+    assert p.levels == (200.0, 220.0, 240.0)
+    assert list(p.flows()) == [2.0, 2.5, 3.0]
+    assert plan(temps=None, powers=(0.3, 0.4)).describe_level(0.3) == "power 30%"
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"temps": None}, "give TEMPS= or POWERS="),
+    ({"powers": (0.3, 0.4)}, "give TEMPS= or POWERS="),
+    ({"temps": (200.0,)}, "TEMPS: needs 2 to 10 levels, got 1"),
+    ({"temps": (200.0, 200.0)}, "TEMPS: each level once"),
+    ({"temps": (180.0, 220.0)}, "TEMPS: 180 degC is outside the profile's 190..260"),
+    ({"temps": (200.0, 270.0)}, "outside"),
+    ({"temps": None, "powers": (0.3, 1.2)}, "POWERS: 1.2 must be in 0..1"),
+    ({"temps": None, "powers": (0.0, 0.5)}, "POWERS: 0 must be in 0..1"),
+    ({"start_flow": 0.0}, "START_FLOW: must be a number above 0"),
+    ({"step": -1.0}, "STEP: must be a number above 0"),
+    ({"max_flow": 1.0}, "MAX_FLOW: 1 is below START_FLOW 2"),
+    ({"step": 0.01}, "more than 200 steps"),
+    ({"min_grip": 1.0}, "MIN_GRIP: must be in 0..1"),
+    ({"min_grip": 0.0}, "MIN_GRIP"),
+])
+def test_a_bad_plan_is_refused_naming_the_parameter(kw, message):
+    with pytest.raises(FlowloopError, match=message.replace(".", r"\.")):
+        plan(**kw)
+
+
+def test_settled_needs_the_whole_hold_time_within_the_band():
+    steady = [(float(t), 200.0 + 0.1 * (t % 2)) for t in range(12)]
+    assert measure.settled(steady, hold_s=10.0)
+    assert not measure.settled(steady[:5], hold_s=10.0)
+    rising = [(float(t), 180.0 + t) for t in range(12)]
+    assert not measure.settled(rising, hold_s=10.0)
+    assert not measure.settled([], hold_s=10.0)
+
+
+def window(start, end, grip, flow=5.0, temp=210.0):
+    return Window(start_time=start, end_time=end, commanded_mm=1.0,
+                  measured_mm=grip or 0.0, grip=grip,
+                  reason="judged" if grip is not None else "retraction",
+                  flow_mm3_s=flow, temp_c=temp)
+
+
+def test_a_step_is_judged_on_its_windows_after_the_transient():
+    windows = [window(10.0, 10.5, 0.5),            # transient: not used
+               window(11.0, 11.5, 0.95, 6.0, 211.0),
+               window(11.5, 12.0, None),            # unjudged: not used
+               window(12.0, 12.5, 0.85, 5.0, 209.0),
+               window(12.5, 13.5, 0.2)]             # past the step's end
+    step = measure.judge_step(windows, 10.0, 13.0, 6.5)
+    assert step.windows == 2
+    assert step.grip == pytest.approx(0.9)
+    assert step.measured_mm3_s == pytest.approx(5.5)
+    assert step.temp_c == pytest.approx(210.0)
+    assert measure.judge_step(windows[:1], 10.0, 13.0, 6.5) is None
+
+
+def test_the_limit_point_is_the_melted_flow_at_the_step_temperature():
+    step = measure.StepResult(commanded_mm3_s=7.0, grip=0.85, measured_mm3_s=5.95,
+                              temp_c=205.3, windows=3)
+    point = measure.limit_point(step, power=0.4, fallback_temp_c=0.0)
+    assert (point.kind, point.temp_c, point.flow_mm3_s) == ("into_air", 205.3, 5.95)
+    assert point.heater_pwm == pytest.approx(0.4 * 255)
+    nameless = measure.StepResult(7.0, 0.85, 5.95, None, 3)
+    assert measure.limit_point(nameless, 0.4, 199.0).temp_c == 199.0
+
+
+@pytest.mark.parametrize("power", [5.0, 14.0, 35.0])
+def test_a_hotend_at_fixed_power_settles_where_loss_meets_it(power):
+    params = HotendParams()
+    hotend = HotendModel(params, temp_c=200.0, target_c=200.0)
+    hotend.fixed_power_w = power
+    hotend.advance(2500.0)   # ten of the block's own time constants
+    expected = params.ambient_c + power / params.loss_w_per_c
+    assert hotend.temp_c == pytest.approx(expected, rel=1e-3)
+    assert hotend.power_w == power
+
+
+def test_a_hotend_at_fixed_power_sags_under_flow_where_its_controller_does_not():
+    params = HotendParams()
+    hold = params.steady_power_w(220.0, 0.0)
+    fixed = HotendModel(params, temp_c=220.0, target_c=220.0)
+    fixed.fixed_power_w = hold
+    held = HotendModel(params, temp_c=220.0, target_c=220.0)
+    fixed.advance(30.0, flow_mm3_s=10.0)
+    held.advance(30.0, flow_mm3_s=10.0)
+    assert fixed.temp_c < 215.0
+    assert held.temp_c == pytest.approx(220.0, abs=0.5)
