@@ -123,13 +123,13 @@ def assert_same_plan(klipper, limits, moves):
         assert a == pytest.approx(b, rel=1e-9, abs=1e-12), f"move {i}"
 
 
-def excerpt_moves():
-    """XY moves of the real slicer excerpt, E made cumulative across G92 E0."""
+def excerpt_moves(name: str):
+    """XY moves of a real slicer excerpt, E made cumulative across G92."""
     moves, x, y, e_base, e, feed = [], 0.0, 0.0, 0.0, 0.0, 25.0
-    for line in (DATA / "block_layers_1_2.gcode").read_text().splitlines():
+    for line in (DATA / name).read_text().splitlines():
         code = line.split(";")[0].split()
         if code[:1] == ["G92"]:
-            e_base = e
+            e_base = e - float(code[1][1:])
         if code[:1] != ["G1"]:
             continue
         words = {w[0]: float(w[1:]) for w in code[1:]}
@@ -149,8 +149,9 @@ def excerpt_moves():
     PrinterLimits(max_velocity=150, max_accel=800, minimum_cruise_ratio=0.8,
                   square_corner_velocity=2, instantaneous_corner_velocity=3),
 ])
-def test_a_real_file_is_planned_as_klipper_plans_it(klipper, limits):
-    moves = excerpt_moves()
+@pytest.mark.parametrize("name", ["block_layers_1_2.gcode", "box_bridge_layer.gcode"])
+def test_a_real_file_is_planned_as_klipper_plans_it(klipper, limits, name):
+    moves = excerpt_moves(name)
     assert len(moves) > 500
     assert_same_plan(klipper, limits, moves)
 
