@@ -22,20 +22,9 @@ from __future__ import annotations
 import subprocess
 import time
 
-from devtools.demo_flowrate_limiter import GCODE, print_closed_loop
+from devtools.demo_flowrate_limiter import GCODE, OPTIMISTIC_PROFILE, print_closed_loop
 from flowloop.control import rule_plot
 from tests.klippy.test_flowrate_limiter import HERE, gcode_extrusion
-
-OPTIMISTIC = {
-    "identity": {"name": "optimistic", "nozzle_diameter_mm": 0.4},
-    "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                           "flow_mm3_s": 6.5},
-              "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                             "flow_mm3_s": 5.5}},
-    "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 210.0,
-               "max_temp_c": 260.0},
-    "provenance": {"method": "manual"},
-}
 
 
 def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench):
@@ -45,7 +34,7 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench):
     for name, enable, mode in (("off", 0, "predictive"), ("reactive", 1, "reactive"),
                                ("predictive", 1, "predictive")):
         status, moved = print_closed_loop(enable, klipper_build, klippy_venv,
-                                          OPTIMISTIC, config, mode)
+                                          OPTIMISTIC_PROFILE, config, mode)
         results[name] = (commanded - moved, status["print_time"])
         bench.figure(f"limiter {name}: under-extruded", commanded - moved, " mm")
         bench.figure(f"limiter {name}: print time", status["print_time"], " s")

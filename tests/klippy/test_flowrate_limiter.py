@@ -10,7 +10,11 @@ from pathlib import Path
 import pytest
 
 from devtools import stack
-from devtools.demo_flowrate_limiter import Api, print_closed_loop
+from devtools.demo_flowrate_limiter import (
+    OPTIMISTIC_PROFILE,
+    Api,
+    print_closed_loop,
+)
 from devtools.klippy_test import run_file
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps, windowed_flow
@@ -169,3 +173,24 @@ def test_the_closed_loop_keeps_grip_where_the_uncapped_print_loses_it(
     assert moved_on > 0.99 * commanded
     assert on["slowed_moves"] > 100 and on["reason"] in ("temperature", "model")
     assert on["model"]["windows"] > 0
+
+
+def test_the_model_learns_a_hotend_weaker_than_its_profile(klipper_build,
+                                                           klippy_venv):
+    # the twin melts 70 % of what the profile says: the temperature cap alone
+    # lets it slip; the grip model learns from the first slipping windows
+    config = HERE / "flowrate_limiter_bench.cfg"
+    commanded = gcode_extrusion(GCODE)
+    lost = {}
+    for mode in ("temperature", "predictive"):
+        status, moved = print_closed_loop(1, klipper_build, klippy_venv,
+                                          OPTIMISTIC_PROFILE, config, mode)
+        lost[mode] = commanded - moved
+    off, moved_off = print_closed_loop(0, klipper_build, klippy_venv,
+                                       OPTIMISTIC_PROFILE, config)
+    lost_off = commanded - moved_off
+    assert lost["temperature"] > 0.3 * lost_off
+    assert lost["predictive"] < 0.1 * lost_off
+    # learned: the fitted capacity at 210 C is near the twin's, 0.7 x the
+    # profile's 7.0
+    assert status["model"]["capacity_mm3_s"] == pytest.approx(0.7 * 7.0, rel=0.1)
