@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "flowloop.cli.profile",
     "flowloop.cli.delta",
     "flowloop.cli.annotate",
+    "flowloop.cli.measure",
 )
 
 
