@@ -10,6 +10,10 @@ from ..host.install import (
     Change,
     InstallError,
     apply,
+    check_all,
+    host_name,
+    host_notes,
+    is_checkout,
     mcu_sources,
     plan_klipper,
     plan_moonraker,
@@ -65,15 +69,24 @@ def run(args) -> int:
                                    else "flowloop is installed"))
         return 0
     if args.dry_run:
+        check_all(changes)
         for change in changes:
-            change.check()
             print(f"would {change.what}: {change.path}")
         return 0
     apply(changes)  # checks everything first; prints only what was done
     for change in changes:
         print(f"{change.what}: {change.path}")
+    host = host_name(args.klipper)
     if not args.uninstall and mcu_sources(source):
-        print("MCU: rebuild and flash Klipper's firmware to get the EMS22 sensor "
-              "command (cd ~/klipper; make menuconfig; make flash)")
-    print("restart klipper and moonraker to load the change")
+        where = ("Firmware Extras > Support EMS22 filament flow sensor"
+                 if host == "Kalico" else "the EMS22 sensor command")
+        print(f"MCU: rebuild and flash {host}'s firmware to get {where} "
+              f"(cd {args.klipper}; make menuconfig; make flash)")
+    if not args.uninstall:
+        for note in host_notes(args.klipper):
+            print(f"note: {note}")
+        if not args.no_moonraker and not is_checkout(source):
+            print("flowloop runs from a pip install: update it with pip install "
+                  "-U klipper-flowloop, then run flowloop install again")
+    print(f"restart {host.lower()} and moonraker to load the change")
     return 0

@@ -45,6 +45,41 @@ config WANT_SENSOR_EMS22
 """
 MAKEFILE_LINES = "src-$(CONFIG_WANT_SENSOR_EMS22) += sensor_ems22.c\n"
 
+# Kalico: the MCU code is a firmware extra, a folder in src/extras/ with its
+# own Kconfig and Makefile; Kalico's scripts/find-firmware-extras.sh sources
+# them (its "Firmware Extras" menu) at every make. The folder is flowloop's:
+# these two files are written, the sources linked, --uninstall removes it.
+KALICO_EXTRA = "flowloop"
+KALICO_KCONFIG = """\
+# Written by flowloop install; flowloop install --uninstall removes it.
+config WANT_SENSOR_EMS22
+    bool "Support EMS22 filament flow sensor (flowloop)"
+    depends on WANT_SPI
+    default y
+config NEED_SENSOR_BULK
+    bool
+    depends on WANT_SENSOR_EMS22
+    default y
+"""
+KALICO_MAKEFILE = f"""\
+# Written by flowloop install; flowloop install --uninstall removes it.
+dirs-y += src/extras/{KALICO_EXTRA}
+src-$(CONFIG_WANT_SENSOR_EMS22) += extras/{KALICO_EXTRA}/{SENSOR_C}
+"""
+
+# The oldest Klipper flowloop runs on: klippy_extras need
+# mcu.register_serial_response (Klipper commit c89393cda, 2026-02-26). No
+# release has it yet: v0.13.0 (2025-04) and older are refused at install.
+MIN_KLIPPER = "Klipper from 2026-02-26 on (commit c89393cda)"
+MIN_KLIPPER_MARKER = ("klippy/mcu.py", "def register_serial_response(")
+
+
+def klipper_too_old_message(where: str) -> str:
+    return (f"{where} is older than flowloop needs: it lacks"
+            f" mcu.register_serial_response; flowloop needs {MIN_KLIPPER}, and"
+            " the v0.13.0 release and older are not supported. Update Klipper"
+            " (cd ~/klipper; git pull), then run flowloop install again")
+
 
 class InstallError(FlowloopError):
     pass
@@ -150,26 +185,40 @@ class Change:
     old_text: Optional[str] = None      # what it replaces (None: a new file)
     link_to: Optional[Path] = None      # create this symlink
     unlink_from: Optional[str] = None   # remove the symlink, which points here
+    folder: Optional[str] = None        # "make" or "remove" this (empty) folder
 
     def apply(self) -> None:
-        if self.link_to is not None:
+        if self.folder == "make":
+            os.mkdir(self.path)
+        elif self.folder == "remove":
+            os.rmdir(self.path)
+        elif self.link_to is not None:
             os.symlink(self.link_to, self.path)
         elif self.unlink_from is not None:
             os.unlink(self.path)
+        elif self.new_text is None:
+            os.unlink(self.path)  # a file flowloop wrote: removed
         else:
             _write_atomic(self.path, self.new_text)
 
     def revert(self) -> None:
-        if self.link_to is not None or (self.new_text is not None
-                                        and self.old_text is None):
+        if self.folder == "make":
+            os.rmdir(self.path)
+        elif self.folder == "remove":
+            os.mkdir(self.path)
+        elif self.link_to is not None or (self.new_text is not None
+                                          and self.old_text is None):
             os.unlink(self.path)  # it did not exist before
         elif self.unlink_from is not None:
             os.symlink(self.unlink_from, self.path)
         else:
             _write_atomic(self.path, self.old_text)
 
-    def check(self) -> None:
+    def check(self, made: Sequence[Path] = ()) -> None:
+        """made: folders an earlier change of the same plan creates."""
         parent = self.path.parent
+        while parent in made:
+            parent = parent.parent
         if not parent.is_dir():
             raise InstallError(f"{parent}: no such directory")
         if not os.access(parent, os.W_OK):
@@ -188,9 +237,16 @@ def _write_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def apply(changes: Sequence[Change]) -> None:
+def check_all(changes: Sequence[Change]) -> None:
+    made: List[Path] = []
     for change in changes:
-        change.check()
+        change.check(made)
+        if change.folder == "make":
+            made.append(change.path)
+
+
+def apply(changes: Sequence[Change]) -> None:
+    check_all(changes)
     done: List[Change] = []
     try:
         for change in changes:
@@ -229,13 +285,29 @@ def _link(changes: List[Change], path: Path, target: Path, uninstall: bool) -> N
 # What goes where
 
 
+# Where a built wheel carries what the installer links (setup.py's build_py
+# copies klippy_extras/, moonraker_components/ and mcu_sensor/ there).
+BUNDLE = "_hosts"
+
+
 def source_tree() -> Path:
-    """The flowloop checkout this package was installed from."""
-    root = Path(__file__).resolve().parents[2]
-    if not (root / "klippy_extras").is_dir():
-        raise InstallError(f"{root} is not a flowloop checkout (no klippy_extras/); "
-                           f"run 'flowloop install' from the git checkout's venv")
-    return root
+    """What the installer links: the git checkout this package runs from (an
+    editable install), else the copy a wheel or sdist install carries."""
+    package = Path(__file__).resolve().parents[1]
+    root = package.parent
+    if (root / "klippy_extras").is_dir():
+        return root
+    bundle = package / BUNDLE
+    if (bundle / "klippy_extras").is_dir():
+        return bundle
+    raise InstallError(f"{package} has no klippy_extras/ beside or inside it: "
+                       f"reinstall flowloop (pip install klipper-flowloop, or "
+                       f"pip install -e from a git checkout)")
+
+
+def is_checkout(source: Path) -> bool:
+    """A git checkout (Moonraker's update_manager can pull it), not a wheel."""
+    return (source / ".git").exists()
 
 
 def _modules(folder: Path) -> List[Path]:
@@ -272,6 +344,15 @@ def check_klipper_tree(klipper: Path) -> None:
             raise InstallError(f"{klipper} is not a Klipper tree (no {rel})")
 
 
+def check_klipper_version(klipper: Path) -> None:
+    """Refuse a Klipper older than MIN_KLIPPER (a feature check: forks and
+    untagged checkouts are judged by what they offer)."""
+    rel, marker = MIN_KLIPPER_MARKER
+    path = klipper / rel
+    if path.is_file() and marker not in path.read_text(errors="replace"):
+        raise InstallError(klipper_too_old_message(f"Klipper at {klipper}"))
+
+
 def git_exclude_file(tree: Path) -> Optional[Path]:
     dotgit = tree / ".git"
     if dotgit.is_dir():
@@ -303,9 +384,112 @@ def _exclude_changes(changes: List[Change], tree: Path, rel_paths: List[str],
               lambda t: put_block(t, "files", body))
 
 
+def is_kalico(klipper: Path) -> bool:
+    """Kalico (the Klipper fork): klippy loads plugins from klippy/plugins/
+    and its Makefile finds firmware extras in src/extras/."""
+    return ((klipper / "klippy" / "plugins" / "__init__.py").is_file()
+            and (klipper / "scripts" / "find-firmware-extras.sh").is_file())
+
+
+def host_name(klipper: Path) -> str:
+    return "Kalico" if is_kalico(Path(klipper).expanduser()) else "Klipper"
+
+
+def host_notes(klipper: Path) -> List[str]:
+    """What works differently on this host, one line each (printed at install)."""
+    klipper = Path(klipper).expanduser()
+    if not is_kalico(klipper):
+        return []
+    rel, marker = MIN_KLIPPER_MARKER
+    path = klipper / rel
+    if path.is_file() and marker not in path.read_text(errors="replace"):
+        return [f"Kalico at {klipper} lacks mcu.register_serial_response: a"
+                " [flow_sensor] reading an EMS22 on an MCU refuses to start there"
+                " (type: simulated, the calibrations and the Moonraker component"
+                " work)"]
+    return []
+
+
+def _own_file(changes: List[Change], path: Path, text: str, uninstall: bool) -> None:
+    """A file flowloop writes whole (its first line says so): written,
+    refreshed, or removed; anyone else's file of that name is refused."""
+    header = text.splitlines(keepends=True)[0]
+    if path.is_symlink() or path.exists():
+        old = path.read_text(encoding="utf-8") if path.is_file() else ""
+        if not old.startswith(header) or path.is_symlink():
+            if uninstall:
+                return
+            raise InstallError(f"{path} exists and is not flowloop's; move it away "
+                               f"first")
+        if uninstall:
+            changes.append(Change(path, f"remove {path}", old_text=old))
+        elif old != text:
+            changes.append(Change(path, f"refresh {path}", new_text=text,
+                                  old_text=old))
+    elif not uninstall:
+        changes.append(Change(path, f"write {path}", new_text=text))
+
+
+def plan_kalico(klipper: Path, source: Path, uninstall: bool) -> List[Change]:
+    """Kalico's way: klippy modules as plugins, the MCU code as a firmware
+    extra; no file of Kalico's is edited (both folders are git-ignored by
+    Kalico). Links and blocks a Klipper-style install left are taken out."""
+    changes: List[Change] = []
+    modules = klippy_modules(source)
+    plugins = klipper / "klippy" / "plugins"
+    extras = klipper / "klippy" / "extras"
+    if not uninstall:
+        for module in modules:
+            own = extras / module.name
+            if own.exists() and not own.is_symlink():
+                raise InstallError(
+                    f"{own}: Kalico has a module named {module.name} itself; "
+                    f"Kalico refuses a plugin of the same name")
+    for module in modules:
+        _link(changes, plugins / module.name, module, uninstall)
+    _stale_links(changes, plugins, source, modules)
+    _stale_links(changes, extras, source, [])  # a Klipper-style install
+    _stale_links(changes, klipper / "src", source, [])
+    _edit(changes, klipper / "src" / "Makefile", "src/Makefile",
+          lambda t: drop_block(t, "sensor"))
+    _edit(changes, klipper / "src" / "Kconfig", "src/Kconfig",
+          lambda t: drop_block(drop_block(t, "sensor-prompt"), "sensor"))
+    _exclude_changes(changes, klipper, [], uninstall=True)
+
+    folder = klipper / "src" / "extras" / KALICO_EXTRA
+    c_files = mcu_sources(source)
+    remove = uninstall or not c_files
+    if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
+        if remove:
+            return changes
+        raise InstallError(f"{folder} exists and is not flowloop's firmware extra;"
+                           f" move it away first")
+    if not folder.exists():
+        if not remove:
+            changes.append(Change(folder, f"make folder {folder}", folder="make"))
+        else:
+            return changes
+    before = len(changes)
+    for c_file in c_files:
+        _link(changes, folder / c_file.name, c_file, remove)
+    _stale_links(changes, folder, source, c_files)
+    _own_file(changes, folder / "Kconfig", KALICO_KCONFIG, remove)
+    _own_file(changes, folder / "Makefile", KALICO_MAKEFILE, remove)
+    if remove and folder.is_dir():
+        gone = {c.path for c in changes[before:]}
+        if all(p in gone for p in folder.iterdir()):
+            changes.append(Change(folder, f"remove folder {folder}",
+                                  folder="remove"))
+    return changes
+
+
 def plan_klipper(klipper: Path, source: Path, uninstall: bool = False) -> List[Change]:
     klipper = Path(klipper).expanduser()
     check_klipper_tree(klipper)
+    if is_kalico(klipper):
+        return plan_kalico(klipper, source, uninstall)
+    if not uninstall:
+        check_klipper_version(klipper)
     changes: List[Change] = []
     excluded = []
     for module in klippy_modules(source):
@@ -406,6 +590,11 @@ def plan_moonraker_conf(config_dir: Path, source: Path,
         raise InstallError(f"{conf}: no such file (use --config-dir)")
     changes: List[Change] = []
     if uninstall:
+        _edit(changes, conf, "moonraker.conf",
+              lambda t: drop_block(t, "update-manager"))
+        return changes
+    if not is_checkout(source):
+        # Installed from a wheel: pip updates it, not a git_repo updater.
         _edit(changes, conf, "moonraker.conf",
               lambda t: drop_block(t, "update-manager"))
         return changes

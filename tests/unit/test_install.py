@@ -363,3 +363,162 @@ def test_both_forms_of_component_are_found(tmp_path):
     (comps / "_private.py").write_text("")
     assert [p.name for p in install.moonraker_components(tmp_path)] == [
         "module.py", "pkg"]
+
+
+# --- Kalico: plugins and a firmware extra, none of Kalico's files edited -----
+
+def kalico_path() -> Path:
+    return Path(os.environ.get("KALICO_PATH", "~/kalico")).expanduser()
+
+
+@pytest.fixture
+def kalico_tree(tmp_path):
+    """A copy of the user's Kalico when there is one, else its skeleton."""
+    tree = tmp_path / "kalico"
+    kp = kalico_path()
+    if install.is_kalico(kp):
+        tree.mkdir()
+        for rel in ("klippy", "src", "scripts"):
+            shutil.copytree(kp / rel, tree / rel, symlinks=True,
+                            ignore=shutil.ignore_patterns("__pycache__", "out"))
+        for rel in ("Makefile", ".gitignore"):
+            shutil.copy(kp / rel, tree / rel)
+        (tree / ".git" / "info").mkdir(parents=True)
+        (tree / ".git" / "info" / "exclude").write_text("# git ls-files\n")
+    else:
+        (tree / "klippy" / "extras").mkdir(parents=True)
+        (tree / "klippy" / "plugins").mkdir()
+        (tree / "klippy" / "plugins" / "__init__.py").write_text("# plugins\n")
+        (tree / "klippy" / "klippy.py").write_text("")
+        (tree / "src" / "extras").mkdir(parents=True)
+        (tree / "src" / "extras" / ".gitignore").write_text("*\n")
+        (tree / "src" / "Makefile").write_text("src-y += sched.c\n")
+        (tree / "src" / "Kconfig").write_text('source "src/extras/Kconfig"\n')
+        (tree / "scripts").mkdir()
+        (tree / "scripts" / "find-firmware-extras.sh").write_text("#!/bin/sh\n")
+    return tree
+
+
+def test_kalico_is_told_from_klipper(kalico_tree, klipper_tree):
+    assert install.is_kalico(kalico_tree) and install.host_name(kalico_tree) == "Kalico"
+    assert not install.is_kalico(klipper_tree)
+
+
+def test_kalico_install_uses_plugins_and_a_firmware_extra_and_uninstall_restores(
+        kalico_tree, moonraker_checkout, config_dir, capsys):
+    trees = (kalico_tree, moonraker_checkout, config_dir)
+    before = [snapshot(t) for t in trees]
+    args = args_for(*trees)
+    assert run_install(*args, "--dry-run") == 0
+    assert [snapshot(t) for t in trees] == before
+    assert "would make folder" in capsys.readouterr().out
+
+    assert run_install(*args) == 0
+    out = capsys.readouterr().out
+    assert "Firmware Extras" in out and "restart kalico" in out
+    plugin = kalico_tree / "klippy" / "plugins" / "flowloop.py"
+    assert plugin.is_symlink()
+    assert plugin.resolve() == PROJECT / "klippy_extras" / "flowloop.py"
+    assert not (kalico_tree / "klippy" / "extras" / "flowloop.py").exists()
+    extra = kalico_tree / "src" / "extras" / install.KALICO_EXTRA
+    assert (extra / install.SENSOR_C).resolve() == (
+        PROJECT / "mcu_sensor" / install.SENSOR_C)
+    assert (extra / "Kconfig").read_text() == install.KALICO_KCONFIG
+    assert (extra / "Makefile").read_text() == install.KALICO_MAKEFILE
+    # no file of Kalico's changed: only new paths in the two add-on folders
+    installed = snapshot(kalico_tree)
+    added = set(installed) - set(before[0])
+    assert {k: v for k, v in installed.items() if k not in added} == before[0]
+    assert all(p.startswith(("klippy/plugins/", "src/extras/flowloop")) for p in added)
+
+    assert run_install(*args) == 0  # idempotent
+    assert snapshot(kalico_tree) == installed
+    assert run_install(*args, "--uninstall") == 0
+    assert [snapshot(t) for t in trees] == before
+
+
+def test_kalicos_make_finds_the_extra_and_menuconfig_offers_it(kalico_tree):
+    """Kalico's own scripts: find-firmware-extras.sh sources our Kconfig and
+    Makefile, and olddefconfig turns the sensor on for an SPI board."""
+    if not install.is_kalico(kalico_path()):
+        pytest.skip(f"no Kalico checkout at {kalico_path()} (set KALICO_PATH)")
+    (kalico_tree / "lib").symlink_to(kalico_path() / "lib")
+    install.apply(install.plan_klipper(kalico_tree, PROJECT))
+    shutil.copy(kalico_path() / "test" / "configs" / "atmega2560.config",
+                kalico_tree / ".config")
+    proc = subprocess.run(["make", "olddefconfig"], cwd=kalico_tree,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    extras = kalico_tree / "src" / "extras"
+    assert 'source "src/extras/flowloop/Kconfig"' in (extras / "Kconfig").read_text()
+    assert "include src/extras/flowloop/Makefile" in (extras / "Makefile").read_text()
+    config = (kalico_tree / ".config").read_text()
+    assert "CONFIG_WANT_SENSOR_EMS22=y" in config
+    assert "CONFIG_NEED_SENSOR_BULK=y" in config
+
+
+def test_a_klipper_style_install_in_kalico_is_moved_to_the_plugin_folder(
+        kalico_tree, tmp_path):
+    source = (tmp_path / "source").resolve()
+    shutil.copytree(PROJECT / "klippy_extras", source / "klippy_extras")
+    before = snapshot(kalico_tree)
+    old = kalico_tree / "klippy" / "extras" / "flowloop.py"
+    old.symlink_to(source / "klippy_extras" / "flowloop.py")  # an older install
+    install.apply(install.plan_klipper(kalico_tree, source))
+    assert not old.is_symlink()  # Kalico refuses a name in extras and plugins
+    assert (kalico_tree / "klippy" / "plugins" / "flowloop.py").is_symlink()
+    install.apply(install.plan_klipper(kalico_tree, source, uninstall=True))
+    assert snapshot(kalico_tree) == before
+
+
+def test_a_kalico_module_of_the_same_name_is_refused(kalico_tree):
+    (kalico_tree / "klippy" / "extras" / "flowloop.py").write_text("# Kalico's\n")
+    before = snapshot(kalico_tree)
+    with pytest.raises(install.InstallError, match="Kalico has a module named"):
+        install.plan_klipper(kalico_tree, PROJECT)
+    assert snapshot(kalico_tree) == before
+
+
+def test_a_users_file_in_the_extra_folder_is_kept_at_uninstall(kalico_tree):
+    install.apply(install.plan_klipper(kalico_tree, PROJECT))
+    extra = kalico_tree / "src" / "extras" / install.KALICO_EXTRA
+    (extra / "notes.txt").write_text("mine\n")
+    install.apply(install.plan_klipper(kalico_tree, PROJECT, uninstall=True))
+    assert sorted(p.name for p in extra.iterdir()) == ["notes.txt"]
+
+
+def test_a_foreign_extra_folder_is_refused(kalico_tree):
+    extra = kalico_tree / "src" / "extras" / install.KALICO_EXTRA
+    extra.mkdir()
+    (extra / "Kconfig").write_text("config SOMEONE_ELSES\n    bool\n")
+    before = snapshot(kalico_tree)
+    with pytest.raises(install.InstallError, match="is not flowloop's"):
+        install.apply(install.plan_klipper(kalico_tree, PROJECT))
+    assert snapshot(kalico_tree) == before
+
+
+# --- installed from a wheel: the bundled copy, no git updater -----------------
+
+def test_an_installed_package_links_its_bundled_copy(tmp_path, monkeypatch):
+    site = tmp_path / "site-packages"
+    shutil.copytree(PROJECT / "flowloop", site / "flowloop",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    bundle = site / "flowloop" / install.BUNDLE
+    shutil.copytree(PROJECT / "klippy_extras", bundle / "klippy_extras")
+    monkeypatch.setattr(install, "__file__",
+                        str(site / "flowloop" / "host" / "install.py"))
+    assert install.source_tree() == bundle
+    (bundle / "klippy_extras" / "flowloop.py").unlink()
+    shutil.rmtree(bundle / "klippy_extras")
+    with pytest.raises(install.InstallError, match="reinstall flowloop"):
+        install.source_tree()
+
+
+def test_no_update_manager_block_for_a_pip_installed_flowloop(config_dir, tmp_path):
+    bundle = tmp_path / "bundle"
+    (bundle / "klippy_extras").mkdir(parents=True)
+    assert install.plan_moonraker_conf(config_dir, bundle) == []
+    install.apply(install.plan_moonraker_conf(config_dir, PROJECT))  # a checkout's
+    assert "[update_manager flowloop]" in (config_dir / "moonraker.conf").read_text()
+    install.apply(install.plan_moonraker_conf(config_dir, bundle))  # now a wheel's
+    assert "update_manager" not in (config_dir / "moonraker.conf").read_text()
