@@ -20,6 +20,7 @@ from flowloop.host.klipper_config import option_message
 from flowloop.material import fit as fl_fit
 from flowloop.material import measure as fl_measure
 from flowloop.material import profile as fl_profile
+from flowloop.sensor import grip as flow_grip
 
 HEARTBEAT_INTERVAL = 0.5
 READING_INTERVAL = 1.0      # s between temperature readings while waiting
@@ -56,11 +57,6 @@ class FixedPowerControl:
         return False
 
 
-def _option(config, name, default, limits):
-    low, high = limits
-    return config.getfloat(name, default, minval=low, maxval=high)
-
-
 class MeasureProfile:
     def __init__(self, config):
         self.printer = printer = config.get_printer()
@@ -68,15 +64,17 @@ class MeasureProfile:
         self.reactor = printer.get_reactor()
         self.section = config.get_name()
         self.sensor_name = config.get('sensor', None)
-        self.step_time = _option(config, 'step_time',
-                                 fl_measure.DEFAULT_STEP_TIME_S,
-                                 fl_measure.STEP_TIME_RANGE_S)
-        self.settle_time = _option(config, 'settle_time',
-                                   fl_measure.DEFAULT_SETTLE_TIME_S,
-                                   fl_measure.SETTLE_TIME_RANGE_S)
-        self.max_settle_time = _option(config, 'max_settle_time',
-                                       fl_measure.DEFAULT_MAX_SETTLE_TIME_S,
-                                       fl_measure.MAX_SETTLE_TIME_RANGE_S)
+        low, high = fl_measure.STEP_TIME_RANGE_S
+        self.step_time = config.getfloat(
+            'step_time', fl_measure.DEFAULT_STEP_TIME_S, minval=low, maxval=high)
+        low, high = fl_measure.SETTLE_TIME_RANGE_S
+        self.settle_time = config.getfloat(
+            'settle_time', fl_measure.DEFAULT_SETTLE_TIME_S, minval=low,
+            maxval=high)
+        low, high = fl_measure.MAX_SETTLE_TIME_RANGE_S
+        self.max_settle_time = config.getfloat(
+            'max_settle_time', fl_measure.DEFAULT_MAX_SETTLE_TIME_S, minval=low,
+            maxval=high)
         self.host_timeout = config.getfloat(
             'host_timeout', watchdog.DEFAULT_HOST_TIMEOUT_S, minval=1.,
             maxval=60.)
@@ -92,7 +90,8 @@ class MeasureProfile:
         printer.register_event_handler('klippy:connect', self._handle_connect)
         printer.register_event_handler('klippy:shutdown', self._handle_shutdown)
         gcode = printer.lookup_object('gcode')
-        gcode.register_command(NAME, self.cmd_MEASURE_MATERIAL_PROFILE,
+        gcode.register_command('MEASURE_MATERIAL_PROFILE',
+                               self.cmd_MEASURE_MATERIAL_PROFILE,
                                desc=self.cmd_MEASURE_MATERIAL_PROFILE_help)
         gcode.register_command('CANCEL_MATERIAL_PROFILE',
                                self.cmd_CANCEL_MATERIAL_PROFILE,
@@ -108,6 +107,7 @@ class MeasureProfile:
         status.setdefault('points', [])
         status.setdefault('result', None)
         status.setdefault('heater_control', None)
+        status.setdefault('heater_pwm', None)
         self.status = status
 
     def get_status(self, eventtime=None):
@@ -219,7 +219,8 @@ class MeasureProfile:
             base = None if base is None else base.profile
             bounds = self._bounds(gcmd, base, heater)
             plan = fl_measure.make_plan(
-                self._levels(gcmd, 'TEMPS'), self._levels(gcmd, 'POWERS'),
+                self._levels(gcmd.get('TEMPS', None), 'TEMPS'),
+                self._levels(gcmd.get('POWERS', None), 'POWERS'),
                 gcmd.get_float('START_FLOW',
                                fl_measure.DEFAULT_START_FLOW_MM3_S),
                 gcmd.get_float('STEP', fl_measure.DEFAULT_STEP_MM3_S),
@@ -240,8 +241,7 @@ class MeasureProfile:
                    bool(gcmd.get_int('ACTIVATE', 0, minval=0, maxval=1)))
 
     @staticmethod
-    def _levels(gcmd, param):
-        text = gcmd.get(param, None)
+    def _levels(text, param):
         if text is None:
             return None
         return parse_numbers(text, param, what="level")
@@ -335,6 +335,8 @@ class Run:
         self.heater.set_temp(self.limits.min_temp_c)
         self.printer.send_event('flowloop:heater_fixed_power',
                                 self.extruder_name, pwm)
+        self.owner._set_status('running', heater_control=self.control_name(),
+                               heater_pwm=pwm)
 
     def restore_heater(self):
         """Give the heater its own control back (idempotent; any thread)."""
@@ -344,6 +346,9 @@ class Run:
         self.old_control = self.control = None
         self.printer.send_event('flowloop:heater_fixed_power',
                                 self.extruder_name, None)
+        self.owner._set_status(self.owner.status['state'],
+                               heater_control=self.control_name(),
+                               heater_pwm=None)
 
     def control_name(self):
         return type(self.heater.control).__name__
@@ -477,10 +482,15 @@ class Run:
     def _step(self, flow):
         """Extrude into air at flow for step_time; the step judged."""
         speed = flow / self.area
+        # The sensor's window length, as its windows show it
+        window_mm = max([float(w.commanded_mm) for w in self.windows[-8:]]
+                        or [flow_grip.DEFAULT_WINDOW_MM])
+        duration = fl_measure.step_duration_s(self.owner.step_time, flow,
+                                              self.area, window_mm)
         for _ in range(MAX_STEP_RETRIES + 1):
             start = self.toolhead.get_last_move_time()
             first = len(self.windows)
-            left = self.owner.step_time
+            left = duration
             while left > 1e-9:
                 chunk = min(MAX_MOVE_TIME, left)
                 pos = self.toolhead.get_position()
@@ -492,6 +502,9 @@ class Run:
             step = fl_measure.judge_step(self.windows[first:], start, end, flow)
             if step is not None:
                 return step
+            logging.info("%s: no judged window in %.3f..%.3f: %s", NAME, start,
+                         end, self.windows[first:])
+            self._check()   # a sensor fault judges nothing: say that instead
         raise MeasurementStopped(
             f"no grip window was judged at {flow:g} mm^3/s (a longer"
             f" step_time in [{self.owner.section}]?)")

@@ -39,8 +39,13 @@ SETTLE_TIME_RANGE_S = (2.0, 120.0)
 DEFAULT_MAX_SETTLE_TIME_S = 300.0
 MAX_SETTLE_TIME_RANGE_S = (30.0, 1800.0)
 SETTLE_BAND_C = 1.0
+# A step lasts at least this many grip windows (the first ones are the
+# transient, and a window straddling the step's start is not judged).
+MIN_STEP_WINDOWS = 4
 # Windows in the first part of a step are the transient: not judged.
 STEP_TRANSIENT_SHARE = 0.3
+# A window closes on the first sample past its filament: just after the step.
+STEP_END_SLACK_S = 0.25
 PWM_MAX = 255.0          # the profile's PWM scale (ddPrint's)
 
 
@@ -143,28 +148,37 @@ class StepResult:
                 f" measured {self.measured_mm3_s:.2f} mm^3/s{temp}")
 
 
+def step_duration_s(step_time_s: float, flow_mm3_s: float,
+                    filament_area_mm2: float, window_mm: float) -> float:
+    """How long a step at flow_mm3_s runs: step_time_s, or long enough for
+    MIN_STEP_WINDOWS grip windows of window_mm filament at a low flow."""
+    speed_mm_s = flow_mm3_s / filament_area_mm2
+    return max(step_time_s, MIN_STEP_WINDOWS * window_mm / speed_mm_s)
+
+
 def judge_step(windows: Sequence[Window], start_time: float, end_time: float,
                commanded_mm3_s: float) -> Optional[StepResult]:
     """The step from its judged windows after the transient (None: none)."""
     after = start_time + STEP_TRANSIENT_SHARE * (end_time - start_time)
     judged = [w for w in windows
               if w.grip is not None and w.start_time >= after
-              and w.end_time <= end_time + 1e-6]
+              and w.end_time <= end_time + STEP_END_SLACK_S]
     if not judged:
         return None
-    flows = [w.flow_mm3_s for w in judged if w.flow_mm3_s is not None]
-    temps = [w.temp_c for w in judged if w.temp_c is not None]
-    grip = statistics.median(w.grip for w in judged)
+    flows = [float(w.flow_mm3_s) for w in judged if w.flow_mm3_s is not None]
+    temps = [float(w.temp_c) for w in judged if w.temp_c is not None]
+    grip = float(statistics.median(float(w.grip) for w in judged))
     measured = statistics.fmean(flows) if flows else commanded_mm3_s * grip
-    return StepResult(commanded_mm3_s, float(grip), float(measured),
+    return StepResult(float(commanded_mm3_s), grip, float(measured),
                       statistics.fmean(temps) if temps else None, len(judged))
 
 
 def limit_point(step: StepResult, power: float, fallback_temp_c: float
                 ) -> MeasuredPoint:
     """The level's point: the step whose grip fell below MIN_GRIP."""
-    temp = step.temp_c if step.temp_c is not None else fallback_temp_c
+    temp = float(step.temp_c if step.temp_c is not None else fallback_temp_c)
     return MeasuredPoint(kind="into_air", temp_c=round(temp, 2),
-                         flow_mm3_s=round(step.measured_mm3_s, 4),
-                         grip=round(min(2.0, max(0.0, step.grip)), 4),
-                         heater_pwm=round(min(1.0, max(0.0, power)) * PWM_MAX, 2))
+                         flow_mm3_s=round(float(step.measured_mm3_s), 4),
+                         grip=round(min(2.0, max(0.0, float(step.grip))), 4),
+                         heater_pwm=round(min(1.0, max(0.0, float(power)))
+                                          * PWM_MAX, 2))

@@ -110,3 +110,10 @@ def test_a_hotend_at_fixed_power_sags_under_flow_where_its_controller_does_not()
     held.advance(30.0, flow_mm3_s=10.0)
     assert fixed.temp_c < 215.0
     assert held.temp_c == pytest.approx(220.0, abs=0.5)
+
+
+def test_a_low_flow_step_lasts_long_enough_for_its_windows():
+    # 2 mm^3/s on 1.75 mm filament is 0.83 mm/s: 4 windows of 1.25 mm take 6 s
+    assert measure.step_duration_s(3.0, 2.0, 2.405, 1.25) == pytest.approx(
+        4 * 1.25 / (2.0 / 2.405))
+    assert measure.step_duration_s(3.0, 10.0, 2.405, 1.25) == 3.0

@@ -1,0 +1,37 @@
+"""klippy as test_measure_profile.py needs it: run in place of klippy.py (cwd:
+the Klipper tree). Every simulated [flow_sensor NAME] gets an API endpoint
+measure_profile_test/fault/NAME (fault=missing|magnet|parity|none) that makes
+its twin misbehave at once: a running MEASURE_MATERIAL_PROFILE holds the
+G-code queue, so SET_FLOW_SENSOR_SIMULATION could only run after it.
+flowloop itself ships no such endpoint."""
+
+import os
+import runpy
+import sys
+
+KLIPPY = os.path.join(os.getcwd(), "klippy", "klippy.py")
+sys.path.insert(0, os.path.dirname(KLIPPY))
+sys.argv[0] = KLIPPY
+
+import extras.flow_sensor as flow_sensor  # noqa: E402
+
+load_config_prefix = flow_sensor.load_config_prefix
+
+
+def load_for_tests(config):
+    sensor = load_config_prefix(config)
+    if isinstance(sensor.source, flow_sensor.SimulatedSource):
+        def fault(web_request):
+            name = web_request.get_str("fault")
+            sensor.source.catch_up()
+            sensor.source.twin.set_fault(None if name == "none" else name)
+            web_request.send({"fault": name})
+
+        webhooks = config.get_printer().lookup_object("webhooks")
+        webhooks.register_endpoint(f"measure_profile_test/fault/{sensor.name}",
+                                   fault)
+    return sensor
+
+
+flow_sensor.load_config_prefix = load_for_tests
+runpy.run_path(KLIPPY, run_name="__main__")

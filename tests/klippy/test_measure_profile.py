@@ -1,0 +1,229 @@
+"""MEASURE_MATERIAL_PROFILE end to end on the twin, in klippy batch mode.
+
+The simulated sensor's hotend (40 W, lag, sag, held at a fixed power while
+measuring) melts what the active profile's line gives. A test client on
+klippy's API socket registers the remote method flowloop_store_profile, as
+Moonraker's [flowloop] component does, and records what klippy sends it.
+The measurement must recover the profile, hand it over once, and give the
+heater its own control back whether it succeeds, fails, is cancelled or
+meets a sensor fault; an aborted run sends nothing."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import threading
+from pathlib import Path
+
+import pytest
+
+from devtools import stack
+from flowloop.material.profile import profile_from_dict
+
+HERE = Path(__file__).resolve().parent
+CONFIG = HERE / "measure_profile.cfg"
+# into_air == real_print: the twin melts exactly this line at any working point
+SLOPE, TEMP, FLOW = 0.12, 210.0, 6.0
+KNOWN = {
+    "identity": {"name": "known", "nozzle_diameter_mm": 0.4},
+    "lines": {"into_air": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
+                           "flow_mm3_s": FLOW},
+              "real_print": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
+                             "flow_mm3_s": FLOW}},
+    "bounds": {"min_temp_c": 185.0, "recommended_temp_c": 210.0,
+               "max_temp_c": 250.0},
+    "provenance": {"method": "manual"},
+}
+# The stated tolerance of the twin test: slope within 5 %, the line's flow at
+# the middle level within 3 %, the intercept within 1.5 mm^3/s.
+SLOPE_TOLERANCE = 0.05
+FLOW_TOLERANCE = 0.03
+INTERCEPT_TOLERANCE_MM3_S = 1.5
+
+
+class Client:
+    """klippy's API socket; messages that answer no request (remote method
+    calls) are kept in `remote`."""
+
+    def __init__(self, path: Path):
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.connect(str(path))
+        self.sock.settimeout(600)
+        self.buffer = b""
+        self.next_id = 0
+        self.remote = []
+
+    def call(self, method, **params):
+        self.next_id += 1
+        self.sock.sendall(json.dumps({"id": self.next_id, "method": method,
+                                      "params": params}).encode() + b"\x03")
+        while True:
+            while b"\x03" not in self.buffer:
+                chunk = self.sock.recv(65536)
+                if not chunk:
+                    raise ConnectionError("klippy closed its API socket")
+                self.buffer += chunk
+            raw, self.buffer = self.buffer.split(b"\x03", 1)
+            msg = json.loads(raw)
+            if msg.get("id") == self.next_id:
+                if "error" in msg:
+                    raise RuntimeError(msg["error"]["message"])
+                return msg["result"]
+            if "id" not in msg:
+                self.remote.append(msg)
+
+    def status(self):
+        return self.call("objects/query", objects={"measure_profile": None}
+                         )["status"]["measure_profile"]
+
+    def close(self):
+        self.sock.close()
+
+
+class Harnessed:
+    """The Klipper build, klippy started through measure_profile_harness.py."""
+
+    def __init__(self, build):
+        self.build, self.tree = build, build.tree
+        self.klippy = HERE / "measure_profile_harness.py"
+
+    def dictionary(self, target):
+        return self.build.dictionary(target)
+
+
+@pytest.fixture(scope="module")
+def printer(klipper_build, klippy_venv):
+    workdir = stack.short_tempdir("fl-measure-")
+    klippy = stack.Klippy(Harnessed(klipper_build), klippy_venv, CONFIG, workdir,
+                          {"mcu": "atmega2560"})
+    try:
+        klippy.wait_ready()
+        runner, watcher = Client(klippy.api_socket), Client(klippy.api_socket)
+        stack.wait_until(lambda: watcher.call("info")["state"] == "ready", 30)
+        runner.call("register_remote_method",
+                    response_template={"method": "store"},
+                    remote_method="flowloop_store_profile")
+        runner.call("flowloop/set_active_profile", extruder="extruder",
+                    profile=KNOWN, working_point=0.5)
+        yield runner, watcher, klippy
+        runner.close()
+        watcher.close()
+    finally:
+        klippy.stop()
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def stored(client):
+    return [m for m in client.remote if m.get("method") == "store"]
+
+
+def measure_in_thread(runner, script):
+    outcome = {}
+
+    def run():
+        try:
+            outcome["result"] = runner.call("gcode/script", script=script)
+        except Exception as e:  # the command's error, as Moonraker gets it
+            outcome["error"] = str(e)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    return thread, outcome
+
+
+def assert_heater_given_back(watcher):
+    status = watcher.status()
+    assert status["heater_control"] == "ControlPID"
+    assert status["heater_pwm"] is None
+
+
+def test_a_level_without_slip_fails_stores_nothing_and_gives_the_heater_back(
+        printer):
+    runner, watcher, _ = printer
+    before = len(stored(runner))
+    with pytest.raises(RuntimeError, match="grip stayed above 0.9 up to MAX_FLOW"
+                       " 4.5 mm.3/s.*nothing stored"):
+        runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE NAME=x "
+                    "TEMPS=200,220 START_FLOW=4 STEP=0.25 MAX_FLOW=4.5")
+    assert watcher.status()["state"] == "aborted"
+    assert_heater_given_back(watcher)
+    assert len(stored(runner)) == before
+
+
+def test_bad_input_changes_nothing(printer):
+    runner, watcher, _ = printer
+    with pytest.raises(RuntimeError, match="TEMPS: 300 degC is outside the "
+                       "profile's 185..250 degC; nothing changed"):
+        runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE NAME=x "
+                    "TEMPS=200,300")
+    assert watcher.status()["heater_control"] == "ControlPID"
+
+
+@pytest.mark.parametrize("stop, why", [
+    ("measure_profile/cancel", "cancelled"),
+    ("measure_profile_test/fault/sim", "flow sensor fault 'missing'"),
+])
+def test_a_run_stopped_mid_ramp_stores_nothing_and_gives_the_heater_back(
+        printer, stop, why):
+    runner, watcher, _ = printer
+    before = len(stored(runner))
+    thread, outcome = measure_in_thread(
+        runner, "MEASURE_MATERIAL_PROFILE NAME=stopped TEMPS=200,220 "
+        "START_FLOW=2 STEP=0.25 MAX_FLOW=14")
+    try:
+        held = stack.wait_until(
+            lambda: outcome or ((s := watcher.status())["flow"] is not None
+                                and s["heater_control"] == "FixedPowerControl"
+                                and s), 300, 0.2)
+        assert "heater_pwm" in held, (held, watcher.status())
+        assert 0 < held["heater_pwm"] < 1
+        watcher.call(stop, **({"fault": "missing"} if "fault" in stop else {}))
+        thread.join(300)
+    finally:
+        if "fault" in stop:
+            watcher.call(stop, fault="none")
+    assert why in outcome.get("error", ""), outcome
+    assert "nothing stored" in outcome["error"]
+    assert watcher.status()["state"] == "aborted"
+    assert_heater_given_back(watcher)
+    assert len(stored(runner)) == before
+
+
+def test_the_measurement_recovers_the_profile_and_hands_it_to_moonraker(printer):
+    runner, watcher, klippy = printer
+    before = len(stored(runner))
+    runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE NAME=measured "
+                "TEMPS=200,220,240 START_FLOW=4 STEP=0.25 MAX_FLOW=14 "
+                "MIN_GRIP=0.9 ACTIVATE=1")
+    calls = stored(runner)[before:]
+    assert len(calls) == 1
+    params = calls[0]["params"]
+    assert params["activate_extruder"] == "extruder"
+    profile = profile_from_dict(params["profile"])
+    line = profile.lines.into_air.line()
+    assert profile.name == "measured"
+    assert line.slope_mm3_s_per_c == pytest.approx(SLOPE, rel=SLOPE_TOLERANCE)
+    true_intercept = FLOW - SLOPE * TEMP
+    assert abs(line.intercept_mm3_s - true_intercept) <= INTERCEPT_TOLERANCE_MM3_S
+    assert line.flow_mm3_s(220.0) == pytest.approx(
+        SLOPE * 220.0 + true_intercept, rel=FLOW_TOLERANCE)
+    # the points are kept, each with its temperature, flow, grip and power
+    points = [p for p in profile.points if p.kind == "into_air"]
+    assert len(points) == 3
+    assert all(p.grip < 0.9 and 0 < p.heater_pwm < 255 for p in points)
+    assert sorted(p.temp_c for p in points) == [p.temp_c for p in points]
+    # (the power line is optional: refused when the points scatter about it)
+    power = profile.lines.into_air_power
+    assert power is None or power.slope_mm3_s_per_pwm > 0
+    assert profile.provenance.method == "into_air"
+    assert profile.provenance.min_grip == 0.9
+    # the base's real-print line is kept
+    assert profile.lines.real_print.slope_mm3_s_per_c == SLOPE
+    status = watcher.status()
+    assert status["state"] == "stored"
+    assert status["result"]["slope_mm3_s_per_c"] == pytest.approx(
+        line.slope_mm3_s_per_c)
+    assert_heater_given_back(watcher)
+    log = (klippy.workdir / "klippy.log").read_text(errors="replace")
+    assert "level 3/3 (240 degC): heater held at" in log
