@@ -422,14 +422,18 @@ class PrinterStack:
 def printer_stack(printer_cfg: Optional[Path] = None, with_klippy: bool = True,
                   moonraker_conf: str = "", trusted: str = "127.0.0.0/8",
                   target: str = "atmega2560",
-                  data_dir: Optional[Path] = None) -> Iterator[PrinterStack]:
+                  data_dir: Optional[Path] = None,
+                  build: Optional[KlipperBuild] = None,
+                  klippy_ready: bool = True) -> Iterator[PrinterStack]:
     """Start Moonraker (and klippy with printer_cfg, default config/printer.cfg).
 
     The printer config in data_dir/config/printer.cfg includes the given file
     and points virtual_sdcard at data_dir/gcodes, as Moonraker expects. A
     data_dir given is kept (and may be one an earlier stack used: its
     database and G-code files carry over, its config files are rewritten);
-    without one, a temporary directory is used and removed.
+    without one, a temporary directory is used and removed. build: a Klipper
+    tree to run instead of build_klipper()'s; klippy_ready=False only waits
+    for Moonraker (a broken printer's klippy never gets ready).
     """
     own_dir = data_dir is None
     data_dir = data_dir or short_tempdir("fl-stack-")
@@ -445,14 +449,15 @@ def printer_stack(printer_cfg: Optional[Path] = None, with_klippy: bool = True,
             include = printer_cfg or PROJECT / "config" / "printer.cfg"
             cfg.write_text(f"[include {include}]\n\n[virtual_sdcard]\n"
                            f"path: {data_dir / 'gcodes'}\n")
-            klippy = Klippy(build_klipper(), klippy_venv(), cfg, data_dir / "logs",
+            klippy = Klippy(build or build_klipper(), klippy_venv(), cfg,
+                            data_dir / "logs",
                             {"mcu": target}, api_socket=uds)
         moonraker = Moonraker(moonraker_venv(), data_dir,
                               klippy_uds=klippy.api_socket if klippy else None,
                               extra_conf=moonraker_conf, trusted=trusted)
         if klippy:
             klippy.wait_ready()
-        moonraker.wait_ready(klippy=klippy is not None)
+        moonraker.wait_ready(klippy=klippy is not None and klippy_ready)
         yield PrinterStack(data_dir, moonraker, klippy)
     finally:
         for proc in (moonraker, klippy):
