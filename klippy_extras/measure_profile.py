@@ -86,7 +86,7 @@ class MeasureProfile:
         self.run = None              # the measurement in progress, or None
         self.cancel_reason = None
         self.status = {}
-        self._set_status('idle', message='')
+        self._set_status('idle')
         printer.register_event_handler('klippy:connect', self._handle_connect)
         printer.register_event_handler('klippy:shutdown', self._handle_shutdown)
         gcode = printer.lookup_object('gcode')
@@ -104,6 +104,10 @@ class MeasureProfile:
     # --- status ---------------------------------------------------------------
     def _set_status(self, state, **changes):
         status = dict(self.status, state=state, **changes)
+        for field in ('name', 'level', 'flow'):
+            status.setdefault(field, None)
+        status.setdefault('levels', 0)
+        status.setdefault('message', '')
         status.setdefault('points', [])
         status.setdefault('result', None)
         status.setdefault('heater_control', None)
