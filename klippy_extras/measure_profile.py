@@ -435,12 +435,12 @@ class Run:
 
     def _heat_and_settle(self, temp_c):
         """Heat with the heater's own control; the mean power that held
-        temp_c once settled."""
+        temp_c, over a second settle_time once settled (the approach's
+        extra power left out)."""
         self.pheaters.set_temperature(self.heater, temp_c)
+        self._settle(fixed=False, target_c=temp_c)
         readings = self._settle(fixed=False, target_c=temp_c)
-        recent = [p for t, _, p in readings
-                  if t >= readings[-1][0] - self.owner.settle_time]
-        return sum(recent) / len(recent)
+        return sum(p for _, _, p in readings) / len(readings)
 
     def _settle(self, fixed, target_c=None):
         """Readings (time, temp, power) until the temperature holds still
@@ -486,8 +486,9 @@ class Run:
     def _step(self, flow):
         """Extrude into air at flow for step_time; the step judged."""
         speed = flow / self.area
-        # The sensor's window length, as its windows show it
-        window_mm = max([float(w.commanded_mm) for w in self.windows[-8:]]
+        # The sensor's window length, as its judged windows show it
+        window_mm = max([float(w.commanded_mm) for w in self.windows[-8:]
+                         if w.grip is not None]
                         or [flow_grip.DEFAULT_WINDOW_MM])
         duration = fl_measure.step_duration_s(self.owner.step_time, flow,
                                               self.area, window_mm)

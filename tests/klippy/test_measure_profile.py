@@ -227,3 +227,19 @@ def test_the_measurement_recovers_the_profile_and_hands_it_to_moonraker(printer)
     assert_heater_given_back(watcher)
     log = (klippy.workdir / "klippy.log").read_text(errors="replace")
     assert "level 3/3 (240 degC): heater held at" in log
+
+
+def test_the_macro_lifts_the_nozzle_and_measures_the_active_profile(printer):
+    runner, watcher, _ = printer
+    before = len(stored(runner))
+    runner.call("gcode/script", script="MEASURE_PROFILE_INTO_AIR TEMPS=200,230 "
+                "START_FLOW=4 STEP=0.5 MAX_FLOW=14 Z=20")
+    calls = stored(runner)[before:]
+    assert len(calls) == 1
+    params = calls[0]["params"]
+    assert params["profile"]["identity"]["name"] == "known measured"
+    assert params["activate_extruder"] is None
+    toolhead = watcher.call("objects/query", objects={"toolhead": None}
+                            )["status"]["toolhead"]
+    assert toolhead["homed_axes"] == "xyz"
+    assert toolhead["position"][2] == pytest.approx(20.0)
