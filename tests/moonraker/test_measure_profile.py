@@ -1,0 +1,80 @@
+"""MEASURE_MATERIAL_PROFILE between a real batch-mode klippy (the twin of
+tests/klippy/measure_profile.cfg) and the real Moonraker: the measured
+profile arrives through flowloop_store_profile, is stored with its points
+and provenance, shows in Moonraker's API and comes back activated in klippy."""
+
+from __future__ import annotations
+
+import shutil
+from urllib.parse import quote
+
+import pytest
+
+from devtools import stack
+from tests.samples import make
+
+KNOWN = make(name="known pla", bounds=(185.0, 210.0, 250.0),
+             air=(0.12, 210.0, 6.0), real=(0.12, 210.0, 6.0))
+MEASURE = ("MEASURE_MATERIAL_PROFILE NAME=\"measured pla\" TEMPS=200,220,240 "
+           "START_FLOW=4 STEP=0.25 MAX_FLOW=14 MIN_GRIP=0.9 ACTIVATE=1")
+
+
+@pytest.fixture(scope="module")
+def printer(klipper_build, klippy_venv, moonraker_venv):
+    cfg_dir = stack.short_tempdir("fl-mcfg-")
+    cfg = cfg_dir / "measure_printer.cfg"
+    cfg.write_text(f"[include {stack.PROJECT / 'tests/klippy/measure_profile.cfg'}]\n")
+    try:
+        with stack.printer_stack(printer_cfg=cfg) as ps:
+            yield ps
+    finally:
+        shutil.rmtree(cfg_dir, ignore_errors=True)
+
+
+def request(ps, method, path, body=None):
+    return ps.moonraker.request(method, path, body)
+
+
+def test_a_measured_profile_is_stored_with_its_points_and_provenance(printer):
+    status, body = request(printer, "POST", "/server/flowloop/profile",
+                           {"profile": KNOWN})
+    assert status == 200, body
+    status, body = request(printer, "POST", "/server/flowloop/profile/activate",
+                           {"name": "known pla"})
+    assert status == 200, body
+
+    def measure():
+        try:
+            printer.gcode(MEASURE)
+        except RuntimeError as e:  # Moonraker registers remote methods on ready
+            if "not registered" in str(e):
+                return False
+            raise
+        return True
+    assert stack.wait_until(measure, 60.0, 1.0)
+
+    def stored():
+        status, body = request(printer, "GET", "/server/flowloop/profile?name="
+                               + quote("measured pla"))
+        return body["result"]["profile"] if status == 200 else None
+    profile = stack.wait_until(stored, 20.0)
+    assert profile, "the measured profile never reached Moonraker"
+    points = [p for p in profile["points"] if p["kind"] == "into_air"]
+    assert len(points) == 3
+    assert all(p["grip"] < 0.9 and 0 < p["heater_pwm"] < 255 for p in points)
+    provenance = profile["provenance"]
+    assert provenance["method"] == "into_air"
+    assert provenance["source"] == "MEASURE_MATERIAL_PROFILE"
+    assert provenance["min_grip"] == 0.9
+    assert provenance["measured_at"].endswith("Z")
+    assert "the other line from 'known pla'" in provenance["note"]
+    assert profile["lines"]["into_air"]["slope_mm3_s_per_c"] == pytest.approx(
+        0.12, rel=0.05)
+    # listed, and active in klippy (ACTIVATE=1)
+    status, body = request(printer, "GET", "/server/flowloop/profiles")
+    summary = {p["name"]: p for p in body["result"]["profiles"]}["measured pla"]
+    assert summary["method"] == "into_air"
+    assert stack.wait_until(
+        lambda: printer.query("flowloop")["profiles"].get("extruder", {}).get(
+            "name") == "measured pla", 20.0)
+    assert printer.query("measure_profile")["state"] == "stored"
