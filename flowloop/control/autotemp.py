@@ -1,0 +1,212 @@
+"""Autotemp's temperature plan: heater targets ahead of the announced flow.
+
+Windows of flow are announced ahead of time (AUTOTEMP_FLOW FLOW= LEAD=
+DURATION=, flowloop.gcode.annotate). Each window needs the nozzle at the
+temperature at which the profile's line melts its flow (`Line.temp_c`),
+clamped to the limits (the profile's min and max, the heater's max_temp). The
+plan, on a grid of GRID_S in print time:
+
+1. need(t): the highest need of any window within `margin_s` of t (the
+   profile's minimum where nothing is extruded or nothing is known);
+2. nozzle(t): the lowest trajectory >= need that the hotend can follow, from
+   a backward pass: before a rise the nozzle must already be where the
+   heater can still reach the later need in time, both as a first-order lag
+   toward max_temp (time constant) and within the heater's power left over
+   after the loss to the room and the filament's heat (flowloop.control.hotend);
+3. target(t): the model inverted, dead time included: the target that, seen
+   dead_time_s later, makes the first-order lag follow nozzle(t) exactly;
+   clamped to the limits. Where the nozzle may cool, the target drops to the
+   need and the hotend cools as fast as it does.
+
+A planner knows only the windows announced so far (`announce`): the printer
+and the offline bake (`flowloop annotate --bake`) run the same one, so both
+give the same targets for the same file.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+from typing import List, NamedTuple, Optional, Tuple
+
+from ..errors import FlowloopError
+from ..material.profile import Line, Profile, profile_line
+from .hotend import HotendParams
+
+GRID_S = 0.1
+# The need is held this long before and after each window: targets set
+# between grid points, flushes and read-ahead land inside it.
+DEFAULT_MARGIN_S = 0.5
+# Share of the heater's spare power a planned rise may use: the rest absorbs
+# what the model does not know (a flow a little above the window's peak).
+POWER_SHARE = 0.9
+# Windows further back than this are forgotten.
+KEEP_S = 2.0
+DEFAULT_PARAMS = HotendParams()
+
+
+class TempLimits(NamedTuple):
+    min_temp_c: float
+    max_temp_c: float
+
+    @classmethod
+    def of(cls, profile: Profile, heater_max_temp_c: Optional[float] = None
+           ) -> TempLimits:
+        """The profile's bounds, never above the heater's max_temp."""
+        b = profile.bounds
+        top = b.max_temp_c if heater_max_temp_c is None \
+            else min(b.max_temp_c, heater_max_temp_c)
+        if top <= b.min_temp_c:
+            raise FlowloopError(
+                f"the heater's max_temp {top:g} degC is not above the profile's"
+                f" min_temp_c {b.min_temp_c:g} degC")
+        return cls(b.min_temp_c, top)
+
+    def clamp(self, temp_c: float) -> float:
+        return min(self.max_temp_c, max(self.min_temp_c, temp_c))
+
+
+@dataclass(frozen=True)
+class FlowWindow:
+    start_s: float
+    end_s: float
+    flow_mm3_s: float
+
+
+def check_announcement(flow_mm3_s: float, lead_s: float, duration_s: float
+                       ) -> None:
+    """AUTOTEMP_FLOW's numbers: finite, flow and lead >= 0, duration > 0."""
+    for name, value in (("FLOW", flow_mm3_s), ("LEAD", lead_s),
+                        ("DURATION", duration_s)):
+        if not math.isfinite(value) or value < 0.0:
+            raise FlowloopError(f"{name} must be a number >= 0, not {value:g}")
+    if duration_s <= 0.0:
+        raise FlowloopError(f"DURATION must be above 0 s, not {duration_s:g}")
+
+
+class TemperaturePlan:
+    """Heater targets over print time from the flow windows announced so far."""
+
+    def __init__(self, line: Line, limits: TempLimits,
+                 params: HotendParams = DEFAULT_PARAMS,
+                 margin_s: float = DEFAULT_MARGIN_S):
+        self.line = line
+        self.limits = limits
+        self.params = params
+        self.margin_s = margin_s
+        self.windows: List[FlowWindow] = []     # by start time
+        self.capped_windows = 0                 # needing more than max_temp
+        self.peak_flow_mm3_s = 0.0
+        # the planned grid: index of its first point, nozzle temperatures
+        self._first = 0
+        self._nozzle: List[float] = []
+
+    # --- inputs -------------------------------------------------------------
+    def need_c(self, flow_mm3_s: float) -> float:
+        """The temperature a flow needs, within the limits (min when idle)."""
+        if flow_mm3_s <= 0.0:
+            return self.limits.min_temp_c
+        return self.limits.clamp(self.line.temp_c(flow_mm3_s))
+
+    def announce(self, now_s: float, flow_mm3_s: float, lead_s: float,
+                 duration_s: float) -> FlowWindow:
+        """A window of flow_mm3_s from now_s + lead_s, duration_s long."""
+        check_announcement(flow_mm3_s, lead_s, duration_s)
+        start = now_s + lead_s
+        window = FlowWindow(start, start + duration_s, flow_mm3_s)
+        if flow_mm3_s > 0.0 and self.line.temp_c(flow_mm3_s) \
+                > self.limits.max_temp_c:
+            self.capped_windows += 1
+        self.peak_flow_mm3_s = max(self.peak_flow_mm3_s, flow_mm3_s)
+        keys = [w.start_s for w in self.windows]
+        self.windows.insert(bisect.bisect_right(keys, start), window)
+        self._forget(now_s - KEEP_S)
+        self._replan(now_s)
+        return window
+
+    def _forget(self, before_s: float) -> None:
+        self.windows = [w for w in self.windows
+                        if w.end_s + self.margin_s >= before_s]
+
+    # --- the plan -----------------------------------------------------------
+    def _needs(self, first: int, count: int) -> Tuple[List[float], List[float]]:
+        """need and flow at grid points first..first+count-1."""
+        need = [self.limits.min_temp_c] * count
+        flow = [0.0] * count
+        for w in self.windows:
+            lo = max(first, math.floor((w.start_s - self.margin_s) / GRID_S))
+            hi = min(first + count - 1,
+                     math.ceil((w.end_s + self.margin_s) / GRID_S))
+            if hi < lo:
+                continue
+            temp = self.need_c(w.flow_mm3_s)
+            for k in range(lo - first, hi - first + 1):
+                if temp > need[k]:
+                    need[k] = temp
+                if w.flow_mm3_s > flow[k]:
+                    flow[k] = w.flow_mm3_s
+        return need, flow
+
+    def _replan(self, now_s: float) -> None:
+        first = math.floor(now_s / GRID_S)
+        horizon = max((w.end_s for w in self.windows), default=now_s)
+        last = math.ceil((horizon + self.margin_s) / GRID_S) + 2
+        count = max(2, last - first + 1)
+        need, flow = self._needs(first, count)
+        nozzle = list(need)
+        for k in range(count - 2, -1, -1):
+            earliest = self._lowest_before(nozzle[k + 1], flow[k])
+            if earliest > nozzle[k]:
+                nozzle[k] = earliest
+        self._first, self._nozzle = first, nozzle
+
+    def _lowest_before(self, later_c: float, flow_mm3_s: float) -> float:
+        """The lowest temperature one grid step before from which the heater
+        still reaches later_c: as a lag toward max_temp and within its power."""
+        p, top = self.params, self.limits.max_temp_c
+        if later_c <= self.limits.min_temp_c:
+            return self.limits.min_temp_c
+        by_lag = top - (top - later_c) * math.exp(GRID_S / p.time_constant_s)
+        spare_w = p.max_power_w - p.steady_power_w(later_c, flow_mm3_s)
+        by_power = later_c - GRID_S * POWER_SHARE * spare_w / p.heat_capacity_j_per_c
+        return min(top, max(by_lag, by_power))
+
+    def nozzle_c(self, time_s: float) -> float:
+        """The planned nozzle temperature at time_s (>= the need)."""
+        k = math.floor(time_s / GRID_S) - self._first
+        if k < 0 or not self._nozzle:
+            k = 0
+        if k >= len(self._nozzle):
+            return self.limits.min_temp_c
+        return self._nozzle[k]
+
+    def target_at(self, time_s: float, hold_s: float = GRID_S) -> float:
+        """The heater target to set at time_s and hold for hold_s: seen
+        dead_time_s later, it makes the lag follow the planned nozzle
+        temperature (at least) over the whole hold; in 0.01 degC."""
+        p = self.params
+        seen = time_s + p.dead_time_s
+        decay = math.exp(-GRID_S / p.time_constant_s)
+        best = self.limits.min_temp_c
+        # every grid step that starts within the hold (and the one after)
+        for i in range(max(1, math.ceil(hold_s / GRID_S)) + 1):
+            t = seen + i * GRID_S
+            now_c, next_c = self.nozzle_c(t), self.nozzle_c(t + GRID_S)
+            target = (next_c - now_c * decay) / (1.0 - decay)
+            best = max(best, target, next_c)
+        return round(self.limits.clamp(best), 2)
+
+    def status(self) -> dict:
+        return {"capped_windows": self.capped_windows,
+                "peak_flow": self.peak_flow_mm3_s}
+
+
+def plan_for(profile: Profile, working_point: float,
+             heater_max_temp_c: Optional[float] = None,
+             params: HotendParams = DEFAULT_PARAMS,
+             margin_s: float = DEFAULT_MARGIN_S) -> TemperaturePlan:
+    """The plan for a profile at a working point (the one melt line)."""
+    return TemperaturePlan(profile_line(profile, working_point),
+                           TempLimits.of(profile, heater_max_temp_c), params,
+                           margin_s)
