@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from typing import List, NamedTuple, Optional, Tuple
 
 from ..errors import FlowloopError
-from ..material.profile import Line, Profile, profile_line
+from ..material.profile import Line, Profile, check_working_point, profile_line
 from .hotend import HotendParams
 
 GRID_S = 0.1
@@ -210,3 +210,170 @@ def plan_for(profile: Profile, working_point: float,
     return TemperaturePlan(profile_line(profile, working_point),
                            TempLimits.of(profile, heater_max_temp_c), params,
                            margin_s)
+
+
+# ---------------------------------------------------------------------------
+# The controller [autotemp] and the bake both drive
+
+SOURCES = ("annotation", "lookahead")
+# Lookahead (no annotations): moves are gathered into windows this long.
+LOOKAHEAD_WINDOW_S = 1.0
+# This long after the last window known, the print is over: the source is
+# forgotten and the slicer's M104 obeyed again.
+DONE_AFTER_S = 5.0
+
+
+class Autotemp:
+    """Which plan is active and why: the profile, the working point, the
+    source of the windows (annotations, else the moves as Klipper queues
+    them), on or off; the status is rebuilt whenever one of them changes."""
+
+    def __init__(self, params: HotendParams = DEFAULT_PARAMS,
+                 heater_max_temp_c: Optional[float] = None,
+                 enabled: bool = True, margin_s: float = DEFAULT_MARGIN_S):
+        self.params = params
+        self.heater_max_temp_c = heater_max_temp_c
+        self.margin_s = margin_s
+        self.enabled = enabled
+        self.profile: Optional[Profile] = None
+        self.profile_wp: Optional[float] = None
+        self.wp_override: Optional[float] = None
+        self.plan: Optional[TemperaturePlan] = None
+        self.source: Optional[str] = None
+        self.target_c: Optional[float] = None
+        self.planned_flow_mm3_s: Optional[float] = None
+        self._gathered: Optional[List[float]] = None   # lookahead: [s, peak]
+        self.why = "no active profile"
+        self.status = self._status()
+
+    # --- what it plans with -------------------------------------------------
+    @property
+    def working_point(self) -> Optional[float]:
+        return self.wp_override if self.wp_override is not None \
+            else self.profile_wp
+
+    @property
+    def active(self) -> bool:
+        return self.enabled and self.plan is not None
+
+    def set_profile(self, profile: Optional[Profile],
+                    working_point: Optional[float], now_s: float = 0.0) -> None:
+        self.profile, self.profile_wp = profile, working_point
+        self._rebuild(now_s)
+
+    def set_working_point(self, working_point: Optional[float],
+                          now_s: float = 0.0) -> None:
+        """A WP of its own (None: the active profile's); checked first."""
+        if working_point is not None:
+            check_working_point(working_point)
+        self.wp_override = working_point
+        self._rebuild(now_s)
+
+    def set_enabled(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.status = self._status()
+
+    def _rebuild(self, now_s: float) -> None:
+        windows = self.plan.windows if self.plan is not None else []
+        self.plan = None
+        if self.profile is None:
+            self.why = "no active profile"
+        else:
+            try:
+                self.plan = plan_for(self.profile, self.working_point,
+                                     self.heater_max_temp_c, self.params,
+                                     self.margin_s)
+                self.why = ""
+            except FlowloopError as e:
+                self.why = str(e)
+        if self.plan is not None and windows:
+            self.plan.windows = list(windows)
+            self.plan._replan(now_s)
+        self.status = self._status()
+
+    # --- windows ------------------------------------------------------------
+    def announce(self, now_s: float, flow_mm3_s: float, lead_s: float,
+                 duration_s: float) -> None:
+        """An AUTOTEMP_FLOW: from now on the annotations are the source."""
+        check_announcement(flow_mm3_s, lead_s, duration_s)
+        self.source = "annotation"
+        self._gathered = None
+        if self.plan is not None:
+            self.plan.announce(now_s, flow_mm3_s, lead_s, duration_s)
+        self.status = self._status()
+
+    def on_move(self, now_s: float, flow_mm3_s: float, duration_s: float) -> None:
+        """A move as Klipper queues it; used while no annotation was seen:
+        gathered into LOOKAHEAD_WINDOW_S windows that start now (reactive)."""
+        if self.source == "annotation" or self.plan is None:
+            return
+        g = self._gathered
+        if g is None:
+            g = self._gathered = [0.0, 0.0]
+        g[0] += duration_s
+        g[1] = max(g[1], flow_mm3_s)
+        if g[0] >= LOOKAHEAD_WINDOW_S:
+            self._gathered = None
+            self.source = "lookahead"
+            self.plan.announce(now_s, g[1], 0.0, g[0])
+            self.status = self._status()
+
+    def stop(self) -> None:
+        """Forget the windows and the source: the heater was turned off, or
+        the print is over. The next window starts a new plan."""
+        self.source, self._gathered = None, None
+        self.target_c = self.planned_flow_mm3_s = None
+        if self.plan is not None:
+            self.plan.windows = []
+            self.plan._replan(0.0)
+        self.status = self._status()
+
+    # --- targets ------------------------------------------------------------
+    def target_at(self, time_s: float, hold_s: float = GRID_S) -> Optional[float]:
+        """The target to set at time_s (None: autotemp has nothing to say)."""
+        if not self.active or self.source is None:
+            return None
+        last_end = max((w.end_s for w in self.plan.windows), default=-math.inf)
+        if time_s > last_end + DONE_AFTER_S:
+            self.stop()
+            return None
+        target = self.plan.target_at(time_s, hold_s)
+        acting = time_s + self.params.dead_time_s
+        flow = max((w.flow_mm3_s for w in self.plan.windows
+                    if w.start_s <= acting < w.end_s), default=0.0)
+        if target != self.target_c or flow != self.planned_flow_mm3_s:
+            self.target_c, self.planned_flow_mm3_s = target, flow
+            self.status = self._status()
+        return target
+
+    def overrides_m104(self) -> bool:
+        """While it plans a print, the slicer's M104 is not obeyed."""
+        return self.active and self.source is not None
+
+    def _status(self) -> dict:
+        plan = self.plan
+        return {
+            "enabled": self.enabled,
+            "active": self.active,
+            "source": self.source,
+            "planned_flow": self.planned_flow_mm3_s,
+            "target": self.target_c,
+            "working_point": self.working_point,
+            "profile": None if self.profile is None else self.profile.name,
+            "min_temp": None if plan is None else plan.limits.min_temp_c,
+            "max_temp": None if plan is None else plan.limits.max_temp_c,
+            "capped_windows": 0 if plan is None else plan.capped_windows,
+            "why": self._why(),
+        }
+
+    def _why(self) -> str:
+        if not self.enabled:
+            return "disabled (SET_AUTOTEMP ENABLE=1 turns it on)"
+        if self.why:
+            return self.why + ": autotemp is off"
+        if self.source == "lookahead":
+            return ("no AUTOTEMP_FLOW in this file: reactive, on the moves"
+                    " Klipper has queued (about 1 s ahead)")
+        if self.source is None:
+            return "waiting for AUTOTEMP_FLOW or extruding moves"
+        return ""

@@ -1,0 +1,100 @@
+"""The controller [autotemp] and the bake drive: which source, which
+profile, when the slicer's M104 is overridden, and when it stands down."""
+
+from __future__ import annotations
+
+import pytest
+
+from flowloop.control.autotemp import DONE_AFTER_S, LOOKAHEAD_WINDOW_S, Autotemp
+from flowloop.errors import FlowloopError
+from flowloop.material.profile import profile_from_dict, temp_for_flow
+from tests.samples import make
+
+PROFILE = profile_from_dict(make())
+
+
+def active(**kw):
+    a = Autotemp(**kw)
+    a.set_profile(PROFILE, 0.5)
+    return a
+
+
+def test_without_a_profile_it_stays_off_and_says_why():
+    a = Autotemp()
+    a.announce(0.0, 5.0, 15.0, 2.0)
+    assert a.target_at(10.0) is None
+    assert not a.overrides_m104()
+    assert a.status["active"] is False
+    assert "no active profile" in a.status["why"]
+
+
+def test_annotations_set_the_source_targets_and_the_m104_override():
+    a = active()
+    assert not a.overrides_m104()           # start G-code: M104/M109 obeyed
+    a.announce(0.0, 12.0, 15.0, 5.0)
+    assert a.overrides_m104()
+    s = a.status
+    assert s["source"] == "annotation" and s["working_point"] == 0.5
+    assert s["profile"] == PROFILE.name
+    need = temp_for_flow(PROFILE, 12.0, 0.5)
+    assert need > PROFILE.bounds.min_temp_c
+    # during the window the target is the need (a steady state)
+    assert a.target_at(16.0) == pytest.approx(need, abs=0.01)
+    assert a.status["target"] == pytest.approx(need, abs=0.01)
+    assert a.status["planned_flow"] == 12.0
+    # moves do not replace annotations
+    a.on_move(1.0, 20.0, 5.0)
+    assert a.status["source"] == "annotation"
+
+
+def test_without_annotations_moves_make_reactive_windows():
+    a = active()
+    a.on_move(0.0, 14.0, LOOKAHEAD_WINDOW_S / 2)
+    assert a.status["source"] is None        # not a full window yet
+    a.on_move(0.5, 3.0, LOOKAHEAD_WINDOW_S / 2)
+    assert a.status["source"] == "lookahead"
+    assert "reactive" in a.status["why"]
+    # the window's peak, not its last move, sets the need
+    assert temp_for_flow(PROFILE, 3.0, 0.5) < temp_for_flow(PROFILE, 14.0, 0.5)
+    assert a.target_at(0.0) >= temp_for_flow(PROFILE, 14.0, 0.5)
+
+
+def test_after_the_last_window_it_stands_down():
+    a = active()
+    a.announce(0.0, 6.0, 2.0, 3.0)
+    assert a.target_at(4.0) is not None
+    assert a.target_at(5.0 + DONE_AFTER_S + 0.1) is None
+    assert not a.overrides_m104() and a.status["source"] is None
+
+
+def test_stop_forgets_the_plan_and_disabled_plans_nothing():
+    a = active()
+    a.announce(0.0, 6.0, 2.0, 3.0)
+    a.stop()
+    assert a.target_at(3.0) is None and not a.overrides_m104()
+    a.announce(0.0, 6.0, 2.0, 3.0)
+    a.set_enabled(False)
+    assert a.target_at(3.0) is None and not a.overrides_m104()
+    assert "disabled" in a.status["why"]
+
+
+def test_a_working_point_of_its_own_changes_the_line():
+    a = active()
+    a.announce(0.0, 12.0, 15.0, 5.0)
+    before = a.target_at(16.0)
+    a.set_working_point(1.0, 0.0)
+    assert a.status["working_point"] == 1.0
+    assert a.target_at(16.0) == pytest.approx(temp_for_flow(PROFILE, 12.0, 1.0),
+                                              abs=0.01)
+    assert a.target_at(16.0) != before
+    with pytest.raises(FlowloopError):
+        a.set_working_point(1.5)
+    assert a.status["working_point"] == 1.0
+
+
+def test_the_heater_max_temp_caps_targets():
+    a = Autotemp(heater_max_temp_c=PROFILE.bounds.min_temp_c + 10)
+    a.set_profile(PROFILE, 0.5)
+    a.announce(0.0, 100.0, 15.0, 5.0)
+    assert a.target_at(16.0) == PROFILE.bounds.min_temp_c + 10
+    assert a.status["capped_windows"] == 1
