@@ -19,6 +19,7 @@ from ..errors import FlowloopError
 COMMAND_MODULES = (
     "flowloop.cli.install",
     "flowloop.cli.info",
+    "flowloop.cli.doctor",
     "flowloop.cli.diff_ab",
     "flowloop.cli.profile",
     "flowloop.cli.delta",

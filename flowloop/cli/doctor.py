@@ -1,0 +1,137 @@
+"""`flowloop doctor`: gather facts from Moonraker (and, on the printer, from the
+Klipper and Moonraker trees), run flowloop.host.doctor's checks, print one
+line each. Exit status 1 when a check fails."""
+
+from __future__ import annotations
+
+import json
+import os
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+from urllib.parse import quote, urlparse
+
+from .. import __version__
+from ..host import doctor, install
+from .install import _default_moonraker as default_moonraker
+
+FLOWLOOP_ENDPOINTS = ("/server/flowloop/info", "/server/flowloop/profiles")
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "doctor", help="check that flowloop is installed and working, one line a check",
+        description=f"flowloop {__version__}: check Klipper, the links, the MCU "
+                    "firmware, Moonraker's component, the config, the sensors, the "
+                    "active profiles and the G-code processor. Exit status 1 when "
+                    "a check fails.")
+    p.add_argument("--moonraker", default="http://127.0.0.1:7125",
+                   help="Moonraker URL (default: http://127.0.0.1:7125); from "
+                        "another machine the tree checks are skipped")
+    p.add_argument("--api-key", default=os.environ.get("MOONRAKER_API_KEY"),
+                   help="Moonraker API key (default: $MOONRAKER_API_KEY)")
+    p.add_argument("--klipper", type=Path, default=None,
+                   help="Klipper tree to check (default: the one klippy runs from, "
+                        "when Moonraker is on this machine)")
+    p.add_argument("--moonraker-dir", type=Path, default=None,
+                   help="Moonraker checkout or virtualenv to check (default: "
+                        "~/moonraker, else ~/moonraker-env, on this machine)")
+    p.set_defaults(func=run)
+
+
+class Client:
+    def __init__(self, url: str, api_key: Optional[str], timeout: float = 5.0):
+        self.url = url.rstrip("/")
+        self.headers = {"X-Api-Key": api_key} if api_key else {}
+        self.timeout = timeout
+
+    def get(self, path: str) -> Tuple[Optional[dict], Optional[str]]:
+        """(result, None) or (None, one-line error)."""
+        req = urllib.request.Request(self.url + path, headers=self.headers)
+        try:
+            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
+                return json.loads(resp.read())["result"], None
+        except urllib.error.HTTPError as e:
+            return None, f"HTTP {e.code} {e.reason}"
+        except (urllib.error.URLError, OSError, ValueError, KeyError) as e:
+            return None, f"no answer ({getattr(e, 'reason', e)})"
+
+
+def gather(client: Client, klipper: Optional[Path] = None,
+           moonraker_dir: Optional[Path] = None) -> doctor.Facts:
+    server_info, error = client.get("/server/info")
+    if server_info is None:
+        hint = " (is --api-key right?)" if error and "401" in error else ""
+        return doctor.Facts(client.url, moonraker_error=f"Moonraker at {client.url}:"
+                            f" {error}{hint}")
+    endpoints: Dict[str, Optional[str]] = {}
+    results: Dict[str, Optional[dict]] = {}
+    for path in FLOWLOOP_ENDPOINTS:
+        results[path], endpoints[path] = client.get(path)
+    printer_info = objects = None
+    if server_info.get("klippy_connected"):
+        printer_info, _ = client.get("/printer/info")
+        objects = _objects(client)
+    local = urlparse(client.url).hostname in LOOPBACK
+    if klipper is None and local and printer_info:
+        klipper = Path(printer_info["klipper_path"])
+    pending, install_error = _install_plan(klipper, moonraker_dir, local)
+    return doctor.Facts(
+        client.url, server_info=server_info, endpoint_errors=endpoints,
+        flowloop_info=results["/server/flowloop/info"], printer_info=printer_info,
+        objects=objects or {}, install_pending=pending, install_error=install_error,
+        **_klipper_tree(klipper))
+
+
+def _objects(client: Client) -> Dict[str, dict]:
+    listing, _ = client.get("/printer/objects/list")
+    names = [n for n in (listing or {}).get("objects", [])
+             if n.split()[0] in ("flowloop", "flow_sensor")]
+    query = "&".join([quote(n) for n in names] + ["configfile=settings"])
+    result, _ = client.get("/printer/objects/query?" + query)
+    return (result or {}).get("status", {})
+
+
+def _klipper_tree(klipper: Optional[Path]) -> dict:
+    """What the Klipper (or Kalico) tree on this machine says, as Facts fields."""
+    if klipper is None or not klipper.expanduser().exists():
+        return {}
+    klipper = klipper.expanduser()
+    facts = {"klipper_tree_checked": True, "klipper_host": install.host_name(klipper),
+             "klipper_notes": tuple(install.host_notes(klipper))}
+    try:
+        install.check_klipper_tree(klipper)
+        if not install.is_kalico(klipper):  # Kalico: its notes say what lacks
+            install.check_klipper_version(klipper)
+    except install.InstallError as e:
+        facts["klipper_tree_problem"] = str(e)
+    return facts
+
+
+def _install_plan(klipper: Optional[Path], moonraker_dir: Optional[Path],
+                  local: bool) -> Tuple[Optional[Tuple[str, ...]], Optional[str]]:
+    """What flowloop install would still do (empty: installed), or its error;
+    (None, None) when the trees are not on this machine."""
+    if klipper is None or not klipper.expanduser().exists():
+        return None, None
+    try:
+        if moonraker_dir is None and local:
+            moonraker_dir = default_moonraker()
+        source = install.source_tree()
+        changes: List[install.Change] = install.plan_klipper(klipper, source)
+        if moonraker_dir is not None:
+            changes += install.plan_moonraker(moonraker_dir, source)
+    except install.InstallError as e:
+        return None, str(e)
+    return tuple(change.what for change in changes), None
+
+
+def run(args) -> int:
+    facts = gather(Client(args.moonraker, args.api_key), args.klipper,
+                   args.moonraker_dir)
+    checks = doctor.run_checks(facts)
+    for check in checks:
+        print(check.line())
+    return doctor.exit_status(checks)

@@ -1,0 +1,311 @@
+"""`flowloop doctor`: why flowloop does not work on a printer, one check a line.
+
+The checks are pure functions over Facts, gathered by flowloop.cli.doctor from
+Moonraker's API (and, on the printer itself, from the Klipper and Moonraker
+trees through flowloop.host.install's planning: an empty install plan means
+installed). A check that cannot be made from where the doctor runs says so
+(status "skip") instead of guessing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from typing import Dict, List, Optional, Tuple
+
+from .. import __version__
+from ..sensor import ems22
+from . import install
+
+OK, FAIL, SKIP = "ok", "FAIL", "skip"
+
+# Klipper's `git describe` of install.MIN_KLIPPER's commit (c89393cda is
+# v0.13.0-568): judges a version string when the tree cannot be read.
+MIN_KLIPPER_DESCRIBE = ((0, 13, 0), 568)
+
+SENSOR_COMMAND = ems22.QUERY_CMD.split()[0]
+_KCONFIG_PROMPT = re.search(r'bool "([^"]+)"', install.KCONFIG_PROMPT).group(1)
+_MENUS = {"Klipper": "on small MCUs: '"
+          + install.LIMITED_MENU.split('"')[1] + "'",
+          "Kalico": "'Firmware Extras'"}
+
+
+def firmware_fix(host: str = "Klipper") -> str:
+    return ("rebuild and flash the MCU firmware: cd ~/klipper; make menuconfig"
+            f" ({_MENUS.get(host, _MENUS['Klipper'])} -> '{_KCONFIG_PROMPT}' on,"
+            " it is CONFIG_WANT_SENSOR_EMS22); make; make flash"
+            " FLASH_DEVICE=<your MCU's serial>; then FIRMWARE_RESTART (flowloop"
+            " install must have run first)")
+
+
+INSTALL_FIX = ("run flowloop install from this checkout's virtualenv, then"
+               " sudo systemctl restart klipper moonraker")
+PROFILE_FIX = ("store a profile and activate it for the extruder: POST"
+               " /server/flowloop/profile/activate {\"name\": ..., \"extruder\":"
+               " ...} (docs/material_profiles.md)")
+
+
+@dataclasses.dataclass(frozen=True)
+class Check:
+    name: str
+    status: str          # OK, FAIL or SKIP
+    detail: str
+    fix: Optional[str] = None   # what to do, when it failed
+
+    def line(self) -> str:
+        text = f"{self.status:<4} {self.name}: {self.detail}"
+        return text + (f"; fix: {self.fix}" if self.fix else "")
+
+
+@dataclasses.dataclass(frozen=True)
+class Facts:
+    """What the doctor could find out; None where it could not look."""
+    moonraker_url: str
+    moonraker_error: Optional[str] = None    # Moonraker did not answer
+    server_info: Optional[dict] = None       # GET /server/info
+    endpoint_errors: Dict[str, Optional[str]] = dataclasses.field(
+        default_factory=dict)                # flowloop endpoint -> error or None
+    flowloop_info: Optional[dict] = None     # GET /server/flowloop/info
+    printer_info: Optional[dict] = None      # GET /printer/info (klippy up)
+    objects: Dict[str, dict] = dataclasses.field(default_factory=dict)
+    # On the printer only: the Klipper tree's problem (None: fine) and the
+    # install plan left to do (empty: installed); None: not looked at.
+    klipper_tree_problem: Optional[str] = None
+    klipper_tree_checked: bool = False
+    klipper_host: Optional[str] = None       # "Klipper" or "Kalico", from the tree
+    klipper_notes: Tuple[str, ...] = ()      # what works differently there
+    install_pending: Optional[Tuple[str, ...]] = None
+    install_error: Optional[str] = None
+
+
+# ---------------------------------------------------------------------------
+# The checks, in the order a user fixes them
+
+
+def check_klipper(facts: Facts) -> Check:
+    info = facts.printer_info
+    if facts.moonraker_error is not None:
+        return Check("klipper", SKIP, "not known: Moonraker did not answer")
+    if info is None:
+        return Check("klipper", FAIL, "klippy is not connected to Moonraker",
+                     "sudo systemctl start klipper; read klippy.log if it stops")
+    app = facts.klipper_host or info.get("app") or "Klipper"
+    version = info.get("software_version") or "?"
+    where = f"{app} {version} at {info.get('klipper_path')}"
+    if facts.klipper_tree_checked:
+        if facts.klipper_tree_problem is not None:
+            return Check("klipper", FAIL, facts.klipper_tree_problem,
+                         "update Klipper: cd ~/klipper; git pull; sudo"
+                         " systemctl restart klipper")
+        return Check("klipper", OK, "; ".join((f"{where}, supported",)
+                                              + facts.klipper_notes))
+    supported = version_supported(version)
+    if supported is None:
+        return Check("klipper", SKIP, f"{where}: version not judged from here"
+                     " (run flowloop doctor on the printer)")
+    if not supported:
+        return Check("klipper", FAIL, f"{where} is older than flowloop needs"
+                     f" ({install.MIN_KLIPPER})",
+                     "update Klipper: cd ~/klipper; git pull; sudo systemctl"
+                     " restart klipper")
+    return Check("klipper", OK, f"{where}, supported")
+
+
+def version_supported(version: str) -> Optional[bool]:
+    """A Klipper `git describe` version against MIN_KLIPPER_DESCRIBE; None
+    when it is not one (a fork's scheme, or no git)."""
+    m = re.match(r"v(\d+)\.(\d+)\.(\d+)(?:-(\d+))?", version)
+    if m is None:
+        return None
+    release = tuple(int(x) for x in m.group(1, 2, 3))
+    ahead = int(m.group(4) or 0)
+    return (release, ahead) >= MIN_KLIPPER_DESCRIBE
+
+
+def check_links(facts: Facts) -> Check:
+    if facts.install_error is not None:
+        return Check("links", FAIL, facts.install_error, INSTALL_FIX)
+    if facts.install_pending:
+        shown = "; ".join(facts.install_pending[:3])
+        more = len(facts.install_pending) - 3
+        return Check("links", FAIL, "flowloop is not installed from this checkout:"
+                     f" install would {shown}" + (f" (+{more} more)" if more > 0
+                                                  else ""), INSTALL_FIX)
+    running = _running_versions(facts)
+    stale = {host: v for host, v in running.items() if v != __version__}
+    if stale:
+        return Check("links", FAIL, ", ".join(
+            f"{host} runs flowloop {v or 'none'}" for host, v in stale.items())
+            + f", this is {__version__}",
+            "sudo systemctl restart klipper moonraker (or run the doctor of"
+            " the flowloop they load)")
+    if facts.install_pending is None:
+        return Check("links", SKIP, "not checked from another machine (run"
+                     " flowloop doctor on the printer)" + (
+                         f"; the hosts run flowloop {__version__}" if running
+                         else ""))
+    return Check("links", OK, f"installed and pointing at flowloop {__version__}")
+
+
+def _running_versions(facts: Facts) -> Dict[str, Optional[str]]:
+    info = facts.flowloop_info
+    if info is None:
+        return {}
+    running = {"moonraker": info.get("version")}
+    if info.get("klippy_connected") and "flowloop" in facts.objects:
+        running["klippy"] = info.get("klippy_version")
+    return running
+
+
+def check_firmware(facts: Facts) -> Check:
+    info = facts.flowloop_info
+    if info is None or not info.get("klippy_connected") or not info.get(
+            "sensor_firmware"):
+        return Check("firmware", SKIP, "not known: klippy's [flowloop] object"
+                     " did not report its MCUs")
+    firmware = info["sensor_firmware"]
+    needed = ems22_mcus(facts) or sorted(firmware)
+    lacking = [mcu for mcu in needed if not firmware.get(mcu)]
+    if lacking:
+        return Check("firmware", FAIL, f"{', '.join(repr(m) for m in lacking)}"
+                     f" firmware lacks flowloop's {SENSOR_COMMAND} command",
+                     firmware_fix(facts.klipper_host or "Klipper"))
+    return Check("firmware", OK, f"{', '.join(repr(m) for m in needed)} firmware"
+                 f" carries {SENSOR_COMMAND}")
+
+
+def ems22_mcus(facts: Facts) -> List[str]:
+    """The MCUs an EMS22 sensor is wired to (cs_pin "toolboard:PA4" ->
+    "mcu toolboard"), from klippy's configfile settings."""
+    mcus = set()
+    for section, options in _settings(facts).items():
+        if section.split()[0] != "flow_sensor" or options.get(
+                "sensor_type") != "ems22":
+            continue
+        pin = str(options.get("cs_pin", ""))
+        chip = pin.lstrip("^~!").partition(":")[0] if ":" in pin else "mcu"
+        mcus.add("mcu" if chip == "mcu" else f"mcu {chip}")
+    return sorted(mcus)
+
+
+def check_moonraker(facts: Facts) -> Check:
+    if facts.moonraker_error is not None:
+        return Check("moonraker", FAIL, facts.moonraker_error,
+                     "start Moonraker (sudo systemctl start moonraker) or pass"
+                     " --moonraker URL (and --api-key)")
+    server = facts.server_info or {}
+    if "flowloop" in server.get("failed_components", []):
+        return Check("moonraker", FAIL, "Moonraker failed to load the flowloop"
+                     " component", "read moonraker.log for its error")
+    if "flowloop" not in server.get("components", []):
+        return Check("moonraker", FAIL, "Moonraker has no flowloop component",
+                     "add a [flowloop] section to moonraker.conf, run flowloop"
+                     " install, then sudo systemctl restart moonraker")
+    failed = {path: err for path, err in facts.endpoint_errors.items() if err}
+    if failed:
+        return Check("moonraker", FAIL, "endpoints not answering: " + "; ".join(
+            f"{path} {err}" for path, err in sorted(failed.items())),
+            "read moonraker.log; sudo systemctl restart moonraker")
+    return Check("moonraker", OK, f"component loaded, {len(facts.endpoint_errors)}"
+                 " endpoints answering")
+
+
+def check_sections(facts: Facts) -> Check:
+    info = facts.printer_info
+    if info is None:
+        return Check("config", SKIP, "not known: klippy is not connected")
+    state = info.get("state")
+    if state != "ready":
+        # Klipper's own words name the section and option; its advice that
+        # follows a blank line ("Once the underlying issue...") is dropped.
+        message = str(info.get("state_message", "")).strip().split("\n\n")[0]
+        return Check("config", FAIL, f"klippy stopped ({state}): "
+                     + " ".join(message.split()),
+                     "correct printer.cfg as the message says, then RESTART")
+    sections = (facts.flowloop_info or {}).get("sections") or []
+    return Check("config", OK, f"klippy ready; flowloop sections valid:"
+                 f" {', '.join(sections) or 'none'}")
+
+
+def check_sensors(facts: Facts) -> List[Check]:
+    checks = []
+    for name, status in sorted(facts.objects.items()):
+        if name.split()[0] != "flow_sensor":
+            continue
+        label = f"sensor {name.split()[-1]}"
+        errors = status.get("errors") or {}
+        counts = ", ".join(f"{k} {v}" for k, v in sorted(errors.items())) or "none"
+        if status.get("fault"):
+            checks.append(Check(label, FAIL, f"fault '{status['fault']}' (errors:"
+                                f" {counts})", "check the sensor's wiring, cs_pin"
+                                " and spi_mode (docs/flow_sensor.md); QUERY_FLOW_SENSOR"
+                                " shows when it clears"))
+        elif not status.get("samples") and _settings(facts).get(name, {}).get(
+                "sensor_type") == "simulated":
+            checks.append(Check(label, SKIP, "simulated: it samples as klippy"
+                                " generates extruder steps, none yet"))
+        elif not status.get("samples"):
+            checks.append(Check(label, FAIL, "no samples have arrived",
+                                "check the wiring and cs_pin, and that the firmware"
+                                " carries the sensor command; QUERY_FLOW_SENSOR"))
+        else:
+            checks.append(Check(label, OK, f"{status['samples']} samples,"
+                                f" {status.get('sample_rate', 0):g}/s, no fault"
+                                f" (errors: {counts})"))
+    return checks
+
+
+def check_profiles(facts: Facts) -> Check:
+    if (facts.printer_info or {}).get("state") != "ready":
+        return Check("profiles", SKIP, "not known: klippy is not ready")
+    if "flowloop" not in facts.objects:
+        return Check("profiles", SKIP, "not known: klippy's [flowloop] object is"
+                     " not loaded")
+    needing = extruders_needing_profile(facts)
+    active = facts.objects["flowloop"].get("profiles") or {}
+    missing = [e for e in needing if e not in active]
+    if missing:
+        return Check("profiles", FAIL, f"no active profile for {', '.join(missing)}"
+                     " (it has a flow sensor or autotemp)", PROFILE_FIX)
+    if not needing:
+        return Check("profiles", OK, "no extruder has a flow sensor or autotemp")
+    return Check("profiles", OK, ", ".join(
+        f"{e} {active[e].get('name')!r}" for e in needing))
+
+
+def extruders_needing_profile(facts: Facts) -> List[str]:
+    extruders = set()
+    for section, options in _settings(facts).items():
+        if section.split()[0] in ("flow_sensor", "autotemp"):
+            extruders.add(str(options.get("extruder", "extruder")))
+    return sorted(extruders)
+
+
+def check_gcode_processor(facts: Facts) -> Check:
+    info = facts.flowloop_info
+    if info is None:
+        return Check("gcode processor", SKIP, "not known: no flowloop component")
+    if "gcode_processor" not in info:
+        return Check("gcode processor", SKIP, "not checked: this flowloop's"
+                     " Moonraker component reports no G-code processor (run"
+                     " flowloop annotate on a file before printing it)")
+    if not info["gcode_processor"]:
+        return Check("gcode processor", FAIL, "flowloop's G-code processor is not"
+                     " registered with Moonraker's file manager",
+                     "read moonraker.log; sudo systemctl restart moonraker")
+    return Check("gcode processor", OK, f"registered ({info['gcode_processor']})")
+
+
+def _settings(facts: Facts) -> Dict[str, dict]:
+    return (facts.objects.get("configfile") or {}).get("settings") or {}
+
+
+def run_checks(facts: Facts) -> List[Check]:
+    return ([check_klipper(facts), check_links(facts), check_moonraker(facts),
+             check_sections(facts), check_firmware(facts)]
+            + check_sensors(facts)
+            + [check_profiles(facts), check_gcode_processor(facts)])
+
+
+def exit_status(checks: List[Check]) -> int:
+    return 1 if any(c.status == FAIL for c in checks) else 0

@@ -1,0 +1,250 @@
+"""flowloop doctor's checks over gathered facts (no printer needed)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from flowloop import __version__
+from flowloop.cli import main
+from flowloop.host import doctor
+from flowloop.host.doctor import FAIL, OK, SKIP
+
+
+def healthy(**changes) -> doctor.Facts:
+    facts = doctor.Facts(
+        "http://127.0.0.1:7125",
+        server_info={"components": ["database", "flowloop"], "failed_components": [],
+                     "klippy_connected": True},
+        endpoint_errors={path: None for path in ("/server/flowloop/info",
+                                                 "/server/flowloop/profiles")},
+        flowloop_info={"version": __version__, "klippy_version": __version__,
+                       "klippy_connected": True, "sections": ["flow_sensor sim"],
+                       "sensor_firmware": {"mcu": True}},
+        printer_info={"state": "ready", "state_message": "Printer is ready",
+                      "software_version": "v0.13.0-730-g84104bbbd",
+                      "klipper_path": "/home/pi/klipper"},
+        objects={"flowloop": {"profiles": {"extruder": {"name": "PLA"}}},
+                 "flow_sensor sim": {"samples": 1200, "sample_rate": 250.0,
+                                     "fault": None, "errors": {}},
+                 "configfile": {"settings": {
+                     "flow_sensor sim": {"sensor_type": "simulated",
+                                         "extruder": "extruder"}}}},
+        klipper_tree_checked=True, install_pending=())
+    return dataclasses.replace(facts, **changes)
+
+
+def by_name(facts: doctor.Facts) -> dict:
+    return {check.name: check for check in doctor.run_checks(facts)}
+
+
+def failed(facts: doctor.Facts) -> dict:
+    return {n: c for n, c in by_name(facts).items() if c.status == FAIL}
+
+
+def test_a_healthy_printer_passes_every_check_but_the_missing_processor():
+    checks = by_name(healthy())
+    assert {n: c.status for n, c in checks.items()} == {
+        "klipper": OK, "links": OK, "moonraker": OK, "config": OK,
+        "firmware": OK, "sensor sim": OK, "profiles": OK,
+        "gcode processor": SKIP}
+    assert doctor.exit_status(list(checks.values())) == 0
+
+
+def test_every_failure_names_its_fix_and_fails_the_exit_status():
+    facts = healthy(install_pending=("link k/extras/flow_sensor.py -> x",))
+    checks = doctor.run_checks(facts)
+    assert doctor.exit_status(checks) == 1
+    bad = [c for c in checks if c.status == FAIL]
+    assert bad and all(c.fix and "; fix: " in c.line() for c in bad)
+    assert all("fix" not in c.line() for c in checks if c.status == OK)
+
+
+def test_a_missing_link_is_named_with_the_install_fix():
+    bad = failed(healthy(install_pending=(
+        "link /k/klippy/extras/flow_sensor.py -> /src/flow_sensor.py",)))
+    assert list(bad) == ["links"]
+    assert "flow_sensor.py" in bad["links"].detail
+    assert "flowloop install" in bad["links"].fix
+
+
+def test_hosts_running_another_flowloop_fail_the_link_check():
+    info = dict(healthy().flowloop_info, klippy_version="0.0.1")
+    bad = failed(healthy(flowloop_info=info))
+    assert list(bad) == ["links"]
+    assert "klippy runs flowloop 0.0.1" in bad["links"].detail
+    assert "restart" in bad["links"].fix
+
+
+def test_links_are_skipped_not_passed_from_another_machine():
+    check = by_name(healthy(install_pending=None))["links"]
+    assert check.status == SKIP and "another machine" in check.detail
+
+
+def test_firmware_without_the_sensor_command_gives_the_menuconfig_option():
+    info = dict(healthy().flowloop_info, sensor_firmware={"mcu": False})
+    bad = failed(healthy(flowloop_info=info))
+    assert list(bad) == ["firmware"]
+    assert "query_ems22" in bad["firmware"].detail
+    fix = bad["firmware"].fix
+    assert "make menuconfig" in fix and "CONFIG_WANT_SENSOR_EMS22" in fix
+    assert "Support EMS22 filament flow sensor (flowloop)" in fix
+    assert "make flash" in fix
+
+
+def test_firmware_is_judged_on_the_mcu_an_ems22_sensor_is_wired_to():
+    info = dict(healthy().flowloop_info,
+                sensor_firmware={"mcu": False, "mcu toolboard": True})
+    settings = {"flow_sensor a": {"sensor_type": "ems22", "cs_pin": "toolboard:PA4",
+                                  "extruder": "extruder"}}
+    objects = dict(healthy().objects, configfile={"settings": settings})
+    assert by_name(healthy(flowloop_info=info, objects=objects))[
+        "firmware"].status == OK
+    settings["flow_sensor a"]["cs_pin"] = "PA4"
+    assert by_name(healthy(flowloop_info=info, objects=objects))[
+        "firmware"].status == FAIL
+
+
+def test_an_invalid_section_quotes_klippys_message():
+    message = ("Option 'sample_period' in section 'flow_sensor sim' must be"
+               " below 0.05\n\nOnce the underlying issue is corrected, use the"
+               " \"RESTART\" command to reload the config and restart the host"
+               " software.\nPrinter is halted\n")
+    bad = failed(healthy(printer_info=dict(healthy().printer_info, state="error",
+                                           state_message=message)))
+    assert "config" in bad
+    assert "'sample_period' in section 'flow_sensor sim'" in bad["config"].detail
+    assert "\n" not in bad["config"].line()
+    assert "Once the underlying issue" not in bad["config"].line()
+    assert by_name(healthy(printer_info=dict(healthy().printer_info, state="error",
+                                             state_message=message)))[
+        "profiles"].status == SKIP  # not judged on a klippy that stopped
+
+
+def test_no_active_profile_for_an_extruder_with_a_sensor():
+    objects = dict(healthy().objects, flowloop={"profiles": {}})
+    bad = failed(healthy(objects=objects))
+    assert list(bad) == ["profiles"]
+    assert "extruder" in bad["profiles"].detail
+    assert "/server/flowloop/profile/activate" in bad["profiles"].fix
+
+
+def test_an_autotemp_extruder_needs_a_profile_too():
+    settings = {"autotemp": {"extruder": "extruder1"}}
+    objects = dict(healthy().objects, configfile={"settings": settings})
+    bad = failed(healthy(objects=objects))
+    assert "extruder1" in bad["profiles"].detail
+
+
+def test_a_faulted_or_silent_sensor_fails():
+    objects = dict(healthy().objects)
+    objects["flow_sensor sim"] = {"samples": 50, "fault": "magnet_range",
+                                  "errors": {"magnet_range": 12}}
+    bad = failed(healthy(objects=objects))
+    assert list(bad) == ["sensor sim"]
+    assert "magnet_range 12" in bad["sensor sim"].detail
+    objects["flow_sensor sim"] = {"samples": 0, "fault": None, "errors": {}}
+    objects["configfile"] = {"settings": {"flow_sensor sim": {
+        "sensor_type": "ems22", "cs_pin": "PA4"}}}
+    assert "no samples" in failed(healthy(objects=objects))["sensor sim"].detail
+
+
+def test_an_idle_simulated_sensor_without_samples_is_not_failed():
+    objects = dict(healthy().objects)
+    objects["flow_sensor sim"] = {"samples": 0, "fault": None, "errors": {}}
+    check = by_name(healthy(objects=objects))["sensor sim"]
+    assert check.status == SKIP and "simulated" in check.detail
+
+
+def test_moonraker_without_the_component_or_unreachable():
+    server = {"components": ["database"], "failed_components": []}
+    assert "[flowloop]" in failed(healthy(server_info=server))["moonraker"].fix
+    server = {"components": ["database"], "failed_components": ["flowloop"]}
+    assert "moonraker.log" in failed(healthy(server_info=server))["moonraker"].fix
+    errors = dict(healthy().endpoint_errors)
+    errors["/server/flowloop/profiles"] = "HTTP 500 Internal Server Error"
+    assert "/server/flowloop/profiles" in failed(healthy(
+        endpoint_errors=errors))["moonraker"].detail
+    down = doctor.Facts("http://printer:7125", moonraker_error="no answer")
+    checks = by_name(down)
+    assert checks["moonraker"].status == FAIL
+    assert checks["klipper"].status == SKIP  # not blamed on klippy
+
+
+@pytest.mark.parametrize("version, supported", [
+    ("v0.13.0-568-gc89393cda", True), ("v0.13.0-730-g84104bbbd", True),
+    ("v0.13.0-567-gabcdef", False), ("v0.13.0", False), ("v0.12.0-900-g1", False),
+    ("v0.14.0", True), ("v0.14.0-2-gab", True), ("?", None), ("2025.1", None)])
+def test_a_version_string_is_judged_against_the_oldest_supported(version,
+                                                                 supported):
+    assert doctor.version_supported(version) is supported
+
+
+def test_from_another_machine_an_old_klipper_is_refused_by_its_version():
+    info = dict(healthy().printer_info, software_version="v0.13.0-12-g1234567")
+    bad = failed(healthy(printer_info=info, klipper_tree_checked=False))
+    assert "older than flowloop needs" in bad["klipper"].detail
+    assert "git pull" in bad["klipper"].fix
+
+
+def test_a_tree_problem_found_on_the_printer_wins_over_the_version_string():
+    bad = failed(healthy(klipper_tree_problem="Klipper at /k is older than"
+                                              " flowloop needs"))
+    assert bad["klipper"].detail.startswith("Klipper at /k")
+
+
+def test_the_processor_check_reads_the_components_report_when_there_is_one():
+    info = dict(healthy().flowloop_info, gcode_processor=None)
+    assert failed(healthy(flowloop_info=info))["gcode processor"].fix
+    info["gcode_processor"] = "flowloop_annotate"
+    assert by_name(healthy(flowloop_info=info))["gcode processor"].status == OK
+
+
+def test_the_command_exits_1_and_prints_one_line_a_check(capsys):
+    code = main(["doctor", "--moonraker", "http://127.0.0.1:9"])
+    lines = capsys.readouterr().out.splitlines()
+    assert code == 1
+    assert len(lines) == len(doctor.run_checks(doctor.Facts("x", "down")))
+    assert any(line.startswith("FAIL moonraker: Moonraker at http://127.0.0.1:9")
+               for line in lines)
+
+
+def test_on_kalico_the_firmware_fix_names_its_firmware_extras_menu():
+    info = dict(healthy().flowloop_info, sensor_firmware={"mcu": False})
+    bad = failed(healthy(flowloop_info=info, klipper_host="Kalico"))
+    assert "'Firmware Extras' -> 'Support EMS22" in bad["firmware"].fix
+    assert "Optional features" not in bad["firmware"].fix
+    assert "Optional features" in doctor.firmware_fix("Klipper")
+
+
+def klipper_tree(root, kalico=False, new_enough=True):
+    for rel in ("klippy/extras", "src"):
+        (root / rel).mkdir(parents=True)
+    for rel in ("klippy/klippy.py", "src/Makefile", "src/Kconfig"):
+        (root / rel).write_text("")
+    (root / "klippy/mcu.py").write_text(
+        "def register_serial_response(self):\n" if new_enough else "")
+    if kalico:
+        (root / "klippy/plugins").mkdir()
+        (root / "klippy/plugins/__init__.py").write_text("")
+        (root / "scripts").mkdir()
+        (root / "scripts/find-firmware-extras.sh").write_text("")
+    return root
+
+
+def test_the_tree_on_the_printer_names_its_host_and_refuses_an_old_klipper(tmp_path):
+    from flowloop.cli.doctor import _klipper_tree
+    facts = _klipper_tree(klipper_tree(tmp_path / "k"))
+    assert facts["klipper_host"] == "Klipper" and "klipper_tree_problem" not in facts
+    old = _klipper_tree(klipper_tree(tmp_path / "old", new_enough=False))
+    assert "older than flowloop needs" in old["klipper_tree_problem"]
+    kalico = _klipper_tree(klipper_tree(tmp_path / "kal", kalico=True,
+                                        new_enough=False))
+    assert kalico["klipper_host"] == "Kalico"
+    assert "klipper_tree_problem" not in kalico  # Kalico: a note, not a refusal
+    check = by_name(healthy(**kalico, printer_info=dict(
+        healthy().printer_info, klipper_path=str(tmp_path / "kal"))))["klipper"]
+    assert check.status == OK and check.detail.startswith("Kalico ")
+    assert "register_serial_response" in check.detail
+    assert _klipper_tree(tmp_path / "nowhere") == {}
