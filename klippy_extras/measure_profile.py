@@ -225,8 +225,7 @@ class MeasureProfile:
             plan = fl_measure.make_plan(
                 self._levels(gcmd.get('TEMPS', None), 'TEMPS'),
                 self._levels(gcmd.get('POWERS', None), 'POWERS'),
-                gcmd.get_float('START_FLOW',
-                               fl_measure.DEFAULT_START_FLOW_MM3_S),
+                gcmd.get_float('START_FLOW', None),
                 gcmd.get_float('STEP', fl_measure.DEFAULT_STEP_MM3_S),
                 gcmd.get_float('MAX_FLOW', fl_measure.DEFAULT_MAX_FLOW_MM3_S),
                 gcmd.get_float('MIN_GRIP', self._default_min_grip(base)),
@@ -469,7 +468,12 @@ class Run:
 
     def _ramp(self, where, pwm, settled_c):
         previous = None
-        for flow in self.plan.flows():
+        expected = None
+        if self.base is not None:
+            expected = fl_profile.profile_line(self.base, 1.).flow_mm3_s(
+                settled_c)
+        start = self.plan.ramp_start(expected)
+        for flow in self.plan.flows(start):
             self.owner._set_status('running', flow=flow)
             now, temp, _ = self._check(settled_c, previous)
             previous = (now, temp)
@@ -478,6 +482,10 @@ class Run:
             now, temp, _ = self._check(settled_c, previous)
             previous = (now, temp)
             if step.grip < self.plan.min_grip:
+                if flow == start and not self.plan.start_given:
+                    self._say(f"{where}: the first step slipped already; the"
+                              " point is what the hotend melted (a lower"
+                              " START_FLOW= confirms it)")
                 return fl_measure.limit_point(step, pwm, temp)
         raise MeasurementStopped(
             f"{where}: grip stayed above {self.plan.min_grip:g} up to MAX_FLOW"

@@ -25,14 +25,18 @@ from ..sensor.grip import Window
 from .profile import MeasuredPoint
 
 DEFAULT_START_FLOW_MM3_S = 2.0
-DEFAULT_STEP_MM3_S = 0.5
+DEFAULT_STEP_MM3_S = 1.0
 DEFAULT_MAX_FLOW_MM3_S = 30.0
 DEFAULT_MIN_GRIP = 0.9
+# Without START_FLOW a level's ramp starts at this share of the flow the base
+# profile expects at the level's settled temperature: most of the ramp below
+# the limit is filament spent learning nothing.
+START_SHARE = 0.8
 MIN_LEVELS = 2
 MAX_LEVELS = 10
 MAX_STEPS = 200
 # [measure_profile] options and their limits: the adapter reads them here
-DEFAULT_STEP_TIME_S = 4.0
+DEFAULT_STEP_TIME_S = 2.0
 STEP_TIME_RANGE_S = (1.0, 30.0)
 DEFAULT_SETTLE_TIME_S = 10.0
 SETTLE_TIME_RANGE_S = (2.0, 120.0)
@@ -58,12 +62,27 @@ class Plan:
     step_mm3_s: float
     max_flow_mm3_s: float
     min_grip: float
+    start_given: bool = True         # False: start near the base profile's limit
 
-    def flows(self) -> Iterator[float]:
-        """START_FLOW, START_FLOW + STEP, ... up to MAX_FLOW."""
+    def ramp_start(self, expected_mm3_s: Optional[float]) -> float:
+        """Where a level's ramp starts: START_FLOW when it was given (or no
+        base profile expects a flow), else START_SHARE of the flow the base
+        profile expects at the settled temperature, on the STEP grid from
+        START_FLOW, never below START_FLOW nor above MAX_FLOW."""
+        start = self.start_flow_mm3_s
+        if self.start_given or expected_mm3_s is None:
+            return start
+        steps = math.floor((START_SHARE * expected_mm3_s - start)
+                           / self.step_mm3_s + 1e-9)
+        flows = list(self.flows())
+        return flows[max(0, min(steps, len(flows) - 1))]
+
+    def flows(self, start_mm3_s: Optional[float] = None) -> Iterator[float]:
+        """start (default START_FLOW), + STEP, ... up to MAX_FLOW."""
+        first = self.start_flow_mm3_s if start_mm3_s is None else start_mm3_s
         i = 0
         while True:
-            flow = self.start_flow_mm3_s + i * self.step_mm3_s
+            flow = first + i * self.step_mm3_s
             if flow > self.max_flow_mm3_s + 1e-9:
                 return
             yield flow
@@ -82,11 +101,16 @@ def _positive(name: str, value: float) -> float:
 
 
 def make_plan(temps: Optional[Sequence[float]], powers: Optional[Sequence[float]],
-              start_flow: float, step: float, max_flow: float, min_grip: float,
-              min_temp_c: float, max_temp_c: float) -> Plan:
+              start_flow: Optional[float], step: float, max_flow: float,
+              min_grip: float, min_temp_c: float, max_temp_c: float) -> Plan:
     """The plan, or FlowloopError naming the parameter. Temperatures must lie
     within the profile's bounds (min_temp_c..max_temp_c, the heater's
-    max_temp already applied), powers within 0..1 (share of max_power)."""
+    max_temp already applied), powers within 0..1 (share of max_power).
+    start_flow None: DEFAULT_START_FLOW_MM3_S, and each level may start
+    nearer its expected limit (Plan.ramp_start)."""
+    start_given = start_flow is not None
+    if not start_given:
+        start_flow = DEFAULT_START_FLOW_MM3_S
     if (temps is None) == (powers is None):
         raise FlowloopError("give TEMPS= or POWERS= (one of them)")
     name = "TEMPS" if temps is not None else "POWERS"
@@ -117,7 +141,8 @@ def make_plan(temps: Optional[Sequence[float]], powers: Optional[Sequence[float]
         raise FlowloopError(f"MIN_GRIP: must be in 0..1 (exclusive), got "
                             f"{min_grip:g}")
     return Plan("temperature" if temps is not None else "power",
-                tuple(sorted(levels)), start_flow, step, max_flow, min_grip)
+                tuple(sorted(levels)), start_flow, step, max_flow, min_grip,
+                start_given)
 
 
 def settled(readings: Sequence[Tuple[float, float]], hold_s: float,

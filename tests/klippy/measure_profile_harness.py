@@ -13,7 +13,12 @@ KLIPPY = os.path.join(os.getcwd(), "klippy", "klippy.py")
 sys.path.insert(0, os.path.dirname(KLIPPY))
 sys.argv[0] = KLIPPY
 
-import extras.flow_sensor as flow_sensor  # noqa: E402
+if os.path.isdir(os.path.join(os.path.dirname(KLIPPY), "plugins")):
+    # Kalico loads flowloop's modules as the package klippy.plugins
+    sys.path.insert(0, os.path.dirname(os.path.dirname(KLIPPY)))
+    import klippy.plugins.flow_sensor as flow_sensor  # noqa: E402
+else:
+    import extras.flow_sensor as flow_sensor  # noqa: E402
 
 load_config_prefix = flow_sensor.load_config_prefix
 

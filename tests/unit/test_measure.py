@@ -117,3 +117,16 @@ def test_a_low_flow_step_lasts_long_enough_for_its_windows():
     assert measure.step_duration_s(3.0, 2.0, 2.405, 1.25) == pytest.approx(
         4 * 1.25 / (2.0 / 2.405))
     assert measure.step_duration_s(3.0, 10.0, 2.405, 1.25) == 3.0
+
+
+def test_without_start_flow_a_level_starts_near_its_expected_limit():
+    p = plan(start_flow=None, step=0.5, max_flow=20.0)
+    assert not p.start_given and p.start_flow_mm3_s == measure.DEFAULT_START_FLOW_MM3_S
+    # 80 % of 9.6 is 7.68: the grid point below it, from 2 in steps of 0.5
+    assert p.ramp_start(9.6) == 7.5
+    assert p.ramp_start(None) == 2.0
+    assert p.ramp_start(1.0) == 2.0        # never below START_FLOW
+    assert p.ramp_start(100.0) == 20.0     # never above MAX_FLOW
+    assert list(p.flows(19.0)) == [19.0, 19.5, 20.0]
+    given = plan(start_flow=3.0)
+    assert given.start_given and given.ramp_start(9.6) == 3.0
