@@ -243,3 +243,24 @@ def test_the_macro_lifts_the_nozzle_and_measures_the_active_profile(printer):
                             )["status"]["toolhead"]
     assert toolhead["homed_axes"] == "xyz"
     assert toolhead["position"][2] == pytest.approx(20.0)
+
+
+def test_a_shutdown_mid_ramp_gives_the_heater_back_and_stores_nothing(printer):
+    # Last in this file: the printer stays shut down.
+    runner, watcher, _ = printer
+    before = len(stored(runner))
+    thread, outcome = measure_in_thread(
+        runner, "MEASURE_MATERIAL_PROFILE NAME=shut TEMPS=200,220 "
+        "START_FLOW=2 STEP=0.25 MAX_FLOW=14")
+    held = stack.wait_until(
+        lambda: outcome or ((s := watcher.status())["flow"] is not None
+                            and s["heater_control"] == "FixedPowerControl"
+                            and s), 300, 0.2)
+    assert "heater_pwm" in held, (held, watcher.status())
+    watcher.call("emergency_stop")
+    thread.join(300)
+    assert "error" in outcome, outcome
+    status = watcher.status()
+    assert status["state"] == "aborted"
+    assert_heater_given_back(watcher)
+    assert len(stored(runner)) == before
