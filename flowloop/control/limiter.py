@@ -14,8 +14,9 @@ The mode says which caps may act; each mode adds one to the one before:
 static (max_flow), temperature, reactive, predictive. The lowest cap wins.
 max_flow and temperature are hard caps; the grip caps never slow a move
 below min_speed_factor of the speed its G-code asked for. A cap that lacks
-its input (no profile, no temperature, a sensor fault) is off, and the status
-says why. The status is rebuilt when something changes, never when read.
+its input (no profile, no temperature) is off, and the status says why; a
+sensor fault freezes the grip caps (never raising one). The status is
+rebuilt when something changes, never when read.
 """
 
 from __future__ import annotations
@@ -158,12 +159,12 @@ class FlowLimiter:
                 self._update()
 
     def set_sensor_fault(self, fault: Optional[str]) -> None:
-        """A fault turns the grip caps off (never on, never lower)."""
+        """A fault stops the grip caps acting on the sensor: they neither
+        lower (a dead sensor is not a slip) nor recover (nothing shows the
+        hotend keeps up); a cap in force stays, so a fault never raises one."""
         if fault == self.sensor_fault:
             return
         self.sensor_fault = fault
-        if fault is not None:
-            self.reactive.reset()
         self._update()
 
     def on_window(self, duration_s: float, commanded_mm: float,
@@ -206,10 +207,8 @@ class FlowLimiter:
             if self.model is not None:
                 caps["model"] = self.model.cap_mm3_s(temp)
         if self.sensor_fault is not None:
-            why.append(f"sensor fault '{self.sensor_fault}': grip caps off")
-            caps["grip"] = caps["model"] = None
-        else:
-            caps["grip"] = self.reactive.cap_mm3_s
+            why.append(f"sensor fault '{self.sensor_fault}': grip caps frozen")
+        caps["grip"] = self.reactive.cap_mm3_s
         self.caps = {name: (round(v, 4) if v is not None and name in allowed
                             else None) for name, v in caps.items()}
         self.active = fl_caps.lowest_cap(**self.caps) if self.enabled \

@@ -102,15 +102,27 @@ def test_predictive_mode_caps_before_any_slip():
     assert s["model"]["windows"] == 30
 
 
-def test_a_sensor_fault_turns_the_grip_caps_off_and_says_so():
+def test_a_sensor_fault_freezes_the_grip_caps_and_says_so():
     lim = FlowLimiter(LimiterSettings(mode="predictive", max_flow_mm3_s=25.0), AREA)
     lim.on_window(0.1, 1.25, 0.5, None)
+    capped = lim.status()["caps"]["grip"]
     assert lim.status()["reason"] == "grip"
     lim.set_sensor_fault("magnet")
     s = lim.status()
-    assert s["reason"] == "max_flow" and s["caps"]["grip"] is None
-    assert "sensor fault 'magnet': grip caps off" in s["why"]
-    lim.on_window(0.1, 1.25, 0.1, None)  # nothing judged while faulted
+    # never raised: the cap in force stays
+    assert s["reason"] == "grip" and s["caps"]["grip"] == capped
+    assert "sensor fault 'magnet': grip caps frozen" in s["why"]
+    # a faulted sensor's windows neither lower nor recover it
+    lim.on_window(0.1, 1.25, 0.1, None)
+    for _ in range(40):
+        lim.on_window(1.0, 12.5, 1.0, None)
+    assert lim.status()["caps"]["grip"] == capped
+    assert lim.status()["grip_windows"]["judged"] == 1
+    # cleared: the rule goes on from where it was
+    lim.set_sensor_fault(None)
+    assert "sensor fault" not in lim.status()["why"]
+    for _ in range(40):
+        lim.on_window(1.0, 12.5, 1.0, None)
     assert lim.status()["caps"]["grip"] is None
 
 
