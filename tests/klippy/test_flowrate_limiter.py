@@ -194,3 +194,21 @@ def test_the_model_learns_a_hotend_weaker_than_its_profile(klipper_build,
     # learned: the fitted capacity at 210 C is near the twin's, 0.7 x the
     # profile's 7.0
     assert status["model"]["capacity_mm3_s"] == pytest.approx(0.7 * 7.0, rel=0.1)
+
+
+@pytest.mark.parametrize("cfg, message", [
+    ("max_flow", "option max_flow: max_flow must be above 0 mm^3/s, not 0.0"),
+    ("min_grip", "option min_grip: min_grip must be in (0, 1], not 1.5"),
+    ("mode", "option mode: mode must be one of static, temperature, reactive,"
+             " predictive, not 'fast'"),
+    ("min_speed_factor", "option min_speed_factor: min_speed_factor must be in"
+                         " (0, 1], not 0.0"),
+])
+def test_a_bad_option_fails_config_loading_naming_it(klipper_build, klippy_venv,
+                                                    short_tmp, cfg, message):
+    test = short_tmp / "bad.test"
+    test.write_text(f"DICTIONARY atmega2560.dict\n"
+                    f"CONFIG {HERE / f'flowrate_limiter_fail_{cfg}.cfg'}\n"
+                    "SHOULD_FAIL\n")
+    log = run_file(test, klipper_build, klippy_venv, short_tmp)
+    assert f"Section [flowrate_limiter], {message}" in log
