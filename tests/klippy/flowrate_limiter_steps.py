@@ -17,8 +17,14 @@ RESET_CLOCK = re.compile(r"^reset_step_clock oid=(\d+) clock=(\d+)")
 
 
 def parsedump(build, venv, dictionary: Path, output: Path) -> List[str]:
-    proc = subprocess.run([str(venv.python), "parsedump.py", str(dictionary),
-                           str(output)], cwd=build.tree / "klippy",
+    # Klipper's script imports msgproto by name (run it in klippy/); Kalico's
+    # imports it relative to its klippy package (run it as a module).
+    script = build.tree / "klippy" / "parsedump.py"
+    if "from . import" in script.read_text():
+        cmd, cwd = [str(venv.python), "-m", "klippy.parsedump"], build.tree
+    else:
+        cmd, cwd = [str(venv.python), "parsedump.py"], script.parent
+    proc = subprocess.run(cmd + [str(dictionary), str(output)], cwd=cwd,
                           capture_output=True, text=True, check=True)
     return proc.stdout.splitlines()
 
