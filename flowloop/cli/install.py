@@ -31,7 +31,8 @@ def register(subparsers) -> None:
     home = Path("~")
     p.add_argument("--klipper", type=Path,
                    default=Path(os.environ.get("KLIPPER_PATH", home / "klipper")),
-                   help="Klipper checkout (default: $KLIPPER_PATH or ~/klipper)")
+                   help="Klipper or Kalico checkout (default: $KLIPPER_PATH or "
+                        "~/klipper)")
     p.add_argument("--moonraker", type=Path, default=None,
                    help="Moonraker checkout or virtualenv (default: ~/moonraker, "
                         "else ~/moonraker-env)")
