@@ -11,6 +11,7 @@
 # control.watchdog); this module drives the printer.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
+import dataclasses
 import logging
 
 from flowloop.calibrate.numbers import parse_numbers
@@ -28,6 +29,7 @@ MAX_MOVE_TIME = 1.0         # s per extrude-only move of a step
 MAX_STEP_RETRIES = 2        # a step without a judged window runs again
 STORE_METHOD = "flowloop_store_profile"
 NAME = "MEASURE_MATERIAL_PROFILE"
+PRINT_NAME = "MEASURE_MATERIAL_PROFILE_PRINT"
 
 
 class MeasurementStopped(Exception):
@@ -84,6 +86,7 @@ class MeasureProfile:
                 f"{self.max_settle_time:g} is below settle_time"
                 f" {self.settle_time:g}"))
         self.run = None              # the measurement in progress, or None
+        self.watch = None            # a print being watched, or None
         self.cancel_reason = None
         self.status = {}
         self._set_status('idle')
@@ -93,6 +96,12 @@ class MeasureProfile:
         gcode.register_command('MEASURE_MATERIAL_PROFILE',
                                self.cmd_MEASURE_MATERIAL_PROFILE,
                                desc=self.cmd_MEASURE_MATERIAL_PROFILE_help)
+        gcode.register_command('MEASURE_MATERIAL_PROFILE_PRINT',
+                               self.cmd_MEASURE_MATERIAL_PROFILE_PRINT,
+                               desc=self.cmd_MEASURE_MATERIAL_PROFILE_PRINT_help)
+        gcode.register_command('MEASURE_MATERIAL_PROFILE_LAYER',
+                               self.cmd_MEASURE_MATERIAL_PROFILE_LAYER,
+                               desc=self.cmd_MEASURE_MATERIAL_PROFILE_LAYER_help)
         gcode.register_command('CANCEL_MATERIAL_PROFILE',
                                self.cmd_CANCEL_MATERIAL_PROFILE,
                                desc=self.cmd_CANCEL_MATERIAL_PROFILE_help)
@@ -126,24 +135,47 @@ class MeasureProfile:
                                                                       window))
 
     def _handle_window(self, sensor, window):
-        # In the reactor, possibly inside a flush: only collect.
+        # In the reactor, possibly inside a flush: only collect and decide;
+        # what follows runs in its own callback.
         run = self.run
         if run is not None and run.sensor is sensor:
             run.windows.append(window)
+        watch = self.watch
+        if watch is None or watch.sensor is not sensor:
+            return
+        if window.reason == 'fault':
+            self.watch = None
+            self.reactor.register_callback(lambda e: self._end_watch(
+                "flow sensor fault: nothing stored"))
+            return
+        step = watch.watch.add(window)
+        if step is not None:
+            self.watch = None
+            self.reactor.register_callback(
+                lambda e: self._finish_print(watch, step))
 
     # --- cancel and shutdown ----------------------------------------------------
     cmd_CANCEL_MATERIAL_PROFILE_help = (
         "Stop a running MEASURE_MATERIAL_PROFILE (nothing is stored)")
 
     def cmd_CANCEL_MATERIAL_PROFILE(self, gcmd):
+        if self.watch is not None:
+            self.watch = None
+            self._end_watch("cancelled (CANCEL_MATERIAL_PROFILE); nothing"
+                            " stored")
+            return
         if self.run is None:
             gcmd.respond_info("CANCEL_MATERIAL_PROFILE: no measurement running")
             return
         self.cancel_reason = "cancelled (CANCEL_MATERIAL_PROFILE)"
 
     def _handle_cancel_request(self, web_request):
-        running = self.run is not None
-        if running:
+        running = self.run is not None or self.watch is not None
+        if self.watch is not None:
+            self.watch = None
+            self._end_watch("cancelled (measure_profile/cancel); nothing"
+                            " stored")
+        elif running:
             self.cancel_reason = "cancelled (measure_profile/cancel)"
         web_request.send({'cancelled': running})
 
@@ -158,7 +190,7 @@ class MeasureProfile:
         " MIN_GRIP= [ACTIVATE=1] [MIN_TEMP= MAX_TEMP=]")
 
     def cmd_MEASURE_MATERIAL_PROFILE(self, gcmd):
-        if self.run is not None:
+        if self.run is not None or self.watch is not None:
             raise gcmd.error(f"{NAME}: a measurement is running already")
         run = self._prepare(gcmd)
         self.run, self.cancel_reason = run, None
@@ -186,30 +218,143 @@ class MeasureProfile:
                          result=self._result_status(profile))
         self._store(gcmd, run, profile)
 
-    def _result_status(self, profile):
-        line = profile.lines.into_air
+    def _result_status(self, profile, kind='into_air'):
+        line = getattr(profile.lines, kind)
         return {'name': profile.name,
                 'slope_mm3_s_per_c': line.slope_mm3_s_per_c,
                 'temp_c': line.temp_c, 'flow_mm3_s': line.flow_mm3_s,
                 'note': profile.provenance.note}
 
     def _store(self, gcmd, run, profile):
+        try:
+            message = self._hand_over(NAME, profile, run.extruder_name,
+                                      run.activate)
+        except self.printer.command_error as e:
+            raise gcmd.error(str(e)) from None
+        gcmd.respond_info(message)
+
+    def _hand_over(self, command, profile, extruder_name, activate):
+        """Send the profile to Moonraker; the message (status follows)."""
         webhooks = self.printer.lookup_object('webhooks')
         try:
             webhooks.call_remote_method(
                 STORE_METHOD, profile=fl_profile.profile_to_dict(profile),
-                activate_extruder=run.extruder_name if run.activate else None)
+                activate_extruder=extruder_name if activate else None)
         except self.printer.command_error as e:
-            message = (f"{NAME}: profile '{profile.name}' measured but not"
+            message = (f"{command}: profile '{profile.name}' measured but not"
                        f" stored ({e}): is Moonraker's [flowloop] component"
                        " loaded?")
             self._set_status('measured', message=message)
-            raise gcmd.error(message) from None
-        message = (f"{NAME}: profile '{profile.name}' handed to Moonraker"
-                   + (f" and activated on {run.extruder_name}"
-                      if run.activate else ""))
+            raise self.printer.command_error(message) from None
+        message = (f"{command}: profile '{profile.name}' handed to Moonraker"
+                   + (f" and activated on {extruder_name}" if activate else ""))
         self._set_status('stored', message=message)
-        gcmd.respond_info(message)
+        return message
+
+    # --- the real-print measurement ----------------------------------------------
+    cmd_MEASURE_MATERIAL_PROFILE_PRINT_help = (
+        "Watch a print of the measurement part (flowloop measure-part) and"
+        " store the real-print line where grip falls: NAME= [EXTRUDER=]"
+        " [MIN_GRIP=] [ACTIVATE=1]")
+
+    def cmd_MEASURE_MATERIAL_PROFILE_PRINT(self, gcmd):
+        if self.run is not None or self.watch is not None:
+            raise gcmd.error(f"{PRINT_NAME}: a measurement is running already")
+        name = gcmd.get('NAME')
+        extruder_name = gcmd.get('EXTRUDER', 'extruder')
+        activate = bool(gcmd.get_int('ACTIVATE', 0, minval=0, maxval=1))
+        try:
+            fl_profile.check_name(name)
+            extruder, _ = self._extruder(extruder_name)
+            sensor = self._sensor(extruder_name)
+            base = self.host.get_active_profile(extruder_name)
+            if base is None:
+                raise FlowloopError(
+                    "activate the material's profile first: its into-air line"
+                    " gives the real-print line's slope")
+            base = base.profile
+            watch = fl_measure.PrintWatch(gcmd.get_float(
+                'MIN_GRIP', self._default_min_grip(base)))
+        except FlowloopError as e:
+            raise gcmd.error(f"{PRINT_NAME}: {e}; nothing changed") from None
+        self.watch = PrintSession(name, extruder_name, extruder, sensor, base,
+                                  watch, activate)
+        self._set_status('watching', name=name, level=None, levels=0,
+                         flow=None, points=[], result=None,
+                         message=f"{PRINT_NAME}: watching the grip")
+        gcmd.respond_info(
+            f"{PRINT_NAME}: watching {extruder_name}'s grip (median of"
+            f" {watch.size} windows below {watch.min_grip:g} ends it): print"
+            " the measurement part now")
+
+    cmd_MEASURE_MATERIAL_PROFILE_LAYER_help = (
+        "The planned flow of a measurement part's layer (flowloop"
+        " measure-part writes it)")
+
+    def cmd_MEASURE_MATERIAL_PROFILE_LAYER(self, gcmd):
+        layer = gcmd.get_int('LAYER', minval=1)
+        flow = gcmd.get_float('FLOW', above=0.)
+        if self.watch is not None:
+            # The layer's moves begin after those queued so far
+            start = self.printer.lookup_object('toolhead').get_last_move_time()
+            self.watch.layers.append((start, flow))
+            self.watch.layer = layer
+
+    def _end_watch(self, why):
+        message = f"{PRINT_NAME}: {why}"
+        self._set_status('aborted', message=message)
+        self.printer.lookup_object('gcode').respond_info(message)
+
+    def _finish_print(self, session, step):
+        gcode = self.printer.lookup_object('gcode')
+        melted = fl_measure.melted_flow(session.watch.recent, session.layers)
+        if melted is not None:
+            step = dataclasses.replace(step, measured_mm3_s=melted)
+        else:
+            gcode.respond_info(
+                f"{PRINT_NAME}: no MEASURE_MATERIAL_PROFILE_LAYER in the file:"
+                " the flow is the windows' own, low by their travel and"
+                " corners (print a part from flowloop measure-part)")
+        point = fl_measure.limit_point(step, None, 0., kind='real_print')
+        base = session.base
+        try:
+            fitted = fl_fit.one_point_lines(
+                'real_print', point, base.lines.into_air.slope_mm3_s_per_c)
+            area = session.extruder.filament_area
+            profile = fl_fit.measured_profile(
+                session.name, base, fitted, [point], base.bounds,
+                base.identity.nozzle_diameter_mm,
+                round((4. * area / 3.141592653589793) ** .5, 3),
+                session.watch.min_grip, PRINT_NAME)
+        except FlowloopError as e:
+            self._end_watch(f"{e}; nothing stored")
+            return
+        gcode.respond_info(
+            f"{PRINT_NAME}: grip {step.grip:.3f} at {point.flow_mm3_s:.2f}"
+            f" mm^3/s, {point.temp_c:.1f} degC: "
+            + fitted.lines()[0])
+        self._set_status('measured', points=[
+            {'temp_c': point.temp_c, 'flow_mm3_s': point.flow_mm3_s,
+             'grip': point.grip, 'heater_pwm': None}],
+            result=self._result_status(profile, 'real_print'))
+        try:
+            gcode.respond_info(self._hand_over(PRINT_NAME, profile,
+                                               session.extruder_name,
+                                               session.activate))
+        except self.printer.command_error as e:
+            gcode.respond_info(str(e))
+        self._stop_print(gcode)
+
+    def _stop_print(self, gcode):
+        # The part has done its job: end the print, only while printing
+        idle_timeout = self.printer.lookup_object('idle_timeout')
+        now = self.reactor.monotonic()
+        if idle_timeout.get_status(now)['state'] != 'Printing':
+            return
+        try:
+            gcode.run_script("CANCEL_PRINT")
+        except Exception:
+            logging.exception("%s: CANCEL_PRINT failed", PRINT_NAME)
 
     def _prepare(self, gcmd):
         """Everything checked before anything changes (bad input: one line)."""
@@ -299,6 +444,18 @@ class MeasureProfile:
         return fl_profile.Bounds(
             min_temp_c=min_temp, max_temp_c=max_temp,
             recommended_temp_c=min(max(recommended, min_temp), max_temp))
+
+
+class PrintSession:
+    """One MEASURE_MATERIAL_PROFILE_PRINT: what the watch needs."""
+
+    def __init__(self, name, extruder_name, extruder, sensor, base, watch,
+                 activate):
+        self.name, self.extruder_name = name, extruder_name
+        self.extruder, self.sensor, self.base = extruder, sensor, base
+        self.watch, self.activate = watch, activate
+        self.layer = None
+        self.layers = []   # (print time it starts, planned flow) per layer
 
 
 class Run:

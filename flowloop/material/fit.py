@@ -174,6 +174,20 @@ def fit_points(kind: PointKind, points: Sequence[MeasuredPoint],
     return MeasuredLines(kind, temperature, power, refused)
 
 
+def one_point_lines(kind: PointKind, point: MeasuredPoint,
+                    slope_mm3_s_per_c: float) -> MeasuredLines:
+    """A line from one point with a known slope (ddPrint's real-print
+    line: its slope is the into-air line's)."""
+    if not slope_mm3_s_per_c > 0:
+        raise FlowloopError(f"{kind} line: the slope {slope_mm3_s_per_c:g} "
+                            f"must be above 0")
+    intercept = point.flow_mm3_s - slope_mm3_s_per_c * point.temp_c
+    temperature = LineFit(slope_mm3_s_per_c, intercept, None, None, 0.0, 1,
+                          point.temp_c)
+    return MeasuredLines(kind, temperature, None,
+                         "one point: no power line")
+
+
 def measured_profile(name: str, base: Optional[Profile], fitted: MeasuredLines,
                      points: Sequence[MeasuredPoint], bounds: Bounds,
                      nozzle_diameter_mm: float, filament_diameter_mm: float,
@@ -208,8 +222,11 @@ def measured_profile(name: str, base: Optional[Profile], fitted: MeasuredLines,
     when = measured_at or datetime.now(timezone.utc).strftime(
         "%Y-%m-%dT%H:%M:%SZ")
     err = fitted.temperature.slope_stderr
-    note += ("; slope uncertainty unknown (2 points)" if err is None
-             else f"; slope +/- {err:.3g} mm^3/s per degC")
+    if fitted.temperature.n == 1:
+        note += "; one point, the slope is the other line's"
+    else:
+        note += ("; slope uncertainty unknown (2 points)" if err is None
+                 else f"; slope +/- {err:.3g} mm^3/s per degC")
     return Profile(identity=identity, lines=lines, bounds=bounds,
                    points=kept + list(points),
                    provenance=Provenance(method=fitted.kind, measured_at=when,

@@ -198,12 +198,66 @@ def judge_step(windows: Sequence[Window], start_time: float, end_time: float,
                       statistics.fmean(temps) if temps else None, len(judged))
 
 
-def limit_point(step: StepResult, power: float, fallback_temp_c: float
-                ) -> MeasuredPoint:
+def limit_point(step: StepResult, power: Optional[float],
+                fallback_temp_c: float, kind: str = "into_air") -> MeasuredPoint:
     """The level's point: the step whose grip fell below MIN_GRIP."""
     temp = float(step.temp_c if step.temp_c is not None else fallback_temp_c)
-    return MeasuredPoint(kind="into_air", temp_c=round(temp, 2),
+    return MeasuredPoint(kind=kind, temp_c=round(temp, 2),
                          flow_mm3_s=round(float(step.measured_mm3_s), 4),
                          grip=round(min(2.0, max(0.0, float(step.grip))), 4),
-                         heater_pwm=round(min(1.0, max(0.0, float(power)))
-                                          * PWM_MAX, 2))
+                         heater_pwm=None if power is None else round(
+                             min(1.0, max(0.0, float(power))) * PWM_MAX, 2))
+
+
+# --- the real-print measurement (MEASURE_MATERIAL_PROFILE_PRINT) -----------
+PRINT_WINDOWS = 8   # judged windows whose median grip decides
+
+
+class PrintWatch:
+    """Watches a print of the measurement part: the grip windows as they
+    close; `add` returns the point once the median grip of the last
+    PRINT_WINDOWS judged windows falls below min_grip (what the hotend
+    melted then, at its temperature), else None."""
+
+    def __init__(self, min_grip: float, windows: int = PRINT_WINDOWS):
+        if not 0.0 < min_grip < 1.0:
+            raise FlowloopError(f"MIN_GRIP: must be in 0..1 (exclusive), got "
+                                f"{min_grip:g}")
+        self.min_grip = min_grip
+        self.size = windows
+        self.recent: list = []
+        self.judged = 0
+
+    def add(self, window: Window) -> Optional[StepResult]:
+        if window.grip is None or window.flow_mm3_s is None:
+            return None
+        self.judged += 1
+        self.recent = (self.recent + [window])[-self.size:]
+        if len(self.recent) < self.size:
+            return None
+        grip = float(statistics.median(float(w.grip) for w in self.recent))
+        if grip >= self.min_grip:
+            return None
+        temps = [float(w.temp_c) for w in self.recent if w.temp_c is not None]
+        flows = [float(w.flow_mm3_s) for w in self.recent]
+        return StepResult(statistics.fmean(flows) / grip, grip,
+                          statistics.fmean(flows),
+                          statistics.fmean(temps) if temps else None,
+                          len(self.recent))
+
+
+def melted_flow(windows: Sequence[Window],
+                layers: Sequence[Tuple[float, float]]) -> Optional[float]:
+    """What the hotend melted while extruding, over judged windows: each
+    window's grip times the planned flow of the layer it began in
+    (layers: (print time the layer starts, planned flow), in order). The
+    windows' own flow spans travel and corners and reads low. None: no
+    window began in a known layer."""
+    values = []
+    for w in windows:
+        if w.grip is None:
+            continue
+        planned = [flow for start, flow in layers if start <= w.start_time]
+        if planned:
+            values.append(planned[-1] * float(w.grip))
+    return statistics.fmean(values) if values else None

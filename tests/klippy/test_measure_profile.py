@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from devtools import stack
+from flowloop.gcode import measure_part
 from flowloop.material.profile import profile_from_dict
 
 HERE = Path(__file__).resolve().parent
@@ -243,6 +244,41 @@ def test_the_macro_lifts_the_nozzle_and_measures_the_active_profile(printer):
                             )["status"]["toolhead"]
     assert toolhead["homed_axes"] == "xyz"
     assert toolhead["position"][2] == pytest.approx(20.0)
+
+
+def test_the_print_measurement_finds_the_real_print_line_in_the_part(printer):
+    runner, watcher, _ = printer
+    before = len(stored(runner))
+    part = measure_part.render(measure_part.PartOptions(
+        length_mm=100.0, width_mm=4.0, height_mm=3.0, start_flow_mm3_s=3.0,
+        rise=0.1, max_flow_mm3_s=12.0, hotend_temp_c=TEMP))
+    # no heated bed in this printer; the twin heats during a dwell first
+    lines = [ln for ln in part.splitlines()
+             if not ln.startswith(("M140", "M190"))]
+    runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE_PRINT "
+                "NAME=printed MIN_GRIP=0.9")
+    assert watcher.status()["state"] == "watching"
+    runner.call("gcode/script", script=f"M104 S{TEMP:g}\nG4 P100000")
+    for i in range(0, len(lines), 40):
+        runner.call("gcode/script", script="\n".join(lines[i:i + 40] + ["M400"]))
+        if watcher.status()["state"] != "watching":
+            break
+    status = watcher.status()
+    assert status["state"] == "stored", status
+    runner.call("info")  # the store came after the runner's last answer
+    calls = stored(runner)[before:]
+    assert len(calls) == 1
+    profile = profile_from_dict(calls[0]["params"]["profile"])
+    real = profile.lines.real_print.line()
+    # one point, with the into-air slope: the twin's line at that point
+    assert real.slope_mm3_s_per_c == SLOPE
+    assert real.flow_mm3_s(TEMP) == pytest.approx(FLOW, rel=FLOW_TOLERANCE)
+    assert [p.kind for p in profile.points].count("real_print") == 1
+    assert profile.provenance.method == "real_print"
+    assert profile.lines.into_air == profile_from_dict(KNOWN).lines.into_air
+    # the point is where the part's flow passed what the hotend melts
+    point = [p for p in profile.points if p.kind == "real_print"][0]
+    assert point.grip < 0.9 and point.heater_pwm is None
 
 
 def test_a_shutdown_mid_ramp_gives_the_heater_back_and_stores_nothing(printer):

@@ -130,3 +130,26 @@ def test_without_start_flow_a_level_starts_near_its_expected_limit():
     assert list(p.flows(19.0)) == [19.0, 19.5, 20.0]
     given = plan(start_flow=3.0)
     assert given.start_given and given.ramp_start(9.6) == 3.0
+
+
+def test_the_melted_flow_of_a_print_uses_each_window_s_own_layer():
+    layers = [(0.0, 5.0), (10.0, 6.0), (20.0, 7.0)]
+    windows = [window(9.0, 10.5, 1.0),     # began in layer 1: 5.0
+               window(12.0, 13.0, 0.95),   # layer 2: 5.7
+               window(21.0, 22.0, 0.8),    # layer 3: 5.6
+               window(22.0, 23.0, None)]   # unjudged: left out
+    assert measure.melted_flow(windows, layers) == pytest.approx(
+        (5.0 + 5.7 + 5.6) / 3)
+    assert measure.melted_flow(windows, []) is None
+    assert measure.melted_flow([window(-1.0, 0.5, 0.9)], layers) is None
+
+
+def test_a_print_watch_ends_on_the_median_of_its_last_windows():
+    watch = measure.PrintWatch(0.9, windows=3)
+    assert watch.add(window(0.0, 1.0, 0.95)) is None
+    assert watch.add(window(1.0, 2.0, 0.8)) is None     # 2 of 3 windows
+    assert watch.add(window(2.0, 3.0, None)) is None    # unjudged: ignored
+    assert watch.add(window(3.0, 4.0, 0.85)) is not None
+    assert [w.grip for w in watch.recent] == [0.95, 0.8, 0.85]
+    with pytest.raises(FlowloopError, match="MIN_GRIP"):
+        measure.PrintWatch(1.5)

@@ -19,7 +19,8 @@ pytestmark = pytest.mark.unit
 
 COMMAND = re.compile(r"^(G0|G1|G28|G90|G91|G92|M83|M104|M109|M140|M190)"
                      r"( [XYZEFS]-?\d+(\.\d+)?)*$|^SET_PRINT_STATS_INFO "
-                     r"CURRENT_LAYER=\d+ TOTAL_LAYER=\d+$")
+                     r"CURRENT_LAYER=\d+ TOTAL_LAYER=\d+$|"
+                     r"^MEASURE_MATERIAL_PROFILE_LAYER LAYER=\d+ FLOW=\d+\.\d+$")
 
 
 def moves(text):
@@ -61,6 +62,11 @@ def test_speed_rises_by_layer_up_to_max_flow_and_flow_matches(rise, start, layer
         feeds.setdefault(n, set()).add(f)
     for p in plan:
         assert feeds[p.number] == {round(60 * p.speed_mm_s)}
+    # each layer tells MEASURE_MATERIAL_PROFILE_PRINT its planned flow
+    announced = [float(line.split("FLOW=")[1]) for line in
+                 measure_part.render(o).splitlines()
+                 if line.startswith("MEASURE_MATERIAL_PROFILE_LAYER")]
+    assert announced == pytest.approx([p.flow_mm3_s for p in plan], abs=1e-3)
 
 
 def test_the_filament_is_the_part_volume():
