@@ -281,6 +281,19 @@ def test_the_print_measurement_finds_the_real_print_line_in_the_part(printer):
     assert point.grip < 0.9 and point.heater_pwm is None
 
 
+def test_the_print_macro_watches_until_cancelled_and_stores_nothing(printer):
+    runner, watcher, _ = printer
+    before = len(stored(runner))
+    runner.call("gcode/script", script="MEASURE_PROFILE_PRINT MIN_GRIP=0.85")
+    status = watcher.status()
+    assert (status["state"], status["name"]) == ("watching", "known measured")
+    runner.call("gcode/script", script="CANCEL_MATERIAL_PROFILE")
+    status = watcher.status()
+    assert status["state"] == "aborted" and "cancelled" in status["message"]
+    runner.call("info")
+    assert len(stored(runner)) == before
+
+
 def test_a_shutdown_mid_ramp_gives_the_heater_back_and_stores_nothing(printer):
     # Last in this file: the printer stays shut down.
     runner, watcher, _ = printer

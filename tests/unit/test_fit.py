@@ -169,3 +169,29 @@ def test_a_measured_profile_without_a_base_says_its_other_line_is_a_copy():
     assert "not measured" in profile.provenance.note
     assert "uncertainty unknown" in profile.provenance.note
     assert profile.provenance.measured_at.endswith("Z")
+
+
+def test_one_point_gives_the_line_with_the_given_slope():
+    real = point(210.0, 5.5, kind="real_print")
+    lines = fit.one_point_lines("real_print", real, 0.12)
+    line = lines.temperature.flow_line().line()
+    assert line.slope_mm3_s_per_c == 0.12
+    assert line.flow_mm3_s(210.0) == pytest.approx(5.5)
+    assert lines.power is None and lines.temperature.n == 1
+    with pytest.raises(FlowloopError, match="slope 0 must be above 0"):
+        fit.one_point_lines("real_print", real, 0.0)
+    base = profile_from_dict({
+        "identity": {"name": "base", "nozzle_diameter_mm": 0.4},
+        "lines": {"into_air": {"slope_mm3_s_per_c": 0.12, "temp_c": 210.0,
+                               "flow_mm3_s": 6.0},
+                  "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 210.0,
+                                 "flow_mm3_s": 4.0}},
+        "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 210.0,
+                   "max_temp_c": 260.0},
+        "provenance": {"method": "manual"}})
+    profile = fit.measured_profile("printed", base, lines, [real], base.bounds,
+                                   0.4, 1.75, 0.9, "test")
+    assert profile.lines.into_air == base.lines.into_air
+    assert profile.lines.real_print.line().flow_mm3_s(210.0) == pytest.approx(5.5)
+    assert profile.provenance.method == "real_print"
+    assert "one point" in profile.provenance.note
