@@ -4,10 +4,11 @@ real Moonraker's update manager and a real git repository.
 Everything is local: a clone of this project whose origin is a bare repository
 on disk; klippy and Moonraker run under supervisord (a real service manager
 Moonraker drives with its supervisord_cli provider), so `managed_services`
-really restarts them. Nothing reaches the network: klippy runs from a copy of
-the patched Klipper without .git (Moonraker does not try to update it),
-Moonraker's own package updater gets PIP_NO_INDEX (pip looks at no index),
-and system updates are off.
+really restarts them. Moonraker is kept off the network: klippy runs from a
+copy of the patched Klipper without .git (Moonraker does not try to update
+it), Moonraker's own package updater gets PIP_NO_INDEX (pip looks at no
+index), system updates and Moonlight announcements are off, and usb.ids is
+present so it is not downloaded (the test checks Moonraker's log for tries).
 """
 
 from __future__ import annotations
@@ -108,6 +109,8 @@ class Printer:
         for sub in ("config", "gcodes", "comms", "logs"):
             (data / sub).mkdir(parents=True)
         self.data = data
+        (data / "misc").mkdir()
+        (data / "misc" / "usb.ids").write_text("")  # present: not downloaded
         # Klipper's runnable part, without .git and without the build's
         # links to this checkout; flowloop install links the clone into it.
         klipper = root / "klipper"
@@ -129,7 +132,8 @@ class Printer:
         conf = stack.MOONRAKER_CONF.format(
             port=self.port, klippy_uds=data / "comms" / "klippy.sock",
             trusted="127.0.0.0/8",
-            extra="\n[update_manager]\nenable_system_updates: False\n\n"
+            extra="\n[announcements]\nenable_moonlight: False\n"
+                  "\n[update_manager]\nenable_system_updates: False\n\n"
                   + install.update_manager_block(clone))
         supervisor_conf = root / "supervisord.conf"
         conf = conf.replace("provider: none", "provider: supervisord_cli\n"
@@ -277,6 +281,9 @@ def test_an_update_through_moonraker_pulls_and_restarts_klippy_on_the_new_code(
     assert info["version"] == NEW_VERSION
     status = printer.flowloop_status()
     assert status["current_hash"] == new_head and status["commits_behind"] == []
+    log = (printer.data / "moonraker.log").read_text()
+    for attempt in ("Fetching latest usb.ids", "Failed to update subscription"):
+        assert attempt not in log  # what Moonraker logs when it tries
     assert f"g{new_head[:8]}" in status["full_version_string"]
 
 
