@@ -24,7 +24,7 @@ HERE = Path(__file__).resolve().parent
 # kinds of flow sensor source.
 CONFIGS = ("flow_sensor_sim.cfg", "flow_sensor_both.cfg",
            "diff_ab_calibrate_corexy.cfg", "endstop_calibrate.cfg",
-           "flowrate_limiter_loop.cfg", "measure_profile.cfg")
+           "flowrate_limiter_loop.cfg", "measure_profile.cfg", "autotemp.cfg")
 
 FACTS_MACRO = """
 [gcode_macro FLOWLOOP_REFERENCE_FACTS]

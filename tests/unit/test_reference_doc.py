@@ -196,6 +196,8 @@ def gcode_commands(path: Path, tree: ast.AST) -> Dict[str, Command]:
                     if len(args) > 1 else None
                 if not direct and not isinstance(handler, ast.Attribute):
                     continue          # a table row that is not (name, handler, ...)
+                if isinstance(handler, ast.Constant) and handler.value is None:
+                    continue          # register_command(name, None): taking one over
                 assert isinstance(handler, ast.Attribute), _where(path, call)
                 params = _gcmd_params(methods, handler.attr)
                 if mux_key:

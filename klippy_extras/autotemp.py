@@ -1,0 +1,213 @@
+# [autotemp]: the hotend temperature set ahead of the flow the G-code will
+# demand. AUTOTEMP_FLOW (written into the file by `flowloop annotate` or
+# Moonraker's file processor) announces a window of flow; the active
+# material profile's line at the working point turns it into a need, and the
+# plan against the hotend thermal model (flowloop.control.autotemp) into
+# heater targets, set as the motion is generated. A file without
+# annotations falls back to the moves Klipper has queued (reactive).
+#
+# This file may be distributed under the terms of the GNU GPLv3 license.
+from flowloop.control import autotemp as fl_autotemp
+from flowloop.control import caps as fl_caps
+from flowloop.control.hotend import HotendParams
+from flowloop.errors import FlowloopError
+from flowloop.material.active import working_point_arg
+
+DEFAULTS = HotendParams()
+
+
+def option_error(config, option, message):
+    return config.error(
+        f"Section [{config.get_name()}], option {option}: {message}")
+
+
+class Autotemp:
+    def __init__(self, config):
+        self.printer = printer = config.get_printer()
+        self.host = printer.load_object(config, 'flowloop')
+        self.section = config.get_name()
+        self.extruder_name = config.get('extruder', 'extruder')
+        self.override_m104 = config.getboolean('override_m104', True)
+        enabled = config.getboolean('enable', True)
+        values = {'time_constant': ('time_constant_s', config.getfloat(
+                      'time_constant', DEFAULTS.time_constant_s)),
+                  'dead_time': ('dead_time_s', config.getfloat(
+                      'dead_time', DEFAULTS.dead_time_s)),
+                  'heater_power': ('max_power_w', config.getfloat(
+                      'heater_power', DEFAULTS.max_power_w))}
+        params = {}
+        for option, (field, value) in values.items():
+            try:
+                HotendParams(**{field: value})
+            except FlowloopError as e:
+                raise option_error(config, option, str(e)) from None
+            params[field] = value
+        wp = config.get('working_point', None)
+        try:
+            self.working_point = None if wp is None else working_point_arg(wp)
+        except FlowloopError as e:
+            raise option_error(config, 'working_point', str(e)) from None
+        self.params = HotendParams(**params)
+        self.core = fl_autotemp.Autotemp(self.params, enabled=enabled)
+        self.heater = self.toolhead = self.extruder = None
+        self.next_transform = None
+        self.last_flush = None
+        printer.register_event_handler('klippy:connect', self._handle_connect)
+        printer.register_event_handler('flowloop:profile_activated',
+                                       self._handle_profile)
+        gcode = printer.lookup_object('gcode')
+        self.gcode = gcode
+        gcode.register_command('AUTOTEMP_FLOW', self.cmd_AUTOTEMP_FLOW,
+                               desc=self.cmd_AUTOTEMP_FLOW_help)
+        gcode.register_command('SET_AUTOTEMP', self.cmd_SET_AUTOTEMP,
+                               desc=self.cmd_SET_AUTOTEMP_help)
+        gcode.register_command('QUERY_AUTOTEMP', self.cmd_QUERY_AUTOTEMP,
+                               desc=self.cmd_QUERY_AUTOTEMP_help)
+        self.prev_m104 = None
+
+    # --- setup ---------------------------------------------------------------
+    def _handle_connect(self):
+        extruder = self.printer.lookup_object(self.extruder_name, None)
+        if extruder is None or not hasattr(extruder, 'get_heater'):
+            raise self.printer.config_error(
+                f"Section [{self.section}], option extruder:"
+                f" '{self.extruder_name}' is not an extruder")
+        self.extruder = extruder
+        self.heater = extruder.get_heater()
+        self.core.heater_max_temp_c = self.heater.max_temp
+        self.toolhead = self.printer.lookup_object('toolhead')
+        if self.override_m104:
+            # The extruder registers M104 after the extras load: take it over
+            # here, as gcode_macro's rename_existing does.
+            self.prev_m104 = self.gcode.register_command('M104', None)
+            self.gcode.register_command('M104', self.cmd_M104,
+                                        desc=self.cmd_M104_help)
+        self.core.set_working_point(self.working_point)
+        active = self.host.get_active_profile(self.extruder_name)
+        if active is not None:
+            self.core.set_profile(active.profile, active.working_point)
+        motion_queuing = self.printer.lookup_object('motion_queuing')
+        motion_queuing.register_flush_callback(self._flush)
+        gcode_move = self.printer.lookup_object('gcode_move')
+        self.next_transform = gcode_move.set_move_transform(self, force=True)
+
+    def _handle_profile(self, extruder, profile, working_point):
+        if extruder == self.extruder_name:
+            self.core.set_profile(profile, working_point, self._print_time())
+
+    def _print_time(self):
+        # Where queued motion ends: moves still in the lookahead queue come
+        # later, so windows placed from here are placed early, never late.
+        if self.toolhead is None:
+            return 0.
+        reactor = self.printer.get_reactor()
+        return self.toolhead.get_status(reactor.monotonic())['print_time']
+
+    # --- targets, as the motion is generated ---------------------------------
+    def _flush(self, flush_time, step_gen_time):
+        hold = fl_autotemp.GRID_S if self.last_flush is None \
+            else min(1., max(fl_autotemp.GRID_S, step_gen_time - self.last_flush))
+        self.last_flush = step_gen_time
+        if self.core.source is not None \
+                and self.heater.get_status(None)['target'] == 0.:
+            # Turned off (M104 S0, TURN_OFF_HEATERS, a fault): autotemp never
+            # turns a heater on; it stands down until the next window.
+            self.core.stop()
+            return
+        target = self.core.target_at(step_gen_time, hold)
+        if target is None:
+            return
+        # never outside the heater's own limits
+        target = min(self.heater.max_temp, max(self.heater.min_temp, target))
+        if target != self.heater.get_status(None)['target']:
+            self.heater.set_temp(target)
+
+    # --- the move transform: the lookahead fallback ---------------------------
+    def get_position(self):
+        return self.next_transform.get_position()
+
+    def move(self, newpos, speed):
+        if self.core.source != 'annotation' and self.core.active:
+            shape = fl_caps.move_shape(self.next_transform.get_position(),
+                                       newpos)
+            if shape.extrudes and self.toolhead.get_extruder() is self.extruder:
+                flow = shape.flow_mm3_s(speed, self.extruder.filament_area)
+                self.core.on_move(self._print_time(), flow,
+                                  shape.duration_s(speed))
+        self.next_transform.move(newpos, speed)
+
+    # --- status and commands -------------------------------------------------
+    def get_status(self, eventtime=None):
+        return self.core.status
+
+    cmd_AUTOTEMP_FLOW_help = (
+        "Announce the peak flow (mm^3/s) of a window LEAD s ahead, DURATION s"
+        " long (written by flowloop annotate)")
+
+    def cmd_AUTOTEMP_FLOW(self, gcmd):
+        flow = gcmd.get_float('FLOW')
+        lead = gcmd.get_float('LEAD')
+        duration = gcmd.get_float('DURATION')
+        try:
+            self.core.announce(self._print_time(), flow, lead, duration)
+        except FlowloopError as e:
+            raise gcmd.error(f"AUTOTEMP_FLOW: {e}; nothing changed") from None
+
+    cmd_SET_AUTOTEMP_help = (
+        "Turn autotemp on (ENABLE=1) or off (ENABLE=0), set its working point"
+        " (WP=0..1, or WP=profile for the active profile's)")
+
+    def cmd_SET_AUTOTEMP(self, gcmd):
+        enable = gcmd.get_int('ENABLE', None, minval=0, maxval=1)
+        wp = gcmd.get('WP', None)
+        try:
+            if wp is not None:
+                wp = None if wp.strip().lower() == 'profile' \
+                    else working_point_arg(wp)
+        except FlowloopError as e:
+            raise gcmd.error(f"SET_AUTOTEMP: WP: {e}; nothing changed") \
+                from None
+        if gcmd.get('WP', None) is not None:
+            self.working_point = wp
+            self.core.set_working_point(wp, self._print_time())
+        if enable is not None:
+            self.core.set_enabled(bool(enable))
+        self._report(gcmd)
+
+    cmd_QUERY_AUTOTEMP_help = "Report autotemp's state, source and target"
+
+    def cmd_QUERY_AUTOTEMP(self, gcmd):
+        self._report(gcmd)
+
+    cmd_M104_help = ("Set the extruder temperature (ignored while autotemp"
+                     " plans the print)")
+
+    def cmd_M104(self, gcmd):
+        index = gcmd.get_int('T', None, minval=0)
+        ours = index is None or (
+            ('extruder' if index == 0 else f'extruder{index}')
+            == self.extruder_name)
+        if ours and gcmd.get_float('S', 0.) == 0.:
+            self.core.stop()   # turning the heater off is always obeyed
+        elif ours and self.core.overrides_m104():
+            gcmd.respond_info(
+                f"autotemp: M104 S{gcmd.get_float('S', 0.):g} overridden"
+                " (SET_AUTOTEMP ENABLE=0 hands the heater back)")
+            return
+        self.prev_m104(gcmd)
+
+    def _report(self, gcmd):
+        s = self.core.status
+        state = "enabled" if s['enabled'] else "disabled"
+        target = "none" if s['target'] is None else f"{s['target']:.1f} C"
+        flow = "none" if s['planned_flow'] is None \
+            else f"{s['planned_flow']:.1f} mm^3/s"
+        gcmd.respond_info(
+            f"autotemp: {state}, source {s['source'] or 'none'}, target"
+            f" {target}, planned flow {flow}, profile {s['profile'] or 'none'}"
+            f" at working point {s['working_point']}"
+            + (f"; {s['why']}" if s['why'] else ""))
+
+
+def load_config(config):
+    return Autotemp(config)
