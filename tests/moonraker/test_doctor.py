@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import socket
 from pathlib import Path
 
 import pytest
@@ -143,3 +144,46 @@ def test_an_invalid_section_is_quoted_with_klippys_message(
     assert line.startswith("FAIL config: klippy stopped (error):")
     assert "'sample_period' in section 'flow_sensor sim'" in line
     assert "fix: correct printer.cfg" in line
+
+
+def moonraker_api_key(ps) -> str:
+    """The API key, asked on Moonraker's unix socket (trusted, as KlipperScreen
+    asks it)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(10)
+        sock.connect(str(ps.data_dir / "comms" / "moonraker.sock"))
+        sock.sendall(json.dumps({"jsonrpc": "2.0", "method": "access.get_api_key",
+                                 "id": 1}).encode() + b"\x03")
+        data = b""
+        while not data.endswith(b"\x03"):
+            data += sock.recv(65536)
+    for raw in data.split(b"\x03"):
+        if raw and json.loads(raw).get("id") == 1:
+            return json.loads(raw)["result"]
+    raise AssertionError(data)
+
+
+def test_from_another_machine_with_an_api_key(klipper_build, klippy_venv,
+                                              moonraker_venv, capsys, monkeypatch):
+    # Not a trusted client: Moonraker asks for the key
+    with stack.printer_stack(trusted="10.255.255.0/24", klippy_ready=False) as ps:
+        code, lines = doctor(ps, moonraker_venv, capsys)
+        assert code == 1
+        assert lines["moonraker"].startswith(
+            f"FAIL moonraker: Moonraker at {ps.moonraker.url}: HTTP 401")
+        assert "(is --api-key right?)" in lines["moonraker"]
+        key = moonraker_api_key(ps)
+        monkeypatch.setattr("flowloop.cli.doctor.LOOPBACK", ())  # as if remote
+        assert stack.wait_until(lambda: ps.moonraker.request(
+            "GET", "/server/info", headers={"X-Api-Key": key})[1]["result"][
+                "klippy_state"] == "ready", 30)
+        code = main(["doctor", "--moonraker", ps.moonraker.url, "--api-key", key])
+        lines = {line.split(":")[0][5:]: line
+                 for line in capsys.readouterr().out.splitlines()}
+    assert lines["klipper"].startswith("ok   klipper: Klipper v0.13.0-")
+    assert lines["links"].startswith("skip links: not checked from another machine")
+    assert "the hosts run flowloop" in lines["links"]
+    for name in ("moonraker", "config", "firmware"):
+        assert lines[name].startswith("ok"), lines[name]
+    assert lines["profiles"].startswith("FAIL profiles")
+    assert code == 1
