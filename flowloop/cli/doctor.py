@@ -74,6 +74,10 @@ def gather(client: Client, klipper: Optional[Path] = None,
     if server_info.get("klippy_connected"):
         printer_info, _ = client.get("/printer/info")
         objects = _objects(client)
+    update_status = None
+    if "update_manager" in server_info.get("components", []):
+        updates, _ = client.get("/machine/update/status")
+        update_status = ((updates or {}).get("version_info") or {}).get("flowloop")
     local = urlparse(client.url).hostname in LOOPBACK
     if klipper is None and local and printer_info:
         klipper = Path(printer_info["klipper_path"])
@@ -81,7 +85,8 @@ def gather(client: Client, klipper: Optional[Path] = None,
     return doctor.Facts(
         client.url, server_info=server_info, endpoint_errors=endpoints,
         flowloop_info=results["/server/flowloop/info"], printer_info=printer_info,
-        objects=objects or {}, install_pending=pending, install_error=install_error,
+        objects=objects or {}, update_status=update_status,
+        install_pending=pending, install_error=install_error,
         **_klipper_tree(klipper))
 
 

@@ -68,6 +68,8 @@ class Facts:
     flowloop_info: Optional[dict] = None     # GET /server/flowloop/info
     printer_info: Optional[dict] = None      # GET /printer/info (klippy up)
     objects: Dict[str, dict] = dataclasses.field(default_factory=dict)
+    # GET /machine/update/status's flowloop entry; None: no such entry
+    update_status: Optional[dict] = None
     # On the printer only: the Klipper tree's problem (None: fine) and the
     # install plan left to do (empty: installed); None: not looked at.
     klipper_tree_problem: Optional[str] = None
@@ -296,6 +298,39 @@ def check_gcode_processor(facts: Facts) -> Check:
     return Check("gcode processor", OK, f"registered ({info['gcode_processor']})")
 
 
+def check_updates(facts: Facts) -> Check:
+    """The checkout Moonraker's update manager pulls: a dirty or diverged one
+    is refused by an update (and a diverged one reset if it diverged after
+    Moonraker last looked), so it is named before the user clicks update."""
+    server = facts.server_info or {}
+    if "update_manager" not in server.get("components", []):
+        return Check("updates", SKIP, "Moonraker's update manager is not enabled")
+    status = facts.update_status
+    if status is None:
+        return Check("updates", SKIP, "no [update_manager flowloop] in"
+                     " moonraker.conf (flowloop install adds it to a git checkout's"
+                     " install)")
+    if status.get("is_dirty"):
+        return Check("updates", FAIL, "the checkout has local changes: Moonraker"
+                     " refuses to update it (" + "; ".join(status.get("warnings", []))
+                     + ")", "in the flowloop checkout, keep them on a branch of your"
+                     " own or drop them (git status), then refresh the updates in"
+                     " Mainsail/Fluidd")
+    diverged = [a for a in status.get("anomalies", []) if "diverged" in a]
+    if diverged:
+        return Check("updates", FAIL, "the checkout has commits origin has not:"
+                     " Moonraker refuses to update it", "in the flowloop checkout,"
+                     " move them to a branch of your own (git log"
+                     " origin/main..HEAD), then git reset --hard origin/main")
+    behind = status.get("commits_behind_count") or len(
+        status.get("commits_behind", []))
+    version = status.get("full_version_string") or status.get("version")
+    if behind:
+        return Check("updates", OK, f"{version}; {behind} commits to update"
+                     " (Mainsail/Fluidd: update flowloop)")
+    return Check("updates", OK, f"{version}, up to date with its origin")
+
+
 def _settings(facts: Facts) -> Dict[str, dict]:
     return (facts.objects.get("configfile") or {}).get("settings") or {}
 
@@ -304,7 +339,8 @@ def run_checks(facts: Facts) -> List[Check]:
     return ([check_klipper(facts), check_links(facts), check_moonraker(facts),
              check_sections(facts), check_firmware(facts)]
             + check_sensors(facts)
-            + [check_profiles(facts), check_gcode_processor(facts)])
+            + [check_profiles(facts), check_gcode_processor(facts),
+               check_updates(facts)])
 
 
 def exit_status(checks: List[Check]) -> int:

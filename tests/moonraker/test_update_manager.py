@@ -6,9 +6,10 @@ on disk; klippy and Moonraker run under supervisord (a real service manager
 Moonraker drives with its supervisord_cli provider), so `managed_services`
 really restarts them. Moonraker is kept off the network: klippy runs from a
 copy of the patched Klipper without .git (Moonraker does not try to update
-it), Moonraker's own package updater gets PIP_NO_INDEX (pip looks at no
-index), system updates and Moonlight announcements are off, and usb.ids is
-present so it is not downloaded (the test checks Moonraker's log for tries).
+it), Moonraker's python sees no moonraker distribution of its own (so its
+self-updater has nothing to ask PyPI; PIP_NO_INDEX besides), system updates
+and Moonlight announcements are off, and usb.ids is present so it is not
+downloaded (the test checks Moonraker's log for tries).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pathlib import Path
 import pytest
 
 from devtools import stack
+from flowloop.cli import main
 from flowloop.host import install
 
 SUPERVISOR = "supervisor==4.3.0"
@@ -228,6 +230,13 @@ def printer(klipper_build, klippy_venv, moonraker_venv):
         shutil.rmtree(root, ignore_errors=True)
 
 
+def doctor_updates(printer: Printer, capsys) -> str:
+    """flowloop doctor's updates line for this printer."""
+    main(["doctor", "--moonraker", printer.url])
+    lines = capsys.readouterr().out.splitlines()
+    return next(line for line in lines if line[5:].startswith("updates:"))
+
+
 def push_new_version(pusher: Path, version: str) -> str:
     init = pusher / "flowloop" / "__init__.py"
     text = init.read_text()
@@ -239,7 +248,7 @@ def push_new_version(pusher: Path, version: str) -> str:
 
 
 def test_an_update_through_moonraker_pulls_and_restarts_klippy_on_the_new_code(
-        printer):
+        printer, capsys):
     printer.ready()
     old_head = git(printer.clone, "rev-parse", "HEAD")
     status = printer.flowloop_status()
@@ -255,6 +264,8 @@ def test_an_update_through_moonraker_pulls_and_restarts_klippy_on_the_new_code(
     status = printer.flowloop_status()
     assert status["remote_hash"] == new_head
     assert [c["sha"] for c in status["commits_behind"]] == [new_head]
+    assert doctor_updates(printer, capsys).startswith("ok   updates: v0.0.0-")
+    assert "1 commits to update" in doctor_updates(printer, capsys)
 
     try:  # Moonraker restarts itself too: the answer may not come
         answer = printer.post("/machine/update/client", {"name": "flowloop"})
@@ -287,7 +298,7 @@ def test_an_update_through_moonraker_pulls_and_restarts_klippy_on_the_new_code(
     assert f"g{new_head[:8]}" in status["full_version_string"]
 
 
-def test_a_dirty_clone_is_reported_and_not_overwritten(printer):
+def test_a_dirty_clone_is_reported_and_not_overwritten(printer, capsys):
     printer.ready()
     readme = printer.clone / "README.md"
     edited = readme.read_text() + "\nmy own note\n"
@@ -297,6 +308,9 @@ def test_a_dirty_clone_is_reported_and_not_overwritten(printer):
     status = printer.flowloop_status()
     assert status["is_dirty"] and not status["is_valid"]
     assert any("README.md" in w for w in status["warnings"])
+    line = doctor_updates(printer, capsys)
+    assert line.startswith("FAIL updates: the checkout has local changes")
+    assert "README.md" in line and "fix: " in line
     answer = printer.post("/machine/update/client", {"name": "flowloop"})
     assert answer[0] != 200
     assert "modified" in str(answer[1]) or "not valid" in str(answer[1])
@@ -304,7 +318,7 @@ def test_a_dirty_clone_is_reported_and_not_overwritten(printer):
     assert git(printer.clone, "rev-parse", "HEAD") == head
 
 
-def test_a_diverged_clone_is_reported_and_not_overwritten(printer):
+def test_a_diverged_clone_is_reported_and_not_overwritten(printer, capsys):
     printer.ready()
     (printer.clone / "my_macro.cfg").write_text("[gcode_macro MINE]\ngcode:\n")
     git(printer.clone, "add", "my_macro.cfg")
@@ -314,6 +328,8 @@ def test_a_diverged_clone_is_reported_and_not_overwritten(printer):
     status = printer.flowloop_status()
     assert not status["is_valid"]
     assert any("diverged" in a for a in status["anomalies"])
+    assert doctor_updates(printer, capsys).startswith(
+        "FAIL updates: the checkout has commits origin has not")
     answer = printer.post("/machine/update/client", {"name": "flowloop"})
     assert answer[0] != 200
     assert git(printer.clone, "rev-parse", "HEAD") == mine

@@ -48,7 +48,7 @@ def test_a_healthy_printer_passes_every_check_but_the_missing_processor():
     assert {n: c.status for n, c in checks.items()} == {
         "klipper": OK, "links": OK, "moonraker": OK, "config": OK,
         "firmware": OK, "sensor sim": OK, "profiles": OK,
-        "gcode processor": SKIP}
+        "gcode processor": SKIP, "updates": SKIP}
     assert doctor.exit_status(list(checks.values())) == 0
 
 
@@ -248,3 +248,34 @@ def test_the_tree_on_the_printer_names_its_host_and_refuses_an_old_klipper(tmp_p
     assert check.status == OK and check.detail.startswith("Kalico ")
     assert "register_serial_response" in check.detail
     assert _klipper_tree(tmp_path / "nowhere") == {}
+
+
+def with_updates(**entry) -> doctor.Facts:
+    server = dict(healthy().server_info,
+                  components=["database", "flowloop", "update_manager"])
+    status = {"is_dirty": False, "anomalies": [], "warnings": [],
+              "commits_behind": [], "full_version_string": "v0.1.0-3-gabcdef12"}
+    return healthy(server_info=server, update_status=dict(status, **entry))
+
+
+def test_updates_are_checked_only_where_moonraker_manages_them():
+    assert by_name(healthy())["updates"].status == SKIP
+    server = dict(healthy().server_info,
+                  components=["flowloop", "update_manager"])
+    check = by_name(healthy(server_info=server))["updates"]
+    assert check.status == SKIP and "[update_manager flowloop]" in check.detail
+    assert by_name(with_updates())["updates"].line() == (
+        "ok   updates: v0.1.0-3-gabcdef12, up to date with its origin")
+    assert "2 commits to update" in by_name(with_updates(
+        commits_behind=[{"sha": "a"}, {"sha": "b"}]))["updates"].detail
+
+
+def test_a_dirty_or_diverged_checkout_is_named_before_an_update():
+    dirty = failed(with_updates(is_dirty=True, warnings=[
+        "Repo is dirty.  Detected the following modified files: ['README.md']"]))
+    assert list(dirty) == ["updates"]
+    assert "README.md" in dirty["updates"].detail
+    assert "branch of your own" in dirty["updates"].fix
+    diverged = failed(with_updates(anomalies=["Repo has diverged from remote"]))
+    assert "commits origin has not" in diverged["updates"].detail
+    assert "git log origin/main..HEAD" in diverged["updates"].fix
