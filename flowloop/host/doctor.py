@@ -97,8 +97,9 @@ def check_klipper(facts: Facts) -> Check:
     if facts.klipper_tree_checked:
         if facts.klipper_tree_problem is not None:
             return Check("klipper", FAIL, facts.klipper_tree_problem,
-                         "update Klipper: cd ~/klipper; git pull; sudo"
-                         " systemctl restart klipper")
+                         "update Klipper (cd ~/klipper; git pull; sudo systemctl"
+                         " restart klipper), or pass --klipper with the tree"
+                         " klippy runs from")
         return Check("klipper", OK, "; ".join((f"{where}, supported",)
                                               + facts.klipper_notes))
     supported = version_supported(version)
@@ -117,7 +118,7 @@ def version_supported(version: str) -> Optional[bool]:
     """A Klipper `git describe` version against MIN_KLIPPER_DESCRIBE; None
     when it is not one (a fork's scheme, or no git)."""
     m = re.match(r"v(\d+)\.(\d+)\.(\d+)(?:-(\d+))?", version)
-    if m is None:
+    if m is None or m.group(1) != "0":  # Klipper's are v0.N.M; others not judged
         return None
     release = tuple(int(x) for x in m.group(1, 2, 3))
     ahead = int(m.group(4) or 0)

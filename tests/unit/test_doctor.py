@@ -175,7 +175,8 @@ def test_moonraker_without_the_component_or_unreachable():
 @pytest.mark.parametrize("version, supported", [
     ("v0.13.0-568-gc89393cda", True), ("v0.13.0-730-g84104bbbd", True),
     ("v0.13.0-567-gabcdef", False), ("v0.13.0", False), ("v0.12.0-900-g1", False),
-    ("v0.14.0", True), ("v0.14.0-2-gab", True), ("?", None), ("2025.1", None)])
+    ("v0.14.0", True), ("v0.14.0-2-gab", True), ("?", None), ("2025.1", None),
+    ("v2025.03.01-5-gabc", None)])  # another scheme (a date): not judged
 def test_a_version_string_is_judged_against_the_oldest_supported(version,
                                                                  supported):
     assert doctor.version_supported(version) is supported
