@@ -81,12 +81,14 @@ def gather(client: Client, klipper: Optional[Path] = None,
     local = urlparse(client.url).hostname in LOOPBACK
     if klipper is None and local and printer_info:
         klipper = Path(printer_info["klipper_path"])
-    pending, install_error = _install_plan(klipper, moonraker_dir, local)
+    pending, install_error, moonraker_seen = _install_plan(klipper, moonraker_dir,
+                                                           local)
     return doctor.Facts(
         client.url, server_info=server_info, endpoint_errors=endpoints,
         flowloop_info=results["/server/flowloop/info"], printer_info=printer_info,
         objects=objects or {}, update_status=update_status,
         install_pending=pending, install_error=install_error,
+        moonraker_tree_checked=moonraker_seen,
         **_klipper_tree(klipper))
 
 
@@ -116,21 +118,26 @@ def _klipper_tree(klipper: Optional[Path]) -> dict:
 
 
 def _install_plan(klipper: Optional[Path], moonraker_dir: Optional[Path],
-                  local: bool) -> Tuple[Optional[Tuple[str, ...]], Optional[str]]:
-    """What flowloop install would still do (empty: installed), or its error;
-    (None, None) when the trees are not on this machine."""
+                  local: bool
+                  ) -> Tuple[Optional[Tuple[str, ...]], Optional[str], bool]:
+    """What flowloop install would still do (empty: installed), or its error,
+    and whether Moonraker's tree was part of it; (None, None, False) when the
+    trees are not on this machine."""
     if klipper is None or not klipper.expanduser().exists():
-        return None, None
-    try:
-        if moonraker_dir is None and local:
+        return None, None, False
+    if moonraker_dir is None and local:
+        try:
             moonraker_dir = default_moonraker()
+        except install.InstallError:
+            moonraker_dir = None  # the links check says Moonraker's was not seen
+    try:
         source = install.source_tree()
         changes: List[install.Change] = install.plan_klipper(klipper, source)
         if moonraker_dir is not None:
             changes += install.plan_moonraker(moonraker_dir, source)
     except install.InstallError as e:
-        return None, str(e)
-    return tuple(change.what for change in changes), None
+        return None, str(e), False
+    return tuple(change.what for change in changes), None, moonraker_dir is not None
 
 
 def run(args) -> int:

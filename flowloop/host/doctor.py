@@ -78,6 +78,7 @@ class Facts:
     klipper_notes: Tuple[str, ...] = ()      # what works differently there
     install_pending: Optional[Tuple[str, ...]] = None
     install_error: Optional[str] = None
+    moonraker_tree_checked: bool = True      # the plan covered Moonraker's link
 
 
 # ---------------------------------------------------------------------------
@@ -147,7 +148,10 @@ def check_links(facts: Facts) -> Check:
                      " flowloop doctor on the printer)" + (
                          f"; the hosts run flowloop {__version__}" if running
                          else ""))
-    return Check("links", OK, f"installed and pointing at flowloop {__version__}")
+    unseen = ("" if facts.moonraker_tree_checked else "; Moonraker's link not"
+              " checked: no ~/moonraker or ~/moonraker-env (pass --moonraker-dir)")
+    return Check("links", OK, f"installed and pointing at flowloop {__version__}"
+                 + unseen)
 
 
 def _running_versions(facts: Facts) -> Dict[str, Optional[str]]:

@@ -8,7 +8,7 @@ import pytest
 
 from flowloop import __version__
 from flowloop.cli import main
-from flowloop.host import doctor
+from flowloop.host import doctor, install
 from flowloop.host.doctor import FAIL, OK, SKIP
 
 
@@ -222,8 +222,9 @@ def test_on_kalico_the_firmware_fix_names_its_firmware_extras_menu():
 def klipper_tree(root, kalico=False, new_enough=True):
     for rel in ("klippy/extras", "src"):
         (root / rel).mkdir(parents=True)
-    for rel in ("klippy/klippy.py", "src/Makefile", "src/Kconfig"):
+    for rel in ("klippy/klippy.py", "src/Makefile"):
         (root / rel).write_text("")
+    (root / "src/Kconfig").write_text(f"{install.LIMITED_MENU}\nendmenu\n")
     (root / "klippy/mcu.py").write_text(
         "def register_serial_response(self):\n" if new_enough else "")
     if kalico:
@@ -280,3 +281,20 @@ def test_a_dirty_or_diverged_checkout_is_named_before_an_update():
     diverged = failed(with_updates(anomalies=["Repo has diverged from remote"]))
     assert "commits origin has not" in diverged["updates"].detail
     assert "git log origin/main..HEAD" in diverged["updates"].fix
+
+
+def test_links_say_when_moonraker_s_tree_was_not_found():
+    check = by_name(healthy(moonraker_tree_checked=False))["links"]
+    assert check.status == OK and "pass --moonraker-dir" in check.detail
+    assert "--moonraker-dir" not in by_name(healthy())["links"].detail
+
+
+def test_on_the_printer_without_a_moonraker_tree_only_klipper_s_links_count(
+        tmp_path, monkeypatch):
+    from flowloop.cli import doctor as cli_doctor
+    monkeypatch.setenv("HOME", str(tmp_path))  # no ~/moonraker, no ~/moonraker-env
+    tree = klipper_tree(tmp_path / "k")
+    pending, error, seen = cli_doctor._install_plan(tree, None, local=True)
+    assert error is None and not seen
+    assert pending and all("moonraker" not in what for what in pending)
+    assert any("klippy/extras/flow_sensor.py" in what for what in pending)
