@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..control.hotend import HotendParams
+from ..errors import FlowloopError
 from ..gcode.annotate import (
     DEFAULT_LEAD_S,
     DEFAULT_WINDOW_S,
@@ -14,6 +16,9 @@ from ..gcode.annotate import (
 )
 from ..gcode.planner import PrinterLimits, limits_from_config
 from ..host.klipper_config import read_config
+from ..material.profile import DEFAULT_WORKING_POINT
+
+DEFAULT_HOTEND = HotendParams()
 
 
 def register(subparsers) -> None:
@@ -39,6 +44,30 @@ def register(subparsers) -> None:
     p.add_argument("--window", type=float, default=DEFAULT_WINDOW_S, metavar="S",
                    help=f"length of the windows whose peak flow is announced "
                         f"(default {DEFAULT_WINDOW_S:g})")
+    p.add_argument("--bake", type=Path, metavar="PROFILE.json",
+                   help="write autotemp's targets for this material profile as"
+                        " plain M104 S<target> instead of AUTOTEMP_FLOW (for a"
+                        " printer without [autotemp]); needs -o")
+    p.add_argument("--working-point", type=float, default=None, metavar="WP",
+                   help=f"with --bake: 0 (real print) to 1 (into air), "
+                        f"default {DEFAULT_WORKING_POINT:g}")
+    p.add_argument("--time-constant", type=float, metavar="S",
+                   default=DEFAULT_HOTEND.time_constant_s,
+                   help=f"with --bake: the hotend's time constant "
+                        f"(default {DEFAULT_HOTEND.time_constant_s:g})")
+    p.add_argument("--dead-time", type=float, metavar="S",
+                   default=DEFAULT_HOTEND.dead_time_s,
+                   help=f"with --bake: the hotend's dead time "
+                        f"(default {DEFAULT_HOTEND.dead_time_s:g})")
+    p.add_argument("--heater-power", type=float, metavar="W",
+                   default=DEFAULT_HOTEND.max_power_w,
+                   help=f"with --bake: the heater's power "
+                        f"(default {DEFAULT_HOTEND.max_power_w:g})")
+    p.add_argument("--plot", type=Path, metavar="TIMELINE.svg", nargs="?",
+                   const=True, default=None,
+                   help="with --bake: draw the timeline (targets, modelled "
+                        "nozzle, demanded flow and melt capacity) as SVG "
+                        "(default: OUT.gcode with .svg)")
     p.set_defaults(func=run)
 
 
@@ -46,6 +75,10 @@ def run(args) -> int:
     settings = AnnotateSettings(lead_s=args.lead, window_s=args.window)
     limits = (limits_from_config(read_config(args.printer_cfg))
               if args.printer_cfg else PrinterLimits())
+    if args.bake is not None:
+        return run_bake(args, settings, limits)
+    if args.plot is not None or args.working_point is not None:
+        raise FlowloopError("--plot and --working-point need --bake PROFILE.json")
     out = args.output if args.output is not None else args.gcode
     summary = annotate_file(args.gcode, out, limits, settings)
     if not summary.annotated:
@@ -59,4 +92,44 @@ def run(args) -> int:
           f", peak flow {summary.peak_flow_mm3_s:.1f} mm^3/s, print time "
           f"{minutes // 60}:{minutes % 60:02d}:{seconds:02d} (lead {settings.lead_s:g}"
           f" s, window {settings.window_s:g} s)")
+    return 0
+
+
+def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
+    # imported here: plain annotation needs neither profiles nor plots
+    from ..cli.profile import load
+    from ..gcode.bake import bake_file, timeline_svg
+    from ..material.active import working_point_arg
+    if args.output is None:
+        raise FlowloopError("--bake needs -o OUT.gcode (a baked file is for one"
+                            " profile; the slicer's file stays as it is)")
+    try:
+        params = HotendParams(time_constant_s=args.time_constant,
+                              dead_time_s=args.dead_time,
+                              max_power_w=args.heater_power)
+    except FlowloopError as e:
+        raise FlowloopError(f"--time-constant/--dead-time/--heater-power: {e}") \
+            from None
+    wp = working_point_arg(DEFAULT_WORKING_POINT if args.working_point is None
+                           else args.working_point, "--working-point")
+    profile = load(args.bake)
+    result, timeline = bake_file(args.gcode, args.output, profile, wp, params,
+                                 limits, settings)
+    lo = "none" if result.min_target_c is None else f"{result.min_target_c:.0f}"
+    hi = "none" if result.max_target_c is None else f"{result.max_target_c:.0f}"
+    print(f"{args.output}: {result.commands} M104 for {profile.name} at working"
+          f" point {wp:g}, {lo} to {hi} C, peak flow"
+          f" {result.peak_flow_mm3_s:.1f} mm^3/s; {result.overridden} slicer M104"
+          f" commented out")
+    if result.capped_windows:
+        print(f"  {result.capped_windows} windows need more than the profile's"
+              f" max_temp_c {profile.bounds.max_temp_c:g} C: clamped there")
+    if result.under_capacity_s > 0:
+        print(f"  the modelled hotend melts less than demanded for"
+              f" {result.under_capacity_s:.1f} s of the print")
+    if args.plot is not None:
+        path = args.output.with_suffix(".svg") if args.plot is True else args.plot
+        path.write_text(timeline_svg(timeline, f"{args.gcode.name}: autotemp"
+                                     f" for {profile.name}, WP {wp:g}"))
+        print(f"  timeline: {path}")
     return 0

@@ -229,9 +229,13 @@ class _Annotator:
         if p.end_s <= start:
             return      # over before any line could announce it (a wait, a dwell)
         line = command_line(p.flow, start - p.insert_time_s, p.end_s - start)
-        self.copy_to(p.insert_offset)
-        self.out.write(line.encode() + self.newline)
+        self.emit(p.insert_offset, p.insert_time_s, line)
         self.windows += 1
+
+    def emit(self, offset: int, time_s: float, line: str) -> None:
+        """Write a command before the line at byte offset (print time time_s)."""
+        self.copy_to(offset)
+        self.out.write(line.encode() + self.newline)
 
     def copy_to(self, offset: Optional[int]) -> None:
         """Copy the source up to byte offset (None: to its end)."""

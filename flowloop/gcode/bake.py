@@ -1,0 +1,320 @@
+"""The offline bake: autotemp's targets written into the file as plain M104.
+
+`flowloop annotate IN -o OUT --bake PROFILE.json` plans the file and its
+AUTOTEMP_FLOW announcements exactly as `annotate` does, then replays them
+through the same controller `[autotemp]` runs (flowloop.control.autotemp):
+each announcement reaches it at its place in print time, and the target is
+sampled as a printer would (every GRID_S). Instead of the announcements,
+`M104 S<target>` commands go into the file:
+
+- one at the first move line every BAKE_STEP_S of print time, when the
+  target changes;
+- Klipper runs a command up to READAHEAD_S before the move after it, and the
+  next M104 replaces it: each carries the highest target over that whole
+  span, rounded up to a whole degree, so the heater is never set lower than
+  [autotemp] would set it;
+- the slicer's own M104 after the first baked one is commented out
+  (`M104 S0`, heater off, is kept); M109 stays and waits.
+
+The timeline (demanded flow, targets, the modelled nozzle and the melt
+capacity there) is kept for `--plot` (timeline_svg).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO, List, Optional, Tuple
+
+from ..control.autotemp import DEFAULT_PARAMS, GRID_S, Autotemp
+from ..control.hotend import HotendModel, HotendParams
+from ..errors import FlowloopError
+from ..material.profile import Profile
+from .annotate import (
+    COMMAND,
+    FORMAT_VERSION,
+    HEADER_BYTES,
+    READAHEAD_S,
+    AnnotateSettings,
+    _Annotator,
+    _newline_of,
+    _replace_atomically,
+    is_annotated,
+)
+from .planner import Barrier, PrinterLimits, plan_file
+
+BAKE_STEP_S = 0.5
+_ANNOUNCEMENT = re.compile(
+    COMMAND + r" FLOW=(?P<flow>[0-9.]+) LEAD=(?P<lead>[0-9.]+)"
+    r" DURATION=(?P<duration>[0-9.]+)$")
+_M104 = re.compile(rb"^\s*M104(\s|$)", re.IGNORECASE)
+_S_ZERO = re.compile(rb"\sS0*(\.0*)?(\s|;|$)", re.IGNORECASE)
+
+
+@dataclass
+class Timeline:
+    """What the bake planned, on the GRID_S grid from time 0."""
+    demand_mm3_s: List[float] = field(default_factory=list)
+    target_c: List[Optional[float]] = field(default_factory=list)
+    nozzle_c: List[float] = field(default_factory=list)
+    capacity_mm3_s: List[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class BakeResult:
+    commands: int            # M104 written
+    overridden: int          # the slicer's M104 commented out
+    min_target_c: Optional[float]
+    max_target_c: Optional[float]
+    capped_windows: int      # windows needing more than the limits allow
+    peak_flow_mm3_s: float
+    print_time_s: float
+    under_capacity_s: float  # extruding time the modelled nozzle melts too little
+
+
+class _Recorder(_Annotator):
+    """The annotator, keeping its commands (offset, print time, line)."""
+
+    def __init__(self, settings: AnnotateSettings, newline: bytes):
+        super().__init__(settings, _Empty(), _Empty(), newline)
+        self.commands: List[Tuple[int, float, str]] = []
+        self.moves: List[Tuple[float, int]] = []       # (print time, offset)
+        self.demand: List[float] = []                   # peak per GRID_S
+
+    def emit(self, offset: int, time_s: float, line: str) -> None:
+        self.commands.append((offset, time_s, line))
+
+    def segment(self, seg) -> None:
+        if not self.moves or self.moves[-1][1] != seg.offset:
+            self.moves.append((seg.start_s, seg.offset))
+        if seg.flow_mm3_s > 0.0:
+            first = math.floor(seg.start_s / GRID_S)
+            last = math.floor(seg.end_s / GRID_S)
+            if len(self.demand) <= last:
+                self.demand.extend([0.0] * (last + 1 - len(self.demand)))
+            for k in range(first, last + 1):
+                flow = seg.peak_flow_between(k * GRID_S, (k + 1) * GRID_S)
+                if flow > self.demand[k]:
+                    self.demand[k] = flow
+        super().segment(seg)
+
+
+class _Empty:
+    def read(self, size=-1):
+        return b""
+
+    def write(self, data):
+        return len(data)
+
+
+def _parse(line: str) -> Tuple[float, float, float]:
+    m = _ANNOUNCEMENT.match(line)
+    assert m is not None, line
+    return float(m["flow"]), float(m["lead"]), float(m["duration"])
+
+
+def replay(commands: List[Tuple[int, float, str]], end_s: float,
+           controller: Autotemp) -> List[Optional[float]]:
+    """The target [autotemp] sets at each GRID_S of print time, each
+    announcement reaching it at its place (in print time)."""
+    targets: List[Optional[float]] = []
+    i = 0
+    for k in range(math.ceil(end_s / GRID_S) + 1):
+        t = k * GRID_S
+        while i < len(commands) and commands[i][1] <= t:
+            controller.announce(commands[i][1], *_parse(commands[i][2]))
+            i += 1
+        targets.append(controller.target_at(t, GRID_S))
+    return targets
+
+
+def _placements(moves: List[Tuple[float, int]], targets: List[Optional[float]]
+                ) -> List[Tuple[int, int]]:
+    """(byte offset, whole-degree target) of each M104 to write."""
+    emit_at: List[Tuple[float, int]] = []
+    for time_s, offset in moves:
+        if not emit_at or time_s >= emit_at[-1][0] + BAKE_STEP_S:
+            emit_at.append((time_s, offset))
+    out: List[Tuple[int, int]] = []
+    last = None
+    for i, (time_s, offset) in enumerate(emit_at):
+        until = emit_at[i + 1][0] if i + 1 < len(emit_at) else time_s + BAKE_STEP_S
+        lo = max(0, math.floor((time_s - READAHEAD_S) / GRID_S))
+        hi = min(len(targets) - 1, math.ceil(until / GRID_S))
+        span = [x for x in targets[lo:hi + 1] if x is not None]
+        if not span:
+            continue
+        value = math.ceil(max(span) - 1e-6)
+        if value != last:
+            out.append((offset, value))
+            last = value
+    return out
+
+
+def _simulate(timeline: Timeline, targets: List[Optional[float]],
+              controller: Autotemp, start_c: float) -> float:
+    """The modelled nozzle under the targets; returns the extruding time
+    during which it melts less than is demanded."""
+    plan = controller.plan
+    model = HotendModel(controller.params, temp_c=start_c, target_c=start_c)
+    held = start_c
+    short_s = 0.0
+    for k, target in enumerate(targets):
+        if target is not None:
+            held = target
+        model.set_target(k * GRID_S, held)
+        demand = timeline.demand_mm3_s[k] if k < len(timeline.demand_mm3_s) else 0.0
+        temp = model.advance((k + 1) * GRID_S, demand)
+        capacity = plan.line.flow_mm3_s(temp)
+        timeline.nozzle_c.append(temp)
+        timeline.capacity_mm3_s.append(capacity)
+        if demand > capacity + 1e-9:
+            short_s += GRID_S
+    return short_s
+
+
+def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
+              params: HotendParams = DEFAULT_PARAMS,
+              limits: Optional[PrinterLimits] = None,
+              settings: Optional[AnnotateSettings] = None,
+              heater_max_temp_c: Optional[float] = None
+              ) -> Tuple[BakeResult, Timeline]:
+    """Bake src into dst (written whole or not at all)."""
+    limits = limits if limits is not None else PrinterLimits()
+    settings = settings if settings is not None else AnnotateSettings()
+    src, dst = Path(src), Path(dst)
+    try:
+        with open(src, "rb") as f:
+            head = f.read(HEADER_BYTES)
+    except OSError as e:
+        raise FlowloopError(f"{src}: cannot read: {e.strerror}") from None
+    if is_annotated(head):
+        raise FlowloopError(f"{src}: annotated or baked already; bake the"
+                            " slicer's file")
+    newline = _newline_of(src)
+    rec = _Recorder(settings, newline)
+    try:
+        with open(src, "rb") as lines:
+            for event in plan_file(lines, limits):
+                if isinstance(event, Barrier):
+                    rec.barrier(event)
+                else:
+                    rec.segment(event)
+    except FlowloopError as e:
+        raise FlowloopError(f"{src}: {e}") from None
+    rec.finish()
+    controller = Autotemp(params, heater_max_temp_c)
+    controller.set_profile(profile, working_point)
+    if controller.plan is None:
+        raise FlowloopError(f"{profile.name}: {controller.why}")
+    end_s = rec.end_s + 1.0
+    targets = replay(rec.commands, end_s, controller)
+    timeline = Timeline(demand_mm3_s=rec.demand + [0.0] * max(
+        0, len(targets) - len(rec.demand)), target_c=targets)
+    known = [x for x in targets if x is not None]
+    start_c = known[0] if known else controller.plan.limits.min_temp_c
+    short_s = _simulate(timeline, targets, controller, start_c)
+    placements = _placements(rec.moves, targets)
+    overridden = 0
+
+    def write(out: BinaryIO) -> None:
+        nonlocal overridden
+        overridden = _write(src, out, placements, newline, profile,
+                            working_point, params)
+    _replace_atomically(dst, write, src)
+    result = BakeResult(
+        commands=len(placements), overridden=overridden,
+        min_target_c=min(known) if known else None,
+        max_target_c=max(known) if known else None,
+        capped_windows=controller.plan.capped_windows,
+        peak_flow_mm3_s=max(rec.demand, default=0.0),
+        print_time_s=rec.end_s, under_capacity_s=short_s)
+    return result, timeline
+
+
+def marker_line(profile: Profile, working_point: float,
+                params: HotendParams) -> str:
+    # It matches annotate.MARKER_REGEX: a baked file is never annotated again.
+    return (f"; flowloop autotemp annotations v{FORMAT_VERSION} baked: M104 for"
+            f" profile {profile.name} at working point {working_point:g},"
+            f" time constant {params.time_constant_s:g} s, dead time"
+            f" {params.dead_time_s:g} s")
+
+
+def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
+           newline: bytes, profile: Profile, working_point: float,
+           params: HotendParams) -> int:
+    out.write(marker_line(profile, working_point, params).encode() + newline)
+    overridden = 0
+    i = 0
+    first = placements[0][0] if placements else None
+    offset = 0
+    with open(src, "rb") as f:
+        for line in f:
+            while i < len(placements) and placements[i][0] <= offset:
+                out.write(f"M104 S{placements[i][1]}".encode() + newline)
+                i += 1
+            if first is not None and offset > first and _M104.match(line) \
+                    and not _S_ZERO.search(line.split(b";")[0] + b" "):
+                out.write(b"; " + line.rstrip(b"\r\n")
+                          + b" ; overridden by flowloop bake" + newline)
+                overridden += 1
+            else:
+                out.write(line)
+            offset += len(line)
+    return overridden
+
+
+# --- the timeline as SVG (flowloop.material.plot's primitives) -----------------
+
+def timeline_svg(timeline: Timeline, title: str) -> str:
+    """Two panels over print time: temperatures (target, modelled nozzle)
+    and flows (demanded, melt capacity at the modelled nozzle)."""
+    from ..material import plot
+    times = [k * GRID_S for k in range(len(timeline.target_c))]
+    end = times[-1] if times else 1.0
+    # a point per plotted pixel column is plenty
+    stride = max(1, len(times) // 1500)
+
+    def points(values):
+        return [(times[k], values[k]) for k in range(0, len(values), stride)
+                if values[k] is not None]
+
+    temps = [x for x in timeline.target_c + timeline.nozzle_c if x is not None]
+    lo, hi = (min(temps), max(temps)) if temps else (0.0, 1.0)
+    flows = timeline.demand_mm3_s + timeline.capacity_mm3_s
+    height = 40 + 2 * plot.PANEL_HEIGHT
+    out = ['<?xml version="1.0" encoding="UTF-8"?>',
+           f'<svg xmlns="http://www.w3.org/2000/svg" width="{plot.WIDTH}" '
+           f'height="{height}" viewBox="0 0 {plot.WIDTH} {height}" '
+           'font-family="sans-serif" font-size="12">',
+           f'<rect width="{plot.WIDTH}" height="{height}" fill="white"/>',
+           f'<text x="{plot.WIDTH / 2}" y="24" text-anchor="middle" '
+           f'font-size="15" font-weight="bold">{_escape(title)}</text>']
+    temp = plot._Panel(40, (0.0, end), (lo - 5.0, hi + 5.0))
+    temp.frame("Hotend", "print time (s)", "temperature (°C)")
+    temp.polyline(points(timeline.target_c), plot.COLORS["real_print"], "target")
+    temp.polyline(points(timeline.nozzle_c), plot.COLORS["into_air"], "nozzle",
+                  dash="6,3")
+    temp.legend([("target (M104 / [autotemp])", plot.COLORS["real_print"], ""),
+                 ("modelled nozzle", plot.COLORS["into_air"], "6,3")])
+    flow = plot._Panel(40 + plot.PANEL_HEIGHT, (0.0, end),
+                       (0.0, max(flows, default=1.0) * 1.1 or 1.0))
+    flow.frame("Flow", "print time (s)", "flow (mm³/s)")
+    flow.polyline(points(timeline.demand_mm3_s), plot.COLORS["band"], "demand",
+                  width=1)
+    flow.polyline(points(timeline.capacity_mm3_s), plot.COLORS["working"],
+                  "capacity")
+    flow.legend([("demanded (peak per 0.1 s)", plot.COLORS["band"], ""),
+                 ("melt capacity at the modelled nozzle", plot.COLORS["working"],
+                  "")])
+    out += temp.parts + flow.parts
+    out.append("</svg>")
+    return "\n".join(out) + "\n"
+
+
+def _escape(text: str) -> str:
+    from xml.sax.saxutils import escape
+    return escape(text)

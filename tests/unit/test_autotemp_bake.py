@@ -1,0 +1,147 @@
+"""`flowloop annotate --bake`: the targets [autotemp] would set, as plain
+M104, from the same controller fed the same announcements."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import pytest
+
+from flowloop.cli import main
+from flowloop.control.autotemp import GRID_S, Autotemp
+from flowloop.errors import FlowloopError
+from flowloop.gcode.annotate import annotate_file, is_annotated
+from flowloop.gcode.bake import bake_file
+from flowloop.gcode.planner import PrinterLimits, plan_file
+from flowloop.material.profile import profile_from_dict
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
+BLOCK = DATA / "block_layers_1_2.gcode"
+WEAK = {"identity": {"name": "weak", "nozzle_diameter_mm": 0.4},
+        "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                               "flow_mm3_s": 4.5},
+                  "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                                 "flow_mm3_s": 3.5}},
+        "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 200.0,
+                   "max_temp_c": 240.0},
+        "provenance": {"method": "manual"}}
+PROFILE = profile_from_dict(WEAK)
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bake") / "baked.gcode"
+    result, timeline = bake_file(BLOCK, out, PROFILE, 0.5)
+    return out.read_text(), result, timeline
+
+
+def test_the_baked_file_has_m104_within_the_limits_and_no_announcements(baked):
+    text, result, _ = baked
+    lines = text.splitlines()
+    assert is_annotated(text.encode())        # never annotated again
+    assert "AUTOTEMP_FLOW" not in text
+    targets = [int(x) for x in re.findall(r"^M104 S(\d+)$", text, re.M)]
+    assert len(targets) == result.commands > 5
+    assert all(190 <= t <= 240 for t in targets)
+    # the infill's 6.6 mm^3/s needs 226 C: reached
+    assert max(targets) >= math.ceil(PROFILE_NEED_66())
+    # the slicer's mid-print M104 S215 is commented out; M109 stays
+    assert "; M104 S215 ; set temperature ; overridden by flowloop bake" in lines
+    assert "M109 S200 ; set temperature and wait for it to be reached" in lines
+    # everything else is the slicer's file, line for line
+    original = BLOCK.read_text().splitlines()
+    kept = [x for x in lines[1:] if not re.match(r"^M104 S\d+$", x)
+            and "overridden by flowloop bake" not in x]
+    assert kept == [x for x in original if not x.startswith("M104 S215")]
+
+
+def PROFILE_NEED_66():
+    a = Autotemp()
+    a.set_profile(PROFILE, 0.5)
+    return a.plan.need_c(6.6)
+
+
+def test_the_modelled_hotend_keeps_up_with_the_baked_targets(baked):
+    _, result, timeline = baked
+    assert result.under_capacity_s == 0.0
+    assert result.capped_windows == 0
+    assert max(timeline.demand_mm3_s) == pytest.approx(6.6, abs=0.1)
+
+
+def test_the_bake_sets_what_autotemp_sets_from_the_annotated_file(baked,
+                                                                 tmp_path):
+    """[autotemp] reads AUTOTEMP_FLOW at its place in the annotated file and
+    asks the controller for a target as the motion goes; the same controller
+    fed that way gives the bake's targets, exactly."""
+    _, _, timeline = baked
+    annotated = tmp_path / "annotated.gcode"
+    annotate_file(BLOCK, annotated)
+    raw = annotated.read_bytes()
+    # print time of each announcement: the start of the move after it
+    moves = [(seg.offset, seg.start_s) for seg in plan_file(
+        open(annotated, "rb"), PrinterLimits()) if hasattr(seg, "start_s")]
+    announcements = []
+    for m in re.finditer(rb"^AUTOTEMP_FLOW FLOW=([0-9.]+) LEAD=([0-9.]+)"
+                         rb" DURATION=([0-9.]+)", raw, re.M):
+        after = next(t for off, t in moves if off > m.start())
+        announcements.append((after, *map(float, m.groups())))
+    controller = Autotemp()
+    controller.set_profile(PROFILE, 0.5)
+    targets, i = [], 0
+    for k in range(len(timeline.target_c)):
+        t = k * GRID_S
+        while i < len(announcements) and announcements[i][0] <= t:
+            controller.announce(*announcements[i])
+            i += 1
+        targets.append(controller.target_at(t, GRID_S))
+    assert targets == timeline.target_c
+    assert sum(x is not None for x in targets) > 100
+
+
+def test_bake_refuses_an_annotated_file_and_writes_nothing(tmp_path):
+    annotated = tmp_path / "a.gcode"
+    annotate_file(BLOCK, annotated)
+    out = tmp_path / "out.gcode"
+    with pytest.raises(FlowloopError, match="annotated or baked already"):
+        bake_file(annotated, out, PROFILE, 0.5)
+    assert not out.exists()
+
+
+def test_cli_bake_and_plot(tmp_path, capsys):
+    profile = tmp_path / "weak.json"
+    profile.write_text(json.dumps(WEAK))
+    out = tmp_path / "out.gcode"
+    assert main(["annotate", str(BLOCK), "-o", str(out), "--bake", str(profile),
+                 "--time-constant", "5", "--plot"]) == 0
+    said = capsys.readouterr().out
+    assert "M104 for weak at working point 0.5" in said
+    svg = (tmp_path / "out.svg").read_text()
+    for element in ('id="target"', 'id="nozzle"', 'id="demand"',
+                    'id="capacity"'):
+        assert element in svg
+    assert out.read_text().startswith("; flowloop autotemp annotations v1 baked")
+
+
+@pytest.mark.parametrize("args, word", [
+    (["--bake", "{profile}"], "-o"),
+    (["--plot"], "--bake"),
+    (["-o", "{out}", "--bake", "{profile}", "--dead-time", "-1"], "dead_time"),
+    (["-o", "{out}", "--bake", "{profile}", "--working-point", "3"],
+     "working-point"),
+])
+def test_cli_bad_bake_input_is_one_line_and_writes_nothing(tmp_path, capsys,
+                                                           args, word):
+    profile = tmp_path / "weak.json"
+    profile.write_text(json.dumps(WEAK))
+    out = tmp_path / "out.gcode"
+    copy = tmp_path / "in.gcode"
+    copy.write_bytes(BLOCK.read_bytes())
+    argv = ["annotate", str(copy)] + [a.format(profile=profile, out=out)
+                                      for a in args]
+    assert main(argv) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and word in err[0]
+    assert not out.exists() and copy.read_bytes() == BLOCK.read_bytes()
