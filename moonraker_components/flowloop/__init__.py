@@ -11,6 +11,7 @@
 #   spoolman_link.py  the active Spoolman spool chooses the active profile
 #   info.py           what flowloop has loaded in Moonraker and klippy
 #   api.py            the HTTP/JSON-RPC endpoints and klippy's remote method
+#   processor.py      uploaded G-code annotated for [autotemp]
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -23,6 +24,7 @@ from flowloop.material import profile as fl_profile
 from .api import Api
 from .info import Info
 from .klippy_sync import KlippySync
+from .processor import Processor
 from .profiles import Profiles
 from .spoolman_link import SpoolmanLink
 from .store import ProfileStore
@@ -52,6 +54,7 @@ class Flowloop:
                                          self.store, self.profiles)
         self.info = Info(self.server, self.store, spoolman_link)
         self.api = Api(self.server, self.store, self.profiles, self.info, default_wp)
+        self.processor = Processor(config)
 
     async def component_init(self) -> None:
         await self.store.load()

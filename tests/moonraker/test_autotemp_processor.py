@@ -1,0 +1,95 @@
+"""The moonraker tier: a G-code upload through Moonraker's file API comes
+back annotated for [autotemp], once, with its metadata; a file the annotator
+refuses stays as it was, printable."""
+
+from __future__ import annotations
+
+import urllib.request
+import uuid
+from pathlib import Path
+from urllib.parse import quote
+
+import pytest
+
+from devtools import stack
+from flowloop.gcode.annotate import is_annotated
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
+GCODE = DATA / "block_layers_1_2.gcode"
+
+
+@pytest.fixture(scope="module")
+def printer(moonraker_venv):
+    with stack.printer_stack(with_klippy=False,
+                             moonraker_conf="annotate_uploads: True") as p:
+        yield p
+
+
+def upload(moonraker, name: str, data: bytes) -> int:
+    boundary = uuid.uuid4().hex
+    body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\";"
+            f" filename=\"{name}\"\r\nContent-Type: application/octet-stream"
+            f"\r\n\r\n").encode() + data + f"\r\n--{boundary}--\r\n".encode()
+    req = urllib.request.Request(
+        moonraker.url + "/server/files/upload", data=body, method="POST",
+        headers={"Content-Type": f"multipart/form-data; boundary={boundary}"})
+    with urllib.request.urlopen(req, timeout=120) as resp:
+        return resp.status
+
+
+def metadata(moonraker, name: str):
+    status, body = moonraker.request(
+        "GET", "/server/files/metadata?filename=" + quote(name))
+    return body["result"] if status == 200 else None
+
+
+def download(moonraker, name: str) -> bytes:
+    with urllib.request.urlopen(moonraker.url + "/server/files/gcodes/"
+                                + quote(name), timeout=30) as resp:
+        return resp.read()
+
+
+def test_an_upload_comes_back_annotated_once_with_its_metadata(printer):
+    m = printer.moonraker
+    assert upload(m, "block.gcode", GCODE.read_bytes()) == 201
+    assert stack.wait_until(lambda: (metadata(m, "block.gcode") or {}).get(
+        "file_processors"), 120)
+    meta = metadata(m, "block.gcode")
+    assert "flowloop_autotemp" in meta["file_processors"]
+    assert meta["slicer"] == "PrusaSlicer"          # the slicer's data is kept
+    first = download(m, "block.gcode")
+    assert is_annotated(first[:4096])
+    assert first.count(b"\nAUTOTEMP_FLOW ") > 3
+    status, body = m.request("GET", "/server/flowloop/annotation?filename=block.gcode")
+    assert status == 200
+    info = body["result"]
+    assert info["annotated"] is True and info["processed"] is True
+    assert info["peak_flow"] > 0 and info["windows"] > 3
+    # a rescan runs the processors again: the marker keeps the file as it is
+    status, _ = m.request("POST", "/server/files/metascan?filename=block.gcode",
+                          timeout=120)
+    assert status == 200
+    assert download(m, "block.gcode") == first
+    assert "flowloop_autotemp" in metadata(m, "block.gcode")["file_processors"]
+
+
+def test_a_file_the_annotator_refuses_stays_printable_and_says_so(printer):
+    m = printer.moonraker
+    data = GCODE.read_bytes().replace(b"G1 Z5 F5000", b"G1 Z5.5.5 F5000", 1)
+    assert data != GCODE.read_bytes()
+    assert upload(m, "bad.gcode", data) == 201
+    assert stack.wait_until(lambda: metadata(m, "bad.gcode") is not None, 120)
+    assert download(m, "bad.gcode") == data            # untouched
+    meta = metadata(m, "bad.gcode")
+    assert "flowloop_autotemp" not in meta.get("file_processors", [])
+    info = m.request("GET", "/server/flowloop/annotation?filename=bad.gcode")[1][
+        "result"]
+    assert info["annotated"] is False and info["peak_flow"] is None
+    log = (printer.data_dir / "moonraker.log").read_text(errors="replace")
+    assert "flowloop_autotemp failed" in log
+
+
+def test_an_unknown_file_is_a_404(printer):
+    status, body = printer.moonraker.request(
+        "GET", "/server/flowloop/annotation?filename=../moonraker.conf")
+    assert status == 404
