@@ -40,8 +40,18 @@ TARGETS = ("linuxprocess", "atmega2560")
 MOONRAKER_REQUIREMENT = "moonraker==0.11.0"
 
 
-def klipper_path() -> Path:
-    return Path(os.environ.get("KLIPPER_PATH", "~/klipper")).expanduser()
+# The hosts the klippy tier runs on: Klipper, and Kalico (the Klipper fork
+# with MPC and plugins), each from its own checkout.
+HOSTS = ("klipper", "kalico")
+HOST_PATH_VARIABLES = {"klipper": "KLIPPER_PATH", "kalico": "KALICO_PATH"}
+HOST_URLS = {"klipper": "https://github.com/Klipper3d/klipper",
+             "kalico": "https://github.com/KalicoCrew/kalico"}
+
+
+def klipper_path(host: str = "klipper") -> Path:
+    """The user's checkout of host: $KLIPPER_PATH or ~/klipper, $KALICO_PATH
+    or ~/kalico."""
+    return Path(os.environ.get(HOST_PATH_VARIABLES[host], f"~/{host}")).expanduser()
 
 
 def cache_dir() -> Path:
@@ -52,15 +62,23 @@ def cache_dir() -> Path:
     return path
 
 
-def missing_klipper_reason() -> Optional[str]:
-    path = klipper_path()
+def missing_klipper_reason(host: str = "klipper") -> Optional[str]:
+    path = klipper_path(host)
+    variable = HOST_PATH_VARIABLES[host]
     try:
         install.check_klipper_tree(path)
+        if host == "kalico" and not install.is_kalico(path):
+            raise install.InstallError(f"{path} is not a Kalico tree (no "
+                                       f"klippy/plugins/)")
     except install.InstallError as e:
+        if host == "kalico":
+            return (f"no Kalico checkout at {path} ({e}): the klippy tier's Kalico "
+                    f"runs are SKIPPED. Get one with 'git clone {HOST_URLS[host]} "
+                    f"~/kalico' or set {variable}.")
         return (f"no Klipper checkout at {path} ({e}): the klippy tier and the klippy "
                 f"half of the moonraker tier are SKIPPED. Get one with "
-                f"'git clone https://github.com/Klipper3d/klipper ~/klipper' "
-                f"or set KLIPPER_PATH.")
+                f"'git clone {HOST_URLS[host]} ~/klipper' "
+                f"or set {variable}.")
     return None
 
 
@@ -101,10 +119,12 @@ def _prune(candidates, keep: Path, newest: int = 2) -> None:
 
 
 class KlipperBuild:
-    """A patched copy of the user's Klipper with MCU dictionaries built."""
+    """A patched copy of the user's Klipper (or Kalico) with MCU dictionaries
+    built."""
 
-    def __init__(self, tree: Path):
+    def __init__(self, tree: Path, host: str = "klipper"):
         self.tree = tree
+        self.host = host
         self.dict_dir = tree / "flowloop-dict"
 
     @property
@@ -118,8 +138,8 @@ class KlipperBuild:
         return self.dict_dir / f"{target}.elf"
 
 
-def klipper_key(source: Path = PROJECT) -> str:
-    kp = klipper_path()
+def klipper_key(source: Path = PROJECT, host: str = "klipper") -> str:
+    kp = klipper_path(host)
     h = hashlib.sha256()
     h.update(_run(["git", "-C", str(kp), "rev-parse", "HEAD"]).encode())
     h.update(_run(["git", "-C", str(kp), "status", "--porcelain"]).encode())
@@ -133,24 +153,31 @@ def klipper_key(source: Path = PROJECT) -> str:
     return h.hexdigest()[:16]
 
 
-def build_klipper(source: Path = PROJECT, targets=TARGETS) -> KlipperBuild:
-    key = klipper_key(source)
-    tree = cache_dir() / f"klipper-{key}"
-    build = KlipperBuild(tree)
-    with _locked("klipper"):
+def build_klipper(source: Path = PROJECT, targets=TARGETS,
+                  host: str = "klipper") -> KlipperBuild:
+    key = klipper_key(source, host)
+    tree = cache_dir() / f"{host}-{key}"
+    build = KlipperBuild(tree, host)
+    with _locked(host):
         if (tree / ".flowloop-ready").exists():
             return build
-        log(f"copying {klipper_path()} to {tree} and patching it")
+        log(f"copying {klipper_path(host)} to {tree} and patching it")
         tmp = tree.with_name(tree.name + ".tmp")
         shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(klipper_path(), tmp, symlinks=True,
-                        ignore=shutil.ignore_patterns("out", ".config", "*.pyc",
-                                                      "__pycache__"))
+        skip = shutil.ignore_patterns("out", ".config", "*.pyc", "__pycache__")
+        link_lib = host == "kalico"  # its lib/ (vendored MCU SDKs) is 200 MB
+
+        def ignore(folder, names):
+            top = link_lib and Path(folder) == klipper_path(host)
+            return set(skip(folder, names)) | ({"lib"} if top else set())
+        shutil.copytree(klipper_path(host), tmp, symlinks=True, ignore=ignore)
+        if link_lib:
+            (tmp / "lib").symlink_to(klipper_path(host) / "lib")
         install.apply(install.plan_klipper(tmp, source))
         dict_dir = tmp / "flowloop-dict"
         dict_dir.mkdir()
         for target in targets:
-            log(f"building Klipper's MCU code for {target}")
+            log(f"building {host}'s MCU code for {target}")
             _run(["make", "distclean"], cwd=tmp)
             shutil.copy(tmp / "test" / "configs" / f"{target}.config", tmp / ".config")
             _run(["make", "olddefconfig"], cwd=tmp)
@@ -160,7 +187,7 @@ def build_klipper(source: Path = PROJECT, targets=TARGETS) -> KlipperBuild:
             shutil.copy(tmp / "out" / "klipper.elf", dict_dir / f"{target}.elf")
             shutil.copy(tmp / ".config", dict_dir / f"{target}.config")
         _run(["make", "distclean"], cwd=tmp)
-        _prune(cache_dir().glob("klipper-*"), keep=tmp)
+        _prune(cache_dir().glob(f"{host}-[0-9a-f]*"), keep=tmp)
         tmp.rename(tree)
         (tree / ".flowloop-ready").write_text(key)
     return build
@@ -213,9 +240,10 @@ def _build_venv(name: str, host_install: List[str], extra: str,
     return venv
 
 
-def klippy_venv() -> Venv:
-    reqs = klipper_path() / "scripts" / "klippy-requirements.txt"
-    return _build_venv("klippy-venv", ["-r", str(reqs)], "", [reqs.read_bytes()])
+def klippy_venv(host: str = "klipper") -> Venv:
+    reqs = klipper_path(host) / "scripts" / "klippy-requirements.txt"
+    name = "klippy-venv" if host == "klipper" else f"{host}-venv"
+    return _build_venv(name, ["-r", str(reqs)], "", [reqs.read_bytes()])
 
 
 def moonraker_venv() -> Venv:

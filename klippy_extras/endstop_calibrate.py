@@ -7,6 +7,7 @@
 # the result (within tolerance, nothing is staged).
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
+import collections
 import logging
 
 from flowloop.calibrate import delta
@@ -14,9 +15,22 @@ from flowloop.calibrate.numbers import parse_numbers
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
 
-from . import probe
+try:    # klippy/extras/ (Klipper)
+    from . import probe
+except ImportError:  # klippy/plugins/ (Kalico): klippy's extras one up
+    from ..extras import probe
 
 TOWERS = delta.TOWERS
+# What Klipper's ProbePointsHelper hands its callback (manual_probe.ProbeResult)
+ProbeResult = collections.namedtuple('ProbeResult', [
+    'bed_x', 'bed_y', 'bed_z', 'test_x', 'test_y', 'test_z'])
+
+
+def _probe_result(test_pos, offsets):
+    """Klipper's manual_probe.create_probe_result, for a host without it."""
+    x_offset, y_offset, z_offset = offsets[:3]
+    return ProbeResult(test_pos[0] + x_offset, test_pos[1] + y_offset,
+                       test_pos[2] - z_offset, *test_pos[:3])
 METHODS = ('automatic', 'manual')
 # Parameters of ENDSTOP_CALIBRATE that the probe itself must not see.
 OWN_PARAMS = ('SAMPLES', 'RADIUS', 'TOLERANCE')
@@ -129,7 +143,11 @@ class EndstopCalibrate:
             gcmd.get_command(), gcmd.get_commandline(), params)
         self.probe_helper.start_probe(probe_gcmd)
 
-    def probe_finalize(self, results):
+    def probe_finalize(self, results, positions=None):
+        if positions is not None:
+            # Kalico's ProbePointsHelper (Klipper's form before ProbeResult):
+            # the probe's offsets, then where the toolhead was at each trigger
+            results = [_probe_result(pos, results) for pos in positions]
         active = self.active
         rows = [(p.test_x, p.test_y, p.test_z, p.test_z - p.bed_z)
                 for p in results]

@@ -58,8 +58,7 @@ class FlowloopHost:
             name for name, obj in self.printer.lookup_objects()
             if name.split()[0] in SECTIONS))
         for name, mcu in self.printer.lookup_objects('mcu'):
-            self.sensor_firmware[name] = mcu.check_valid_response(
-                ems22.QUERY_CMD)
+            self.sensor_firmware[name] = _has_command(mcu, ems22.QUERY_CMD)
         self.status = self._status(self.status['profiles'])
 
     def _handle_set_active_profile(self, web_request):
@@ -119,6 +118,15 @@ class FlowloopHost:
 
     def get_status(self, eventtime=None):
         return self.status
+
+
+def _has_command(mcu, msgformat):
+    """Whether the MCU's firmware has a command (Kalico's MCU has no
+    check_valid_response; try_lookup_command is in both hosts)."""
+    check = getattr(mcu, 'check_valid_response', None)
+    if check is not None:
+        return check(msgformat)
+    return mcu.try_lookup_command(msgformat) is not None
 
 
 def load_config(config):

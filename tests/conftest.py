@@ -6,6 +6,7 @@ a Klipper checkout they are skipped with one loud line saying why.
 
 from __future__ import annotations
 
+import fnmatch
 import shutil
 import sys
 from pathlib import Path
@@ -29,33 +30,112 @@ def pytest_collection_modifyitems(config, items):
 
 
 def pytest_report_header(config):
-    reason = stack.missing_klipper_reason()
-    if reason:
-        return "!" * 78 + "\n!!! " + reason + "\n" + "!" * 78
-    return f"klipper: {stack.klipper_path()}"
+    lines = []
+    for host in stack.HOSTS:
+        reason = stack.missing_klipper_reason(host)
+        if reason:
+            lines += ["!" * 78, "!!! " + reason, "!" * 78]
+        else:
+            lines.append(f"{host}: {stack.klipper_path(host)}")
+    return lines
 
 
 def pytest_terminal_summary(terminalreporter):
-    reason = stack.missing_klipper_reason()
-    if reason:
-        terminalreporter.write_line("!!! " + reason, red=True, bold=True)
+    for host in stack.HOSTS:
+        reason = stack.missing_klipper_reason(host)
+        if reason:
+            terminalreporter.write_line("!!! " + reason, red=True, bold=True)
 
 
-def skip_without_klipper() -> None:
+def skip_without_klipper(host: str = "klipper") -> None:
     # The loud explanation is printed once, in the header and the summary.
-    if stack.missing_klipper_reason():
-        pytest.skip(f"no Klipper checkout at {stack.klipper_path()}")
+    if stack.missing_klipper_reason(host):
+        name = "Kalico" if host == "kalico" else "Klipper"
+        pytest.skip(f"no {name} checkout at {stack.klipper_path(host)}")
+
+
+# --- the klippy tier runs on every host ---------------------------------------
+# A test in tests/klippy/ that uses klipper_build runs once per host
+# (test_x[klipper], test_x[kalico]); elsewhere klipper_build is Klipper's.
+# What does not apply on a host is listed here with the reason, so a skip is
+# never silent: {host: {test name or .test file: reason}}.
+NO_MOTION_QUEUING = (
+    "Kalico has no motion_queuing object (Klipper's since 2025-08), which the "
+    "simulated flow sensor and autotemp follow step generation with")
+NOT_ON_HOST = {
+    "kalico": {
+        # the simulated [flow_sensor] (and so whatever runs on its windows)
+        "flow_sensor_cal.test": NO_MOTION_QUEUING,
+        "flow_sensor_commands.test": NO_MOTION_QUEUING,
+        "flow_sensor_sim.test": NO_MOTION_QUEUING,
+        "flowrate_limiter_fault.test": NO_MOTION_QUEUING,
+        "autotemp*.test": NO_MOTION_QUEUING,
+        "test_flow_sensor.py::*": NO_MOTION_QUEUING,
+        "test_measure_profile.py::*": NO_MOTION_QUEUING,
+        "test_autotemp.py::*": NO_MOTION_QUEUING,
+        "test_reference_status.py::*": NO_MOTION_QUEUING,
+        "test_flowrate_limiter.py::test_the_closed_loop_keeps_grip_where_the_"
+        "uncapped_print_loses_it": NO_MOTION_QUEUING,
+        "test_flowrate_limiter.py::test_the_model_learns_a_hotend_weaker_than_"
+        "its_profile": NO_MOTION_QUEUING,
+        # Kalico behaves otherwise, by design
+        "endstop_calibrate_bad_nan.test":
+            "Kalico's G-code parser refuses RADIUS=nan itself ('unable to parse "
+            "nan') before flowloop sees it; the command still fails, nothing "
+            "changed",
+        "test_endstop_calibrate.py::test_klippy_puts_the_carriages_where_"
+        "flowloop_says":
+            "Kalico retracts homing_retract_dist again after the second homing "
+            "touch, so G28 leaves delta carriages 5 mm below the endstops",
+        "test_diff_ab_calibrate.py::test_pylon_template_renders_the_same_"
+        "under_klippers_jinja2":
+            "Kalico pins Jinja2 3.1.6, not Klipper's 2.11.3; the test is about "
+            "the 2.x renderer",
+    },
+}
+
+
+def _klippy_tier(path) -> bool:
+    parts = Path(str(path)).relative_to(PROJECT).parts
+    return len(parts) > 2 and parts[:2] == ("tests", "klippy")
+
+
+def pytest_generate_tests(metafunc):
+    if "klipper_build" in metafunc.fixturenames and _klippy_tier(
+            metafunc.definition.fspath):
+        metafunc.parametrize("host", stack.HOSTS, indirect=True, scope="session")
+
+
+def _not_on_host(host: str, key: str) -> None:
+    """key: a .test file's name, or FILE.py::TEST (its parameters dropped);
+    NOT_ON_HOST's keys may be fnmatch patterns."""
+    key = key.split("[", 1)[0]
+    for pattern, reason in NOT_ON_HOST.get(host, {}).items():
+        if fnmatch.fnmatchcase(key, pattern):
+            pytest.skip(f"not on {host}: {reason}")
 
 
 @pytest.fixture(scope="session")
-def klipper_build():
-    skip_without_klipper()
-    return stack.build_klipper()
+def host(request):
+    return getattr(request, "param", "klipper")
+
+
+@pytest.fixture(scope="session")
+def klipper_build(host):
+    skip_without_klipper(host)
+    return stack.build_klipper(host=host)
+
+
+@pytest.fixture(autouse=True)
+def _host_applies(request):
+    if "host" in request.fixturenames:
+        _not_on_host(request.getfixturevalue("host"),
+                     f"{request.node.path.name}::{request.node.name}")
 
 
 @pytest.fixture(scope="session")
 def klippy_venv(klipper_build):
-    return stack.klippy_venv()
+    return stack.klippy_venv(klipper_build.host)
 
 
 @pytest.fixture(scope="session")
@@ -80,16 +160,20 @@ def pytest_collect_file(parent, file_path):
 
 class KlippyTestFile(pytest.File):
     def collect(self):
-        yield KlippyTestItem.from_parent(self, name=self.path.name)
+        for host in stack.HOSTS:
+            name = self.path.name if host == "klipper" else f"{self.path.name}[{host}]"
+            yield KlippyTestItem.from_parent(self, name=name, host=host)
 
 
 class KlippyTestItem(pytest.Item):
-    def __init__(self, **kw):
+    def __init__(self, host: str = "klipper", **kw):
         super().__init__(**kw)
+        self.host = host
         self.add_marker(pytest.mark.klippy)
 
     def runtest(self):
-        build, venv = _session_build()
+        _not_on_host(self.host, self.path.name)
+        build, venv = _session_build(self.host)
         workdir = stack.short_tempdir("fl-test-")
         try:
             run_file(self.path, build, venv, workdir)
@@ -105,12 +189,11 @@ class KlippyTestItem(pytest.Item):
         return self.path, 0, f"klippy: {self.name}"
 
 
-_BUILD = None
+_BUILDS: dict = {}
 
 
-def _session_build():
-    global _BUILD
-    skip_without_klipper()
-    if _BUILD is None:
-        _BUILD = (stack.build_klipper(), stack.klippy_venv())
-    return _BUILD
+def _session_build(host: str = "klipper"):
+    skip_without_klipper(host)
+    if host not in _BUILDS:
+        _BUILDS[host] = (stack.build_klipper(host=host), stack.klippy_venv(host))
+    return _BUILDS[host]

@@ -400,14 +400,12 @@ def host_notes(klipper: Path) -> List[str]:
     klipper = Path(klipper).expanduser()
     if not is_kalico(klipper):
         return []
-    rel, marker = MIN_KLIPPER_MARKER
-    path = klipper / rel
-    if path.is_file() and marker not in path.read_text(errors="replace"):
-        return [f"Kalico at {klipper} lacks mcu.register_serial_response: a"
-                " [flow_sensor] reading an EMS22 on an MCU refuses to start there"
-                " (type: simulated, the calibrations and the Moonraker component"
-                " work)"]
-    return []
+    notes = []
+    if not (klipper / "klippy" / "extras" / "motion_queuing.py").is_file():
+        notes.append(f"Kalico at {klipper} has no motion_queuing (Klipper's since"
+                     " 2025-08): the simulated [flow_sensor] and [autotemp] do not"
+                     " run there yet (docs/install.md, Kalico)")
+    return notes
 
 
 def _own_file(changes: List[Change], path: Path, text: str, uninstall: bool) -> None:

@@ -19,6 +19,7 @@ Request: {"geometries": {NAME: {"radius", "angles", "arms", "endstops"}},
 
 import json
 import sys
+from pathlib import Path
 
 # A stepdist of 1 makes Klipper's "stable position" the travel in mm.
 STEPDISTS = [1.0, 1.0, 1.0]
@@ -57,6 +58,9 @@ def answer(cals, request):
 
 def main():
     sys.path.insert(0, sys.argv[1])
+    if Path(sys.argv[1], "__init__.py").is_file():
+        # Kalico: klippy is a package whose modules import klippy.mathutil
+        sys.path.insert(0, str(Path(sys.argv[1]).parent))
     from kinematics import delta
     job = json.load(sys.stdin)
     cals = calibrations(delta, job["geometries"])

@@ -97,3 +97,71 @@ def test_without_klipper_the_tier_is_skipped_with_one_loud_line():
     assert len(loud) == 1 and "git clone" in loud[0]  # how to get one
     assert sum("git clone" in ln for ln in lines) == 1  # not repeated per test
     assert "1 skipped" in proc.stdout
+
+
+def test_without_kalico_its_runs_are_skipped_with_one_loud_line():
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+         "tests/klippy/test_harness.py::test_import_test_passes_in_the_patched_tree"
+         "[kalico]"],
+        cwd=stack.PROJECT, capture_output=True, text=True,
+        env={**os.environ, "KALICO_PATH": "/nonexistent/kalico"})
+    assert proc.returncode == 0, proc.stdout
+    lines = proc.stdout.splitlines()
+    loud = [ln for ln in lines if ln.startswith("!!! no Kalico")]
+    assert len(loud) == 1 and "KALICO_PATH" in loud[0]
+    assert "git clone https://github.com/KalicoCrew/kalico" in loud[0]
+    assert "1 skipped" in proc.stdout
+
+
+def test_each_klippy_test_runs_on_each_host_unless_listed_with_a_reason():
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "--collect-only", "-p",
+         "no:cacheprovider", "tests/klippy/flowrate_limiter.test",
+         "tests/klippy/test_harness.py::test_import_test_passes_in_the_patched_tree"],
+        cwd=stack.PROJECT, capture_output=True, text=True)
+    ids = [ln for ln in proc.stdout.splitlines() if "::" in ln]
+    assert sorted(ids) == sorted([
+        "tests/klippy/flowrate_limiter.test::flowrate_limiter.test",
+        "tests/klippy/flowrate_limiter.test::flowrate_limiter.test[kalico]",
+        "tests/klippy/test_harness.py::test_import_test_passes_in_the_patched_tree"
+        "[klipper]",
+        "tests/klippy/test_harness.py::test_import_test_passes_in_the_patched_tree"
+        "[kalico]"]), proc.stdout
+    import conftest  # tests/conftest.py, which pytest loaded
+    for host, reasons in conftest.NOT_ON_HOST.items():
+        assert host in stack.HOSTS
+        for key, reason in reasons.items():
+            assert key.endswith(".test") or "::" in key, key
+            assert len(reason) > 40, key  # says why, not just "broken"
+
+
+def test_the_kalico_build_has_flowloop_as_plugins_and_a_firmware_extra(
+        host, klipper_build):
+    if host != "kalico":
+        pytest.skip("Kalico's layout")
+    tree = klipper_build.tree
+    assert (tree / "klippy" / "plugins" / "flowrate_limiter.py").is_symlink()
+    assert not (tree / "klippy" / "extras" / "flowrate_limiter.py").exists()
+    assert (tree / "src" / "extras" / "flowloop" / "Kconfig").is_file()
+    config = (klipper_build.dict_dir / "atmega2560.config").read_text()
+    assert "CONFIG_WANT_SENSOR_EMS22=y" in config
+    assert "query_ems22" in klipper_build.dictionary("atmega2560").read_text()
+
+
+def test_flowloop_sees_the_sensor_command_in_either_hosts_firmware(
+        klipper_build, klippy_venv, short_tmp):
+    """[flowloop] asks the MCU dictionary for query_ems22 (Kalico's MCU has
+    no check_valid_response); the patched build's firmware has it."""
+    cfg = short_tmp / "printer.cfg"
+    cfg.write_text(
+        f"[include {klipper_build.tree / 'config' / 'example-cartesian.cfg'}]\n"
+        "[flowloop]\n"
+        "[gcode_macro CHECK_FIRMWARE]\ngcode:\n"
+        "  {% set fw = printer.flowloop.sensor_firmware %}\n"
+        "  {% if fw != {'mcu': true} %}\n"
+        "    {action_raise_error('sensor_firmware is %s' % (fw,))}\n"
+        "  {% endif %}\n")
+    test = short_tmp / "firmware.test"
+    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nCHECK_FIRMWARE\n")
+    run_file(test, klipper_build, klippy_venv, short_tmp)
