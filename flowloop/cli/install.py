@@ -29,10 +29,9 @@ def register(subparsers) -> None:
                     "component into the user's trees. Idempotent; --uninstall "
                     "restores every file as it was.")
     home = Path("~")
-    p.add_argument("--klipper", type=Path,
-                   default=Path(os.environ.get("KLIPPER_PATH", home / "klipper")),
-                   help="Klipper or Kalico checkout (default: $KLIPPER_PATH or "
-                        "~/klipper)")
+    p.add_argument("--klipper", type=Path, default=None,
+                   help="Klipper or Kalico checkout (default: $KLIPPER_PATH, else "
+                        "~/klipper, else ~/kalico)")
     p.add_argument("--moonraker", type=Path, default=None,
                    help="Moonraker checkout or virtualenv (default: ~/moonraker, "
                         "else ~/moonraker-env)")
@@ -53,7 +52,19 @@ def _default_moonraker() -> Path:
                        "pass --moonraker or --no-moonraker")
 
 
+def default_klipper() -> Path:
+    """$KLIPPER_PATH, else ~/klipper, else ~/kalico (where KIAUH puts it)."""
+    if os.environ.get("KLIPPER_PATH"):
+        return Path(os.environ["KLIPPER_PATH"])
+    for candidate in (Path("~/klipper"), Path("~/kalico")):
+        if candidate.expanduser().exists():
+            return candidate
+    return Path("~/klipper")
+
+
 def plan(args, source: Path) -> List[Change]:
+    if args.klipper is None:
+        args.klipper = default_klipper()
     changes = plan_klipper(args.klipper, source, args.uninstall)
     if not args.no_moonraker:
         moonraker = args.moonraker or _default_moonraker()

@@ -524,3 +524,16 @@ def test_no_update_manager_block_for_a_pip_installed_flowloop(config_dir, tmp_pa
     assert "[update_manager flowloop]" in (config_dir / "moonraker.conf").read_text()
     install.apply(install.plan_moonraker_conf(config_dir, bundle))  # now a wheel's
     assert "update_manager" not in (config_dir / "moonraker.conf").read_text()
+
+
+def test_without_klipper_path_the_default_is_klipper_else_kalico(tmp_path,
+                                                                 monkeypatch):
+    from flowloop.cli import install as cli_install
+    monkeypatch.delenv("KLIPPER_PATH", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "kalico").mkdir()
+    assert cli_install.default_klipper().expanduser() == tmp_path / "kalico"
+    (tmp_path / "klipper").mkdir()
+    assert cli_install.default_klipper().expanduser() == tmp_path / "klipper"
+    monkeypatch.setenv("KLIPPER_PATH", str(tmp_path / "elsewhere"))
+    assert cli_install.default_klipper() == tmp_path / "elsewhere"
