@@ -13,15 +13,19 @@ import dataclasses
 import logging
 import threading
 
-import chelper
-
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import FlowLine, profile_line
 from flowloop.sensor import ems22, twin
 from flowloop.sensor import grip as flow_grip
 
-from . import bulk_sensor, bus
+try:    # klippy/extras/ (Klipper)
+    from . import bulk_sensor, bus
+except ImportError:  # klippy/plugins/ (Kalico): klippy's modules one up
+    from .. import chelper
+    from ..extras import bulk_sensor, bus
+else:
+    import chelper
 
 MIN_MSG_TIME = 0.100
 BATCH_INTERVAL = 0.100
@@ -447,8 +451,13 @@ class Ems22Source:
         self.mcu = mcu = self.spi.get_mcu()
         self.oid = mcu.create_oid()
         mcu.register_config_callback(self._build_config)
-        mcu.register_serial_response(self._handle_bulk, ems22.BULK_DATA_MSG,
-                                     self.oid)
+        if hasattr(mcu, 'register_serial_response'):
+            mcu.register_serial_response(self._handle_bulk, ems22.BULK_DATA_MSG,
+                                         self.oid)
+        else:
+            # Kalico, and Klipper before 2026-02-26 (v0.13.0): by message name
+            mcu.register_response(self._handle_bulk,
+                                  ems22.BULK_DATA_MSG.split()[0], self.oid)
         self.lock = threading.Lock()
         self.raw_queue = []
         self.query_cmd = None
@@ -461,8 +470,8 @@ class Ems22Source:
 
     def _build_config(self):
         mcu = self.mcu
-        if not (mcu.check_valid_response(ems22.QUERY_CMD)
-                and mcu.check_valid_response(ems22.CONFIG_CMD)):
+        if (mcu.try_lookup_command(ems22.QUERY_CMD) is None
+                or mcu.try_lookup_command(ems22.CONFIG_CMD) is None):
             raise self.printer.config_error(
                 f"[{self.sensor.section}] " + REBUILD_MSG.format(mcu.get_name()))
         mcu_freq = mcu.seconds_to_clock(1.)

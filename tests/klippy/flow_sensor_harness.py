@@ -27,11 +27,16 @@ import threading
 import time
 
 KLIPPY = os.path.join(os.getcwd(), "klippy", "klippy.py")
-sys.path.insert(0, os.path.dirname(KLIPPY))
 sys.argv[0] = KLIPPY
-
-import extras.bulk_sensor as bulk_sensor  # noqa: E402
-import extras.flow_sensor as flow_sensor  # noqa: E402
+if os.path.isfile(os.path.join(os.getcwd(), "klippy", "plugins", "__init__.py")):
+    # Kalico: klippy is a package, flowloop's modules are its plugins
+    sys.path.insert(0, os.getcwd())
+    import klippy.extras.bulk_sensor as bulk_sensor  # noqa: E402
+    import klippy.plugins.flow_sensor as flow_sensor  # noqa: E402
+else:
+    sys.path.insert(0, os.path.dirname(KLIPPY))
+    import extras.bulk_sensor as bulk_sensor  # noqa: E402
+    import extras.flow_sensor as flow_sensor  # noqa: E402
 
 load_config_prefix = flow_sensor.load_config_prefix
 
