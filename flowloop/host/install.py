@@ -26,8 +26,8 @@ SENSOR_C = "sensor_ems22.c"
 LIMITED_MENU = 'menu "Optional features (to reduce code size)"'
 
 # Kconfig: the hidden symbol (default y wherever SPI exists) sits with Klipper's
-# other hidden WANT_ options; the prompt sits inside the limited-code-size menu,
-# which is where Klipper shows its optional sensors.
+# other hidden WANT_ options; the prompt sits inside the limited-code-size menu
+# (shown only on small-flash MCUs), beside Klipper's own sensor chips.
 KCONFIG_HIDDEN = """\
 config WANT_SENSOR_EMS22
     bool
@@ -38,6 +38,9 @@ config NEED_SENSOR_BULK
     depends on WANT_SENSOR_EMS22
     default y
 """
+# In that menu the prompt goes with Klipper's own sensor chips ("Other
+# external sensor chips"), just before this line.
+KCONFIG_PROMPT_BEFORE = 'comment "Other features"'
 KCONFIG_PROMPT = """\
 config WANT_SENSOR_EMS22
     bool "Support EMS22 filament flow sensor (flowloop)"
@@ -344,6 +347,17 @@ def check_klipper_tree(klipper: Path) -> None:
             raise InstallError(f"{klipper} is not a Klipper tree (no {rel})")
 
 
+def _prompt_offset(text: str, kconfig: Path) -> int:
+    """Where the sensor's prompt goes in the limited-code-size menu: with
+    Klipper's own sensor chips (before its "Other features" comment), else
+    at the menu's end."""
+    menu = _line_offset(text, LIMITED_MENU, kconfig)
+    try:
+        return _line_offset(text, KCONFIG_PROMPT_BEFORE, kconfig, menu)
+    except InstallError:
+        return _line_offset(text, "endmenu", kconfig, menu)
+
+
 def check_klipper_version(klipper: Path) -> None:
     """Refuse a Klipper older than MIN_KLIPPER (a feature check: forks and
     untagged checkouts are judged by what they offer)."""
@@ -515,9 +529,8 @@ def plan_klipper(klipper: Path, source: Path, uninstall: bool = False) -> List[C
         def kconfig_edit(text: str) -> str:
             text = put_block(text, "sensor", KCONFIG_HIDDEN,
                              lambda t: _line_offset(t, LIMITED_MENU, kconfig))
-            return put_block(text, "sensor-prompt", KCONFIG_PROMPT, lambda t: (
-                _line_offset(t, "endmenu", kconfig,
-                             _line_offset(t, LIMITED_MENU, kconfig))))
+            return put_block(text, "sensor-prompt", KCONFIG_PROMPT,
+                             lambda t: _prompt_offset(t, kconfig))
         _edit(changes, kconfig, "src/Kconfig", kconfig_edit)
     _exclude_changes(changes, klipper, excluded, uninstall)
     return changes

@@ -53,3 +53,20 @@ def test_a_klipper_with_register_serial_response_is_accepted(tmp_path):
     mcu_py = "class MCU:\n    def register_serial_response(self, cb, msg):\n"
     tree = _tree(tmp_path, mcu_py)
     assert install.plan_klipper(tree, Path(__file__).resolve().parents[2])
+
+
+def test_the_menuconfig_prompt_sits_with_klippers_sensor_chips(tmp_path):
+    kconfig = KLIPPER / "src" / "Kconfig"
+    if not kconfig.is_file():
+        pytest.skip("no Klipper checkout")
+    mcu_py = "class MCU:\n    def register_serial_response(self, cb, msg):\n"
+    tree = _tree(tmp_path, mcu_py)
+    (tree / "src" / "Kconfig").write_text(kconfig.read_text())
+    install.apply(install.plan_klipper(tree, Path(__file__).resolve().parents[2]))
+    text = (tree / "src" / "Kconfig").read_text()
+    menu = text.index(install.LIMITED_MENU)
+    prompt = text.index('bool "Support EMS22 filament flow sensor (flowloop)"')
+    # in the small-flash menu, after Klipper's angle sensors, not under
+    # "Other features"
+    assert menu < text.index('bool "Support angle sensors"') < prompt
+    assert prompt < text.index('comment "Other features"') < text.index("endmenu", menu)
