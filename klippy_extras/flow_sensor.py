@@ -15,6 +15,7 @@ import threading
 
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
+from flowloop.host.klipper_config import option_message
 from flowloop.material.profile import FlowLine, profile_line
 from flowloop.sensor import ems22, twin
 from flowloop.sensor import grip as flow_grip
@@ -45,8 +46,7 @@ def _staged_note(paste):
 
 
 def option_error(config, option, message):
-    return config.error(
-        f"Section [{config.get_name()}], option {option}: {message}")
+    return config.error(option_message(config.get_name(), option, message))
 
 
 class FlowSensor:
@@ -128,9 +128,9 @@ class FlowSensor:
         self.extruder = self.printer.lookup_object(self.extruder_name, None)
         if self.extruder is None or not hasattr(self.extruder,
                                                 'find_past_position'):
-            raise self.printer.config_error(
-                f"Section [{self.section}], option extruder:"
-                f" '{self.extruder_name}' is not an extruder")
+            raise self.printer.config_error(option_message(
+                self.section, 'extruder',
+                f"'{self.extruder_name}' is not an extruder"))
         self.toolhead = self.printer.lookup_object('toolhead')
         self.heater = self.extruder.get_heater()
         area = getattr(self.extruder, 'filament_area', None)
