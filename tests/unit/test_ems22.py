@@ -348,3 +348,22 @@ def test_faults_follow_runs_of_bad_samples_however_batches_are_cut(bad, limit, c
         assert monitor.fault == expect
         i += size
     assert monitor.errors.get("missing", 0) == sum(bad)
+
+
+def test_one_overflow_record_counts_its_missed_reads():
+    read = (3, ems22.spi_read_model(ems22.make_frame(5), 2))
+    records = [read, ems22.error_record(ems22.ERR_OVERFLOW, 7), read]
+    s = ems22.Decoder().decode(list(enumerate(ems22.pack_messages(0, records))))
+    # the read after it keeps its time: record slot 8, not 2
+    assert s.index.tolist() == list(range(9))
+    assert s.error_counts() == {"overflow": 7}
+    assert s.status[8] == ems22.OK
+
+
+def test_an_overflow_record_of_254_reads_loses_time():
+    read = (3, ems22.spi_read_model(ems22.make_frame(5), 2))
+    records = [read, ems22.error_record(ems22.ERR_OVERFLOW,
+                                        ems22.MAX_PENDING - 1), read]
+    decoder = ems22.Decoder()
+    s = decoder.decode(list(enumerate(ems22.pack_messages(0, records))))
+    assert decoder.time_lost and s.status[-1] == ems22.TIME_LOST
