@@ -15,6 +15,8 @@ from flowloop.control import limiter as fl_limiter
 from flowloop.control.hotend import HotendModel
 from flowloop.errors import FlowloopError
 
+from . import flowloop as flowloop_host
+
 SETTING_FIELDS = {'max_flow': 'max_flow_mm3_s', 'mode': 'mode',
                   'min_grip': 'min_grip', 'min_speed_factor': 'min_speed_factor',
                   'hysteresis': 'hysteresis', 'recovery_rate': 'recovery_per_s'}
@@ -78,6 +80,8 @@ class FlowrateLimiter:
         self.mcu = self.printer.lookup_object('mcu')
         self.limiter = fl_limiter.FlowLimiter(self.settings,
                                               extruder.filament_area)
+        self.host_facts = flowloop_host.host_facts(self.printer, self.toolhead,
+                                                   self.heater)
         self.sensor = self._find_sensor()
         if self.sensor is not None:
             self.sensor.subscribe_grip_windows(self._handle_window)
@@ -152,7 +156,9 @@ class FlowrateLimiter:
     def get_status(self, eventtime=None):
         if self.limiter is None:
             return {}
-        return self.limiter.status()
+        status = self.limiter.status()  # a fresh dict of held values
+        status['host'] = self.host_facts
+        return status
 
     cmd_SET_FLOWRATE_LIMIT_help = (
         "Turn the flowrate limiter on or off, set its max_flow (mm^3/s) or"
