@@ -32,7 +32,7 @@ from typing import List, NamedTuple, Optional, Tuple
 
 from ..errors import FlowloopError
 from ..material.profile import Line, Profile, check_working_point, profile_line
-from .hotend import HotendParams
+from .hotend import HotendModel, HotendParams
 
 GRID_S = 0.1
 # The need is held this long before and after each window: targets set
@@ -43,6 +43,8 @@ DEFAULT_MARGIN_S = 0.5
 POWER_SHARE = 0.9
 # Windows further back than this are forgotten.
 KEEP_S = 2.0
+# The modelled nozzle this far below the plan is behind it: full heat.
+BEHIND_C = 1.0
 DEFAULT_PARAMS = HotendParams()
 
 
@@ -101,6 +103,8 @@ class TemperaturePlan:
         # the planned grid: index of its first point, nozzle temperatures
         self._first = 0
         self._nozzle: List[float] = []
+        # the nozzle as the targets set so far move it (the hotend model)
+        self._model: Optional[HotendModel] = None
 
     # --- inputs -------------------------------------------------------------
     def need_c(self, flow_mm3_s: float) -> float:
@@ -195,7 +199,27 @@ class TemperaturePlan:
             now_c, next_c = self.nozzle_c(t), self.nozzle_c(t + GRID_S)
             target = (next_c - now_c * decay) / (1.0 - decay)
             best = max(best, target, next_c)
+        best = self._catch_up(time_s, best)
         return round(self.limits.clamp(best), 2)
+
+    def _catch_up(self, time_s: float, target_c: float) -> float:
+        """Where the nozzle has fallen behind the plan (a rise announced
+        later than it takes), the full target until it is back on it: the
+        hotend model run on the targets set so far tells."""
+        model = self._model
+        if model is None or time_s < model.time_s:
+            start = self.nozzle_c(time_s)
+            model = self._model = HotendModel(self.params, start, time_s, start)
+        model.advance(time_s, self.flow_at(time_s))
+        if model.temp_c < self.nozzle_c(time_s) - BEHIND_C:
+            target_c = self.limits.max_temp_c
+        model.set_target(time_s, target_c)
+        return target_c
+
+    def flow_at(self, time_s: float) -> float:
+        """The announced flow at time_s (0 where none)."""
+        return max((w.flow_mm3_s for w in self.windows
+                    if w.start_s <= time_s < w.end_s), default=0.0)
 
     def status(self) -> dict:
         return {"capped_windows": self.capped_windows,

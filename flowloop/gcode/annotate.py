@@ -38,7 +38,7 @@ from ..errors import FlowloopError
 from .planner import Barrier, Event, PrinterLimits, plan_file
 
 FORMAT_VERSION = 1
-DEFAULT_LEAD_S = 15.0
+DEFAULT_LEAD_S = 60.0
 DEFAULT_WINDOW_S = 1.0
 # How long before its move Klipper reads a command (toolhead BUFFER_TIME_HIGH).
 READAHEAD_S = 1.0

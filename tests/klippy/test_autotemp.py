@@ -27,7 +27,7 @@ def test_no_unknown_command_and_the_annotations_are_the_source(runs):
     assert "Unknown command" not in log_on + log_off
     announced = [r for r in on if any(x.startswith("AUTOTEMP_FLOW")
                                       for x in r["lines"])]
-    assert len(announced) > 10
+    assert len(announced) >= 5
     assert all(r["autotemp"]["source"] == "annotation" for r in announced)
     assert on[-1]["autotemp"]["profile"] == "weak"
 

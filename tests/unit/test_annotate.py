@@ -136,13 +136,15 @@ def test_a_flow_step_is_announced_lead_ahead():
     fast = [f"G1 X{100 * (i % 2) + 10:.0f} Y{40 + i * 0.1:.1f} E3 F6000"
             for i in range(1, 21)]
     data = "\n".join(["M83", "G1 X10 Y0 F6000"] + slow + fast).encode() + b"\n"
-    result = annotated(data)
-    assert_announcements_cover_the_flow(data, result)
+    settings = AnnotateSettings(lead_s=15.0)     # shorter than the slow part
+    result = annotated(data, settings)
+    assert_announcements_cover_the_flow(data, result, settings)
     segs = [e for e in plan(data) if isinstance(e, Segment)]
     fast_start = next(s.start_s for s in segs if s.flow_mm3_s > 5)
     step = next(w for w in announcements(result) if w.flow > 5)
     assert step.start_s <= fast_start
-    assert step.start_s - step.at_s >= AnnotateSettings().placement_s - ROUNDING_S
+    assert step.start_s - step.at_s >= settings.placement_s - ROUNDING_S
+    assert step.at_s > 10.0        # in the slow part, not at the file's start
 
 
 def test_nothing_is_announced_across_a_barrier():
