@@ -125,3 +125,16 @@ def test_limits_of_a_profile_and_a_heater():
 def test_bad_announcements_name_the_parameter(flow, lead, duration, word):
     with pytest.raises(FlowloopError, match=word):
         check_announcement(flow, lead, duration)
+
+
+def test_behind_the_plan_the_target_stays_at_the_limit_until_caught_up():
+    # 35 degrees announced 5 s ahead: the plan's nozzle is "already there",
+    # the hotend is not; the target holds max_temp while the model is behind
+    plan = TemperaturePlan(LINE, LIMITS, PARAMS)
+    plan.target_at(0.0)                       # the nozzle at the minimum
+    plan.announce(0.0, 7.5, 5.0, 60.0)        # 225 C from 5 s, 60 s long
+    targets = [plan.target_at(k * GRID_S) for k in range(500)]
+    assert targets[:150] == [LIMITS.max_temp_c] * 150
+    # and once the modelled nozzle has reached the need (the heater's power
+    # is what limits the rise here), the need
+    assert targets[-1] == pytest.approx(plan.need_c(7.5), abs=0.01)
