@@ -86,8 +86,13 @@ class Autotemp:
         active = self.host.get_active_profile(self.extruder_name)
         if active is not None:
             self.core.set_profile(active.profile, active.working_point)
-        motion_queuing = self.printer.lookup_object('motion_queuing')
-        motion_queuing.register_flush_callback(self._flush)
+        motion_queuing = self.printer.lookup_object('motion_queuing', None)
+        if motion_queuing is not None:
+            motion_queuing.register_flush_callback(self._flush)
+        else:
+            # Kalico: the toolhead's step generators see each flush time
+            self.toolhead.register_step_generator(
+                lambda flush_time: self._flush(flush_time, flush_time))
         gcode_move = self.printer.lookup_object('gcode_move')
         self.next_transform = gcode_move.set_move_transform(self, force=True)
 

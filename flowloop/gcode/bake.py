@@ -175,6 +175,26 @@ def _simulate(timeline: Timeline, targets: List[Optional[float]],
     return short_s
 
 
+def plan_announcements(src: Path, limits: PrinterLimits,
+                       settings: AnnotateSettings, newline: bytes = b"\n"
+                       ) -> _Recorder:
+    """The file planned and annotated in memory: `.commands` (offset, print
+    time, AUTOTEMP_FLOW line), `.moves`, `.demand` (peak flow per GRID_S),
+    `.end_s`."""
+    rec = _Recorder(settings, newline)
+    try:
+        with open(src, "rb") as lines:
+            for event in plan_file(lines, limits):
+                if isinstance(event, Barrier):
+                    rec.barrier(event)
+                else:
+                    rec.segment(event)
+    except FlowloopError as e:
+        raise FlowloopError(f"{src}: {e}") from None
+    rec.finish()
+    return rec
+
+
 def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
               params: HotendParams = DEFAULT_PARAMS,
               limits: Optional[PrinterLimits] = None,
@@ -194,17 +214,7 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
         raise FlowloopError(f"{src}: annotated or baked already; bake the"
                             " slicer's file")
     newline = _newline_of(src)
-    rec = _Recorder(settings, newline)
-    try:
-        with open(src, "rb") as lines:
-            for event in plan_file(lines, limits):
-                if isinstance(event, Barrier):
-                    rec.barrier(event)
-                else:
-                    rec.segment(event)
-    except FlowloopError as e:
-        raise FlowloopError(f"{src}: {e}") from None
-    rec.finish()
+    rec = plan_announcements(src, limits, settings, newline)
     controller = Autotemp(params, heater_max_temp_c)
     controller.set_profile(profile, working_point)
     if controller.plan is None:
