@@ -10,6 +10,7 @@ import fnmatch
 import shutil
 import sys
 from pathlib import Path
+from typing import Optional
 
 import pytest
 
@@ -27,6 +28,15 @@ def pytest_collection_modifyitems(config, items):
         parts = Path(str(item.fspath)).relative_to(PROJECT).parts
         if len(parts) > 2 and parts[0] == "tests" and parts[1] in TIERS:
             item.add_marker(getattr(pytest.mark, parts[1]))
+        # Skipped here, not in a fixture: a module-scoped fixture that runs
+        # klippy would otherwise run (and fail) first.
+        callspec = getattr(item, "callspec", None)
+        host = callspec.params.get("host") if callspec else None
+        if host:
+            reason = _not_on_host_reason(
+                host, f"{item.path.name}::{item.originalname}")
+            if reason:
+                item.add_marker(pytest.mark.skip(reason=reason))
 
 
 def pytest_report_header(config):
@@ -106,13 +116,20 @@ def pytest_generate_tests(metafunc):
         metafunc.parametrize("host", stack.HOSTS, indirect=True, scope="session")
 
 
-def _not_on_host(host: str, key: str) -> None:
+def _not_on_host_reason(host: str, key: str) -> Optional[str]:
     """key: a .test file's name, or FILE.py::TEST (its parameters dropped);
     NOT_ON_HOST's keys may be fnmatch patterns."""
     key = key.split("[", 1)[0]
     for pattern, reason in NOT_ON_HOST.get(host, {}).items():
         if fnmatch.fnmatchcase(key, pattern):
-            pytest.skip(f"not on {host}: {reason}")
+            return f"not on {host}: {reason}"
+    return None
+
+
+def _not_on_host(host: str, key: str) -> None:
+    reason = _not_on_host_reason(host, key)
+    if reason:
+        pytest.skip(reason)
 
 
 @pytest.fixture(scope="session")
@@ -124,13 +141,6 @@ def host(request):
 def klipper_build(host):
     skip_without_klipper(host)
     return stack.build_klipper(host=host)
-
-
-@pytest.fixture(autouse=True)
-def _host_applies(request):
-    if "host" in request.fixturenames:
-        _not_on_host(request.getfixturevalue("host"),
-                     f"{request.node.path.name}::{request.node.name}")
 
 
 @pytest.fixture(scope="session")
