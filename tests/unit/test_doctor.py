@@ -241,14 +241,16 @@ def test_the_tree_on_the_printer_names_its_host_and_refuses_an_old_klipper(tmp_p
     assert facts["klipper_host"] == "Klipper" and "klipper_tree_problem" not in facts
     old = _klipper_tree(klipper_tree(tmp_path / "old", new_enough=False))
     assert "older than flowloop needs" in old["klipper_tree_problem"]
-    kalico = _klipper_tree(klipper_tree(tmp_path / "kal", kalico=True,
-                                        new_enough=False))
+    kal = klipper_tree(tmp_path / "kal", kalico=True, new_enough=False)
+    kalico = _klipper_tree(kal)
     assert kalico["klipper_host"] == "Kalico"
-    assert "klipper_tree_problem" not in kalico  # Kalico: a note, not a refusal
+    assert "klipper_tree_problem" not in kalico  # Kalico: notes, not a refusal
+    notes = install.host_notes(kal)  # what the installer says of this host
+    assert notes and kalico["klipper_notes"] == tuple(notes)
     check = by_name(healthy(**kalico, printer_info=dict(
-        healthy().printer_info, klipper_path=str(tmp_path / "kal"))))["klipper"]
+        healthy().printer_info, klipper_path=str(kal))))["klipper"]
     assert check.status == OK and check.detail.startswith("Kalico ")
-    assert "register_serial_response" in check.detail
+    assert all(note in check.detail for note in notes)
     assert _klipper_tree(tmp_path / "nowhere") == {}
 
 
