@@ -101,12 +101,14 @@ class Autotemp:
             self.core.set_profile(profile, working_point, self._print_time())
 
     def _print_time(self):
-        # Where queued motion ends: moves still in the lookahead queue come
-        # later, so windows placed from here are placed early, never late.
+        # Where queued motion ends (the value get_status()['print_time']
+        # reports, read without building the toolhead's whole status: this
+        # runs for every extruding move of a file without annotations).
+        # Moves still in the lookahead queue come later, so windows placed
+        # from here are placed early, never late.
         if self.toolhead is None:
             return 0.
-        reactor = self.printer.get_reactor()
-        return self.toolhead.get_status(reactor.monotonic())['print_time']
+        return self.toolhead.print_time
 
     # --- targets, as the motion is generated ---------------------------------
     def _flush(self, flush_time, step_gen_time):

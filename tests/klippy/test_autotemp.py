@@ -73,3 +73,16 @@ def test_the_hotend_keeps_up_where_the_files_temperatures_do_not(runs):
     assert lost_off > 0.05 * commanded
     # autotemp loses what the clamp at 225 C and the first rise cost
     assert lost_on < 0.5 * lost_off
+
+
+def test_a_file_without_annotations_is_followed_reactively(klipper_build,
+                                                           klippy_venv):
+    records, moved, log = print_with_autotemp(1, klipper_build, klippy_venv,
+                                              text=GCODE.read_text())
+    assert "Unknown command" not in log
+    statuses = [r["autotemp"] for r in records]
+    assert {s["source"] for s in statuses} - {None} == {"lookahead"}
+    assert "reactive" in statuses[-1]["why"] or statuses[-1]["source"] is None
+    targets = [s["target"] for s in statuses if s["target"] is not None]
+    # the infill's flow raises the target above the minimum, within the clamp
+    assert max(targets) > LIMITS.min_temp_c + 10 and max(targets) <= 225.0
