@@ -15,6 +15,7 @@ import threading
 
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
+from flowloop.host import klipper_config
 from flowloop.host.klipper_config import option_message
 from flowloop.material.profile import FlowLine, profile_line
 from flowloop.sensor import ems22, twin
@@ -37,12 +38,6 @@ DIRECTIONS = {'forward': 1., 'reverse': -1.}
 REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: install "
                "flowloop ('flowloop install'), then rebuild and flash Klipper "
                "(cd ~/klipper; make menuconfig; make flash)")
-
-
-def _staged_note(paste):
-    if paste:
-        return " (applied; SAVE_CONFIG stores all but what is listed to paste)"
-    return " (applied and staged: SAVE_CONFIG to keep)"
 
 
 def option_error(config, option, message):
@@ -372,11 +367,11 @@ class FlowSensor:
             raise gcmd.error(
                 f"flow_sensor {self.name}: {e}; calibration unchanged") from None
         old = self.grip.calibration
-        paste = self._set_calibration(fit.calibration)
+        report = self._set_calibration(fit.calibration)
         gcmd.respond_info("\n".join([
             f"flow_sensor {self.name}: {fit.describe()}",
-            f"calibration {old:.5f} -> {fit.calibration:.5f}"
-            + _staged_note(paste)] + paste))
+            f"calibration {old:.5f} -> {fit.calibration:.5f} (in use now)"]
+            + report))
 
     cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE_help = (
         "Correct the extruder rotation_distance from what the sensor measured")
@@ -406,7 +401,7 @@ class FlowSensor:
             f"SET_EXTRUDER_ROTATION_DISTANCE EXTRUDER={self.extruder_name}"
             f" DISTANCE={change.rotation_distance:.6f}")
         old_cal = self.grip.calibration
-        paste = self._set_calibration(change.calibration, [
+        report = self._set_calibration(change.calibration, [
             (self.extruder_name, 'rotation_distance',
              f"{change.rotation_distance:.6f}")])
         gcmd.respond_info("\n".join([
@@ -414,8 +409,8 @@ class FlowSensor:
             f" measured {measured:.3f} mm (ratio {change.ratio:.5f})",
             f"{self.extruder_name} rotation_distance {old_rd:.6f} ->"
             f" {change.rotation_distance:.6f}, sensor calibration"
-            f" {old_cal:.5f} -> {change.calibration:.5f}"
-            + _staged_note(paste)] + paste))
+            f" {old_cal:.5f} -> {change.calibration:.5f} (in use now)"]
+            + report))
 
     def _reversed_message(self, error):
         other = 'reverse' if self.direction_sign > 0 else 'forward'
@@ -424,14 +419,15 @@ class FlowSensor:
 
     def _set_calibration(self, calibration, also_stage=()):
         """Use a new calibration now and stage it (with also_stage) for
-        SAVE_CONFIG; return the lines to paste for values in included files."""
+        SAVE_CONFIG; return the report: what to paste, what SAVE_CONFIG keeps."""
         self.grip.calibration = calibration
         self.grip.reset()
         self._update_status()
         host = self.printer.lookup_object('flowloop')
-        return host.stage_for_save_config(
+        staged, paste = host.stage_for_save_config(
             [(self.section, 'calibration', f"{calibration:.6f}")]
-            + list(also_stage))[1]
+            + list(also_stage))
+        return klipper_config.save_report(staged, paste)
 
 
 class Ems22Source:

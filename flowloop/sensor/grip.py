@@ -24,6 +24,7 @@ from typing import Deque, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..calibrate.numbers import parse_numbers
 from ..errors import FlowloopError
 
 FLOW_PERIOD_S = 0.25
@@ -275,15 +276,13 @@ MAX_CALIBRATION_SPEED = 10.0
 
 def parse_speeds(text: str = DEFAULT_CALIBRATION_SPEEDS) -> List[float]:
     """CALIBRATE_FLOW_SENSOR's SPEEDS: at least two, in 0..10 mm/s."""
-    try:
-        speeds = [float(s) for s in text.split(",") if s.strip()]
-    except ValueError:
-        raise FlowloopError(
-            f"SPEEDS must be comma separated mm/s, not '{text}'") from None
-    if len(speeds) < 2 or not all(0 < v <= MAX_CALIBRATION_SPEED for v in speeds):
-        raise FlowloopError(f"SPEEDS needs at least two speeds in "
-                            f"0..{MAX_CALIBRATION_SPEED:g} mm/s, not '{text}'")
-    return speeds
+    speeds = parse_numbers(text, "SPEEDS", what="speed", minimum_count=2,
+                           positive=True)
+    too_fast = [v for v in speeds if v > MAX_CALIBRATION_SPEED]
+    if too_fast:
+        raise FlowloopError(f"SPEEDS: speed {too_fast[0]:g} is above "
+                            f"{MAX_CALIBRATION_SPEED:g} mm/s")
+    return list(speeds)
 
 
 def fit_calibration(speeds: Sequence[float], commanded_mm: Sequence[float],

@@ -123,9 +123,11 @@ def test_bad_settings_are_refused():
 
 def test_calibration_speeds_are_parsed_and_bounded():
     assert parse_speeds("0.5, 1,2,") == [0.5, 1.0, 2.0]
-    for text, message in (("1;2", "comma separated"), ("1", "at least two"),
-                          ("0,1", "at least two"), ("1,12", "0..10 mm/s"),
-                          ("1,nan", "at least two")):
+    for text, message in (("1;2", "SPEEDS: '1;2' is not a number"),
+                          ("1", "SPEEDS: needs at least 2 speeds, got 1"),
+                          ("0,1", "SPEEDS: speed 0 must be positive"),
+                          ("1,12", "SPEEDS: speed 12 is above 10 mm/s"),
+                          ("1,nan", "SPEEDS: 'nan' is not a finite number")):
         with pytest.raises(FlowloopError, match=message):
             parse_speeds(text)
 
