@@ -38,11 +38,16 @@ def test_a_line_is_recovered_from_noisy_points_within_its_stated_uncertainty(
     intercept = flow_at_200 - 200.0 * slope
     flows = [slope * t + intercept + noise_mm3_s * e
              for t, e in zip(temps, noise)]
+    mean = sum(temps) / len(temps)
+    sxx = sum((t - mean) ** 2 for t in temps)
+    n = len(temps)
+    # Points that support a line: the fit's SSE is at most the noise's
+    # (n * noise^2), so its slope error stays under 20 % of the slope and
+    # the 25 % refusal cannot apply (noisier points are refused, rightly).
+    assume(noise_mm3_s * math.sqrt(n / ((n - 2) * sxx)) <= 0.2 * slope)
     result = fit.fit_line(temps, flows, "temperature", fit.MIN_TEMP_SPREAD_C)
     # The noise is bounded by noise_mm3_s, so the slope error is too: an
     # OLS slope moves at most sum|x - mean| * noise / Sxx.
-    mean = sum(temps) / len(temps)
-    sxx = sum((t - mean) ** 2 for t in temps)
     bound = sum(abs(t - mean) for t in temps) * noise_mm3_s / sxx
     assert abs(result.slope - slope) <= bound + 1e-9
     assert abs(result.flow_at(mean) - (slope * mean + intercept)) \
