@@ -11,9 +11,9 @@
 import re
 
 from flowloop.calibrate import diff_ab
-from flowloop.calibrate.numbers import parse_numbers
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
+from flowloop.numbers import parse_numbers
 
 # stepper_x, stepper_x1, ... all move with motor A (X on cartesian)
 AXIS_STEPPER_RE = {axis: re.compile(re.escape(name) + r'\d*$')

@@ -11,9 +11,9 @@ import collections
 import logging
 
 from flowloop.calibrate import delta
-from flowloop.calibrate.numbers import parse_numbers
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
+from flowloop.numbers import parse_numbers
 
 try:    # klippy/extras/ (Klipper)
     from . import probe

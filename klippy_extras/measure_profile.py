@@ -14,13 +14,13 @@
 import dataclasses
 import logging
 
-from flowloop.calibrate.numbers import parse_numbers
 from flowloop.control import watchdog
 from flowloop.errors import FlowloopError
 from flowloop.host.klipper_config import option_message
 from flowloop.material import fit as fl_fit
 from flowloop.material import measure as fl_measure
 from flowloop.material import profile as fl_profile
+from flowloop.numbers import parse_numbers
 from flowloop.sensor import grip as flow_grip
 
 HEARTBEAT_INTERVAL = 0.5

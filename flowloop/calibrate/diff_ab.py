@@ -27,7 +27,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ..errors import FlowloopError
-from .numbers import parse_numbers
+from ..numbers import parse_numbers
 
 # The paper's convergence target: 0.025 % (25 um per 100 mm).
 CONVERGENCE_LIMIT = 2.5e-4

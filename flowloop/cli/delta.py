@@ -13,9 +13,9 @@ from pathlib import Path
 from typing import List
 
 from ..calibrate import delta
-from ..calibrate.numbers import parse_numbers
 from ..errors import FlowloopError
 from ..host.klipper_config import read_config
+from ..numbers import parse_numbers
 
 
 def register(subparsers) -> None:

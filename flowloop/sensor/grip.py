@@ -24,8 +24,8 @@ from typing import Deque, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..calibrate.numbers import parse_numbers
 from ..errors import FlowloopError
+from ..numbers import parse_numbers
 
 FLOW_PERIOD_S = 0.25
 # [flow_sensor] options and their limits: the adapter reads them from here

@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from flowloop.calibrate.numbers import parse_numbers
 from flowloop.errors import FlowloopError
+from flowloop.numbers import parse_numbers
 
 finite = st.floats(min_value=-1e4, max_value=1e4, allow_nan=False)
 

@@ -11,7 +11,7 @@ import math
 import re
 from typing import Optional, Sequence, Tuple, Union
 
-from ..errors import FlowloopError
+from .errors import FlowloopError
 
 _SEPARATORS = re.compile(r"[,\s]+")
 
