@@ -356,6 +356,10 @@ provider: none
 validate_service: False
 validate_config: False
 
+# Off the network: no Moonlight feed (and misc/usb.ids exists, see Moonraker).
+[announcements]
+enable_moonlight: False
+
 [flowloop]
 {extra}
 """
@@ -372,6 +376,9 @@ class Moonraker(Process):
         self.data_dir = data_dir
         config_dir = data_dir / "config"
         config_dir.mkdir(parents=True, exist_ok=True)
+        usb_ids = data_dir / "misc" / "usb.ids"  # present: never downloaded
+        usb_ids.parent.mkdir(exist_ok=True)
+        usb_ids.touch()
         # Written on every start: a data directory kept from an earlier run
         # (make demo with FLOWLOOP_DEMO_DATA) would otherwise name that run's
         # port and sockets, and this Moonraker would listen where no one asks.

@@ -134,8 +134,7 @@ class Printer:
         conf = stack.MOONRAKER_CONF.format(
             port=self.port, klippy_uds=data / "comms" / "klippy.sock",
             trusted="127.0.0.0/8",
-            extra="\n[announcements]\nenable_moonlight: False\n"
-                  "\n[update_manager]\nenable_system_updates: False\n\n"
+            extra="\n[update_manager]\nenable_system_updates: False\n\n"
                   + install.update_manager_block(clone))
         supervisor_conf = root / "supervisord.conf"
         conf = conf.replace("provider: none", "provider: supervisord_cli\n"
