@@ -12,13 +12,12 @@ reactive rule against ddPrint's on the scenario of docs/flowrate_limiter.md.
 
 from __future__ import annotations
 
-import json
 import shutil
-import socket
 from pathlib import Path
 from typing import Any, Dict, Tuple
 
 from devtools import stack
+from devtools.klippy_api import KlippyApi
 from flowloop.control import rule_plot
 
 GCODE = stack.PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
@@ -58,43 +57,6 @@ def warm_up(api, target_c: float, seconds: float = 100.0) -> None:
                           f" TARGET={target_c:g}"] + moves + ["M400"]))
 
 
-class Api:
-    """klippy's own API socket (JSON + 0x03), one request at a time."""
-
-    def __init__(self, path):
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.connect(str(path))
-        self.sock.settimeout(60)
-        self.buffer = b""
-        self.next_id = 0
-
-    def call(self, method, **params):
-        self.next_id += 1
-        self.sock.sendall(json.dumps({"id": self.next_id, "method": method,
-                                      "params": params}).encode() + b"\x03")
-        while True:
-            while b"\x03" not in self.buffer:
-                chunk = self.sock.recv(65536)
-                if not chunk:
-                    raise ConnectionError("klippy closed its API socket")
-                self.buffer += chunk
-            raw, self.buffer = self.buffer.split(b"\x03", 1)
-            msg = json.loads(raw)
-            if msg.get("id") == self.next_id:
-                if "error" in msg:
-                    raise RuntimeError(f"{method}: {msg['error']}")
-                return msg["result"]
-
-    def gcode(self, script):
-        return self.call("gcode/script", script=script)
-
-    def query(self, obj):
-        return self.call("objects/query", objects={obj: None})["status"][obj]
-
-    def close(self):
-        self.sock.close()
-
-
 def print_closed_loop(enable: int, build=None, venv=None,
                       profile: Dict[str, Any] = WEAK_PROFILE,
                       config: Path = CONFIG, mode: str = "predictive"
@@ -114,7 +76,7 @@ def print_closed_loop(enable: int, build=None, venv=None,
                           {"mcu": "atmega2560"})
     try:
         klippy.wait_ready()
-        api = Api(klippy.api_socket)
+        api = KlippyApi(klippy.api_socket)
         try:
             stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
             api.call("flowloop/set_active_profile", extruder="extruder",

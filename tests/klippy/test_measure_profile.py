@@ -10,15 +10,14 @@ meets a sensor fault; an aborted run sends nothing."""
 
 from __future__ import annotations
 
-import json
 import shutil
-import socket
 import threading
 from pathlib import Path
 
 import pytest
 
 from devtools import stack
+from devtools.klippy_api import KlippyApi
 from flowloop.gcode import measure_part
 from flowloop.material.profile import profile_from_dict
 
@@ -43,43 +42,14 @@ FLOW_TOLERANCE = 0.03
 INTERCEPT_TOLERANCE_MM3_S = 1.5
 
 
-class Client:
-    """klippy's API socket; messages that answer no request (remote method
-    calls) are kept in `remote`."""
+class Client(KlippyApi):
+    """klippy's API socket, with the measurement's status at hand."""
 
     def __init__(self, path: Path):
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.connect(str(path))
-        self.sock.settimeout(600)
-        self.buffer = b""
-        self.next_id = 0
-        self.remote = []
-
-    def call(self, method, **params):
-        self.next_id += 1
-        self.sock.sendall(json.dumps({"id": self.next_id, "method": method,
-                                      "params": params}).encode() + b"\x03")
-        while True:
-            while b"\x03" not in self.buffer:
-                chunk = self.sock.recv(65536)
-                if not chunk:
-                    raise ConnectionError("klippy closed its API socket")
-                self.buffer += chunk
-            raw, self.buffer = self.buffer.split(b"\x03", 1)
-            msg = json.loads(raw)
-            if msg.get("id") == self.next_id:
-                if "error" in msg:
-                    raise RuntimeError(msg["error"]["message"])
-                return msg["result"]
-            if "id" not in msg:
-                self.remote.append(msg)
+        super().__init__(path, timeout=600)
 
     def status(self):
-        return self.call("objects/query", objects={"measure_profile": None}
-                         )["status"]["measure_profile"]
-
-    def close(self):
-        self.sock.close()
+        return self.query("measure_profile")
 
 
 class Harnessed:

@@ -7,49 +7,11 @@ follows a real extrude move.
 
 from __future__ import annotations
 
-import json
-import socket
-import time
-
 import pytest
 
 from devtools import stack
+from devtools.klippy_api import KlippyApi
 from flowloop.sensor import ems22
-
-
-class ApiClient:
-    def __init__(self, path):
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.connect(str(path))
-        self.sock.settimeout(0.5)
-        self.buffer = b""
-        self.next_id = 0
-
-    def send(self, method, **params):
-        self.next_id += 1
-        msg = {"id": self.next_id, "method": method, "params": params}
-        self.sock.sendall(json.dumps(msg).encode() + b"\x03")
-        return self.next_id
-
-    def messages(self, seconds):
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            try:
-                chunk = self.sock.recv(65536)
-            except socket.timeout:
-                continue
-            if not chunk:
-                return
-            self.buffer += chunk
-            *whole, self.buffer = self.buffer.split(b"\x03")
-            for raw in whole:
-                yield json.loads(raw)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.sock.close()
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +21,7 @@ def printer(klipper_build, klippy_venv, moonraker_venv):
 
 
 def test_dump_flow_streams_sensor_and_commanded_filament(printer):
-    with ApiClient(printer.klippy.api_socket) as client:
+    with KlippyApi(printer.klippy.api_socket, timeout=0.5) as client:
         client.send("flow_sensor/dump_flow", sensor="sim",
                     response_template={"key": "flow"})
         first = next(client.messages(5))
@@ -86,7 +48,7 @@ def test_dump_flow_streams_sensor_and_commanded_filament(printer):
 
 
 def test_dump_flow_names_an_unknown_sensor(printer):
-    with ApiClient(printer.klippy.api_socket) as client:
+    with KlippyApi(printer.klippy.api_socket, timeout=0.5) as client:
         client.send("flow_sensor/dump_flow", sensor="nope",
                     response_template={"key": "x"})
         reply = next(client.messages(5))
