@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any, Dict, List, Tuple
 
 from devtools import stack
-from devtools.demo_flowrate_limiter import WEAK_PROFILE, Api, warm_up
+from devtools.demo_flowrate_limiter import WEAK_PROFILE, warm_up
+from devtools.klippy_api import KlippyApi
 from flowloop.gcode.annotate import annotate_file
 
 GCODE = stack.PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
@@ -58,7 +59,7 @@ def print_with_autotemp(enable: int, build=None, venv=None,
     records = []
     try:
         klippy.wait_ready()
-        api = Api(klippy.api_socket)
+        api = KlippyApi(klippy.api_socket)
         try:
             stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
             api.call("flowloop/set_active_profile", extruder="extruder",

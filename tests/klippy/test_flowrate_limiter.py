@@ -10,11 +10,8 @@ from pathlib import Path
 import pytest
 
 from devtools import stack
-from devtools.demo_flowrate_limiter import (
-    OPTIMISTIC_PROFILE,
-    Api,
-    print_closed_loop,
-)
+from devtools.demo_flowrate_limiter import OPTIMISTIC_PROFILE, print_closed_loop
+from devtools.klippy_api import KlippyApi
 from devtools.klippy_test import run_file
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps, windowed_flow
@@ -122,7 +119,7 @@ def test_the_temperature_cap_follows_the_profile_at_the_hotend_temperature(
                           {"mcu": "atmega2560"})
     try:
         klippy.wait_ready()
-        api = Api(klippy.api_socket)
+        api = KlippyApi(klippy.api_socket)
         stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
         assert api.query("flowrate_limiter")["reason"] == "none"
         assert "no active profile" in api.query("flowrate_limiter")["why"]
