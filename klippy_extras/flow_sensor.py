@@ -16,7 +16,7 @@ import threading
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
-from flowloop.host.klipper_config import option_message
+from flowloop.host.klipper_config import option_error, option_message
 from flowloop.material.profile import FlowLine, profile_line
 from flowloop.sensor import ems22, twin
 from flowloop.sensor import grip as flow_grip
@@ -39,9 +39,6 @@ REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: install "
                "flowloop ('flowloop install'), then rebuild and flash Klipper "
                "(cd ~/klipper; make menuconfig; make flash)")
 
-
-def option_error(config, option, message):
-    return config.error(option_message(config.get_name(), option, message))
 
 
 class FlowSensor:

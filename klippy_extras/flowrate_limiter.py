@@ -14,6 +14,7 @@ from flowloop.control import caps as fl_caps
 from flowloop.control import limiter as fl_limiter
 from flowloop.control.hotend import HotendModel
 from flowloop.errors import FlowloopError
+from flowloop.host.klipper_config import option_error
 
 from . import flowloop as flowloop_host
 
@@ -21,10 +22,6 @@ SETTING_FIELDS = {'max_flow': 'max_flow_mm3_s', 'mode': 'mode',
                   'min_grip': 'min_grip', 'min_speed_factor': 'min_speed_factor',
                   'hysteresis': 'hysteresis', 'recovery_rate': 'recovery_per_s'}
 
-
-def option_error(config, option, message):
-    return config.error(
-        f"Section [{config.get_name()}], option {option}: {message}")
 
 
 class FlowrateLimiter:

@@ -215,6 +215,12 @@ def option_message(section: str, option: str, message: str) -> str:
     return f"Section [{section}], option {option}: {message}"
 
 
+def option_error(config, option: str, message: str):
+    """The error a Klipper config section raises for one option (config is
+    Klipper's ConfigWrapper; only its get_name() and error() are used)."""
+    return config.error(option_message(config.get_name(), option, message))
+
+
 def check_finite(section: str, values: Dict[str, Optional[float]]) -> None:
     """Refuse nan and inf, naming the option: klippy's getfloat lets them
     through its range checks ('nan' is neither below a minimum nor above a
