@@ -11,14 +11,11 @@ from flowloop.control import autotemp as fl_autotemp
 from flowloop.control import caps as fl_caps
 from flowloop.control.hotend import HotendParams
 from flowloop.errors import FlowloopError
+from flowloop.host.klipper_config import option_error
 from flowloop.material.active import working_point_arg
 
 DEFAULTS = HotendParams()
 
-
-def option_error(config, option, message):
-    return config.error(
-        f"Section [{config.get_name()}], option {option}: {message}")
 
 
 class Autotemp:
