@@ -296,11 +296,16 @@ def check_gcode_processor(facts: Facts) -> Check:
         return Check("gcode processor", SKIP, "not checked: this flowloop's"
                      " Moonraker component reports no G-code processor (run"
                      " flowloop annotate on a file before printing it)")
-    if not info["gcode_processor"]:
-        return Check("gcode processor", FAIL, "flowloop's G-code processor is not"
-                     " registered with Moonraker's file manager",
-                     "read moonraker.log; sudo systemctl restart moonraker")
-    return Check("gcode processor", OK, f"registered ({info['gcode_processor']})")
+    if info["gcode_processor"]:
+        return Check("gcode processor", OK,
+                     f"registered ({info['gcode_processor']})")
+    if not any(section.split()[0] == "autotemp" for section in _settings(facts)):
+        return Check("gcode processor", SKIP, "off, and no [autotemp] needs it")
+    return Check("gcode processor", FAIL, "[autotemp] is set up but uploads are"
+                 " not annotated (moonraker.conf [flowloop] annotate_uploads is"
+                 " off)", "set annotate_uploads: True in [flowloop] of"
+                 " moonraker.conf and restart Moonraker, or run flowloop"
+                 " annotate on each file")
 
 
 def check_updates(facts: Facts) -> Check:

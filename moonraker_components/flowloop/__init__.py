@@ -52,9 +52,10 @@ class Flowloop:
         if spoolman_link:
             self.spoolman = SpoolmanLink(self.server, spoolman_extruder, default_wp,
                                          self.store, self.profiles)
-        self.info = Info(self.server, self.store, spoolman_link)
-        self.api = Api(self.server, self.store, self.profiles, self.info, default_wp)
         self.processor = Processor(config)
+        self.info = Info(self.server, self.store, spoolman_link,
+                         self.processor.registered_name)
+        self.api = Api(self.server, self.store, self.profiles, self.info, default_wp)
 
     async def component_init(self) -> None:
         await self.store.load()

@@ -6,7 +6,7 @@
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, Dict
+from typing import TYPE_CHECKING, Any, Dict, Optional
 
 import flowloop
 from flowloop.material.active import active_to_stored
@@ -20,9 +20,10 @@ if TYPE_CHECKING:
 
 class Info:
     def __init__(self, server: Server, store: ProfileStore,
-                 spoolman_link: bool) -> None:
+                 spoolman_link: bool, gcode_processor: Optional[str]) -> None:
         self.store = store
         self.spoolman_link = spoolman_link
+        self.gcode_processor = gcode_processor  # its name when registered
         self.klippy_apis: KlippyAPI = server.lookup_component("klippy_apis")
 
     async def get(self) -> Dict[str, Any]:
@@ -34,6 +35,7 @@ class Info:
             "profiles": len(self.store.profiles),
             "active_profiles": active_to_stored(self.store.active),
             "spoolman_link": self.spoolman_link,
+            "gcode_processor": self.gcode_processor,
         }
         objects = await self.klippy_apis.get_object_list(default=None)
         if objects is None:

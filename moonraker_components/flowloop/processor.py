@@ -58,9 +58,11 @@ class Processor:
             "ident": {"regex": annotate.MARKER_REGEX, "location": "header"},
             "enabled": self.enabled,
         }
+        self.registered_name: Optional[str] = None
         if self.enabled:
             self.file_manager.get_metadata_storage().register_gcode_processor(
                 PROCESSOR_NAME, self.config)
+            self.registered_name = PROCESSOR_NAME
         self.server.register_endpoint(
             "/server/flowloop/annotation", RequestType.GET,
             self._handle_annotation)

@@ -93,3 +93,10 @@ def test_an_unknown_file_is_a_404(printer):
     status, body = printer.moonraker.request(
         "GET", "/server/flowloop/annotation?filename=../moonraker.conf")
     assert status == 404
+
+
+def test_flowloop_info_names_the_registered_processor(printer):
+    # what `flowloop doctor`'s "gcode processor" check reads
+    status, body = printer.moonraker.request("GET", "/server/flowloop/info")
+    assert status == 200, body
+    assert body["result"]["gcode_processor"] == "flowloop_autotemp"

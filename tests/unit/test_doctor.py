@@ -195,11 +195,24 @@ def test_a_tree_problem_found_on_the_printer_wins_over_the_version_string():
     assert bad["klipper"].detail.startswith("Klipper at /k")
 
 
+def with_autotemp(facts: doctor.Facts) -> doctor.Facts:
+    objects = dict(facts.objects)
+    settings = dict(objects["configfile"]["settings"],
+                    autotemp={"extruder": "extruder"})
+    objects["configfile"] = {"settings": settings}
+    return dataclasses.replace(facts, objects=objects)
+
+
 def test_the_processor_check_reads_the_components_report_when_there_is_one():
     info = dict(healthy().flowloop_info, gcode_processor=None)
-    assert failed(healthy(flowloop_info=info))["gcode processor"].fix
-    info["gcode_processor"] = "flowloop_annotate"
-    assert by_name(healthy(flowloop_info=info))["gcode processor"].status == OK
+    # off without [autotemp]: nothing needs it
+    assert by_name(healthy(flowloop_info=info))["gcode processor"].status == SKIP
+    # off with [autotemp]: uploads are not annotated, and the fix says how
+    off = failed(with_autotemp(healthy(flowloop_info=info)))["gcode processor"]
+    assert "annotate_uploads: True" in off.fix
+    info["gcode_processor"] = "flowloop_autotemp"
+    assert by_name(with_autotemp(healthy(flowloop_info=info)))[
+        "gcode processor"].status == OK
 
 
 def test_the_command_exits_1_and_prints_one_line_a_check(capsys):
