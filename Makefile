@@ -17,7 +17,7 @@ test: $(VENV)/.installed
 	$(PY) -m ruff check .
 	$(PY) -m pytest
 
-bench: $(VENV)/.installed
+bench: $(VENV)/.installed  # FLOWLOOP_BENCH_GCODE=DIR: whole slicer files for the G-code benches
 	$(PY) -m pytest tests/bench -m bench -s -p no:cacheprovider
 
 lint: $(VENV)/.installed

@@ -7,8 +7,8 @@ file on disk to a file on disk, alternately, ROUNDS times; the best time of
 each counts. Figure: flowloop's MB/s as a ratio of preprocess_cancellation's
 (goal: >= 1.0x).
 
-The file is the shared test data's largest slicer file
-(`../shared/data/gcode/parts.gcode`, beside the project) when it is there,
+The file is a large slicer file (`parts.gcode` in the folder
+FLOWLOOP_BENCH_GCODE names) when it is there,
 else the shipped excerpt tests/data/gcode/block_layers_1_2.gcode repeated to
 about the same size. Neither carries object labels, so preprocess_cancellation
 only scans it and copies it (its lightest case).
@@ -17,6 +17,7 @@ only scans it and copies it (its lightest case).
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -26,7 +27,8 @@ from flowloop.gcode.annotate import annotate_file
 from flowloop.gcode.planner import Segment, plan_file
 
 PROJECT = Path(__file__).resolve().parents[2]
-SHARED = PROJECT.parent / "shared" / "data" / "gcode" / "parts.gcode"
+SHARED = Path(os.environ.get("FLOWLOOP_BENCH_GCODE",
+                             PROJECT / "no-bench-gcode")) / "parts.gcode"
 EXCERPT = PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
 TARGET_BYTES = 6_000_000
 ROUNDS = 3

@@ -13,12 +13,13 @@ at the need of the file's first 30 s (what its M109 should heat to).
 Goal (issue #12): flowloop <= 0.1 % at a mean at least 15 C below that
 fixed temperature.
 
-The files are the shared test data's (`../shared/data/gcode/block.gcode`,
-`box.gcode`) when they are there, else the shipped excerpts.
+The files are whole slicer files (`block.gcode`, `box.gcode`) in the folder
+FLOWLOOP_BENCH_GCODE names, when set and present, else the shipped excerpts.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Callable, List, Optional, Tuple
 
@@ -32,7 +33,7 @@ from flowloop.gcode.planner import PrinterLimits
 from flowloop.material.profile import profile_from_dict
 
 PROJECT = Path(__file__).resolve().parents[2]
-SHARED = PROJECT.parent / "shared" / "data" / "gcode"
+SHARED = Path(os.environ.get("FLOWLOOP_BENCH_GCODE", PROJECT / "no-bench-gcode"))
 EXCERPTS = PROJECT / "tests" / "data" / "gcode"
 FILES = (("block.gcode", "block_layers_1_2.gcode"),
          ("box.gcode", "box_bridge_layer.gcode"))

@@ -24,7 +24,7 @@ def healthy(**changes) -> doctor.Facts:
                        "sensor_firmware": {"mcu": True}},
         printer_info={"state": "ready", "state_message": "Printer is ready",
                       "software_version": "v0.13.0-730-g84104bbbd",
-                      "klipper_path": "/home/pi/klipper"},
+                      "klipper_path": "/opt/klipper"},
         objects={"flowloop": {"profiles": {"extruder": {"name": "PLA"}}},
                  "flow_sensor sim": {"samples": 1200, "sample_rate": 250.0,
                                      "fault": None, "errors": {}},
