@@ -64,12 +64,8 @@ class Autotemp:
 
     # --- setup ---------------------------------------------------------------
     def _handle_connect(self):
-        extruder = self.printer.lookup_object(self.extruder_name, None)
-        if extruder is None or not hasattr(extruder, 'get_heater'):
-            raise self.printer.config_error(
-                f"Section [{self.section}], option extruder:"
-                f" '{self.extruder_name}' is not an extruder")
-        self.extruder = extruder
+        self.extruder = extruder = self.host.extruder_for(self.section,
+                                                          self.extruder_name)
         self.heater = extruder.get_heater()
         self.core.heater_max_temp_c = self.heater.max_temp
         self.toolhead = self.printer.lookup_object('toolhead')

@@ -200,6 +200,7 @@ def test_the_model_learns_a_hotend_weaker_than_its_profile(klipper_build,
              " predictive, not 'fast'"),
     ("min_speed_factor", "option min_speed_factor: min_speed_factor must be in"
                          " (0, 1], not 0.0"),
+    ("extruder", "option extruder: 'heater_bed' is not an extruder"),
 ])
 def test_a_bad_option_fails_config_loading_naming_it(klipper_build, klippy_venv,
                                                     short_tmp, cfg, message):
