@@ -14,6 +14,8 @@ from flowloop.errors import FlowloopError
 from flowloop.host.klipper_config import option_error
 from flowloop.material.active import working_point_arg
 
+from . import flowloop as flowloop_host
+
 DEFAULTS = HotendParams()
 
 
@@ -69,6 +71,9 @@ class Autotemp:
         self.heater = extruder.get_heater()
         self.core.heater_max_temp_c = self.heater.max_temp
         self.toolhead = self.printer.lookup_object('toolhead')
+        # the read-ahead the annotations' LEAD allows for is this host's
+        self.core.set_host(flowloop_host.host_facts(self.printer, self.toolhead,
+                                                    self.heater))
         if self.override_m104:
             # The extruder registers M104 after the extras load: take it over
             # here, as gcode_macro's rename_existing does.

@@ -268,6 +268,8 @@ class Autotemp:
         self.planned_flow_mm3_s: Optional[float] = None
         self._gathered: Optional[List[float]] = None   # lookahead: [s, peak]
         self.why = "no active profile"
+        # what the klippy it runs in offers (set_host), None before connect
+        self.host: Optional[dict] = None
         self.status = self._status()
 
     # --- what it plans with -------------------------------------------------
@@ -292,6 +294,12 @@ class Autotemp:
             check_working_point(working_point)
         self.wp_override = working_point
         self._rebuild(now_s)
+
+    def set_host(self, host: dict) -> None:
+        """The host facts (Klipper or Kalico, how far ahead it reads G-code,
+        the heater's control) the plan runs on, reported in the status."""
+        self.host = dict(host)
+        self.status = self._status()
 
     def set_enabled(self, enabled: bool) -> None:
         self.enabled = enabled
@@ -388,6 +396,7 @@ class Autotemp:
             "max_temp": None if plan is None else plan.limits.max_temp_c,
             "capped_windows": 0 if plan is None else plan.capped_windows,
             "why": self._why(),
+            "host": self.host,
         }
 
     def _why(self) -> str:

@@ -6,10 +6,13 @@ from __future__ import annotations
 
 import pytest
 
+from devtools import stack
 from devtools.demo_autotemp import PROFILE, annotated, print_with_autotemp
+from devtools.klippy_test import run_file
 from flowloop.control.autotemp import TemperaturePlan, TempLimits
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.klippy.test_flowrate_limiter import GCODE, gcode_extrusion
+from tests.klippy.test_harness import HOST_FACTS
 
 LIMITS = TempLimits.of(profile_from_dict(PROFILE), 260.0)   # heater max_temp
 LINE = profile_line(profile_from_dict(PROFILE), 0.5)
@@ -90,3 +93,23 @@ def test_a_file_without_annotations_is_followed_reactively(klipper_build,
     targets = [s["target"] for s in statuses if s["target"] is not None]
     # the infill's flow raises the target above the minimum, within the clamp
     assert max(targets) > LIMITS.min_temp_c + 10 and max(targets) <= 225.0
+
+
+def test_the_status_says_which_host_it_runs_on(host, klipper_build, klippy_venv,
+                                               short_tmp):
+    """[autotemp] status 'host': the facts its timing rests on (Klipper or
+    Kalico, how far ahead the toolhead reads G-code, the heater's control),
+    the same record the flowrate limiter reports."""
+    name, buffer_time = HOST_FACTS[host]
+    cfg = short_tmp / "printer.cfg"
+    cfg.write_text(
+        f"[include {stack.PROJECT / 'tests' / 'klippy' / 'autotemp_plain.cfg'}]\n"
+        "[gcode_macro CHECK_HOST]\ngcode:\n"
+        "  {% set h = printer.autotemp.host %}\n"
+        f"  {{% if h != {{'name': '{name}', 'buffer_time_s': {buffer_time},"
+        " 'heater_control': 'pid'} %}\n"
+        "    {action_raise_error('host is %s' % (h,))}\n"
+        "  {% endif %}\n")
+    test = short_tmp / "host.test"
+    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nCHECK_HOST\n")
+    run_file(test, klipper_build, klippy_venv, short_tmp)
