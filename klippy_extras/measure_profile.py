@@ -634,7 +634,7 @@ class Run:
             self.owner._set_status('running', flow=flow)
             now, temp, _ = self._check(settled_c, previous)
             previous = (now, temp)
-            step = self._step(flow)
+            step = self._step(flow, self.plan.step_windows(flow, expected))
             self._say(f"{where}: {step.describe()}")
             now, temp, _ = self._check(settled_c, previous)
             previous = (now, temp)
@@ -648,15 +648,16 @@ class Run:
             f"{where}: grip stayed above {self.plan.min_grip:g} up to MAX_FLOW"
             f" {self.plan.max_flow_mm3_s:g} mm^3/s (raise MAX_FLOW)")
 
-    def _step(self, flow):
-        """Extrude into air at flow for step_time; the step judged."""
+    def _step(self, flow, windows):
+        """Extrude into air at flow for step_time (at least `windows` grip
+        windows); the step judged."""
         speed = flow / self.area
         # The sensor's window length, as its judged windows show it
         window_mm = max([float(w.commanded_mm) for w in self.windows[-8:]
                          if w.grip is not None]
                         or [flow_grip.DEFAULT_WINDOW_MM])
         duration = fl_measure.step_duration_s(self.owner.step_time, flow,
-                                              self.area, window_mm)
+                                              self.area, window_mm, windows)
         for _ in range(MAX_STEP_RETRIES + 1):
             start = self.toolhead.get_last_move_time()
             first = len(self.windows)
@@ -671,7 +672,7 @@ class Run:
             self._wait()
             step = fl_measure.judge_step(self.windows[first:], start, end, flow)
             if step is not None:
-                return step
+                return dataclasses.replace(step, duration_s=duration)
             logging.info("%s: no judged window in %.3f..%.3f: %s", NAME, start,
                          end, self.windows[first:])
             self._check()   # a sensor fault judges nothing: say that instead

@@ -46,6 +46,12 @@ SETTLE_BAND_C = 1.0
 # A step lasts at least this many grip windows (the first ones are the
 # transient, and a window straddling the step's start is not judged).
 MIN_STEP_WINDOWS = 4
+# A step that may be the level's limit lasts at least this many: its
+# measured flow is the level's point, and a 4-window step often leaves one
+# judged window after the transient (one window's noise in the fit). A step
+# may be the limit from min_grip x the flow the base profile expects (every
+# step without a base profile).
+LIMIT_STEP_WINDOWS = 5
 # Windows in the first part of a step are the transient: not judged.
 STEP_TRANSIENT_SHARE = 0.3
 # A window closes on the first sample past its filament: just after the step.
@@ -67,15 +73,25 @@ class Plan:
     def ramp_start(self, expected_mm3_s: Optional[float]) -> float:
         """Where a level's ramp starts: START_FLOW when it was given (or no
         base profile expects a flow), else START_SHARE of the flow the base
-        profile expects at the settled temperature, on the STEP grid from
-        START_FLOW, never below START_FLOW nor above MAX_FLOW."""
+        profile expects at the settled temperature (to 0.01 mm^3/s), never
+        below START_FLOW nor above MAX_FLOW. Not floored onto a grid from
+        START_FLOW: that started up to a STEP lower, a step of filament
+        spent learning nothing."""
         start = self.start_flow_mm3_s
         if self.start_given or expected_mm3_s is None:
             return start
-        steps = math.floor((START_SHARE * expected_mm3_s - start)
-                           / self.step_mm3_s + 1e-9)
-        flows = list(self.flows())
-        return flows[max(0, min(steps, len(flows) - 1))]
+        share = math.floor(START_SHARE * expected_mm3_s * 100.0) / 100.0
+        return min(max(share, start), self.max_flow_mm3_s)
+
+    def step_windows(self, flow_mm3_s: float,
+                     expected_mm3_s: Optional[float]) -> int:
+        """The grip windows a step at flow_mm3_s lasts at least:
+        LIMIT_STEP_WINDOWS where it may be the level's limit, else
+        MIN_STEP_WINDOWS."""
+        if (expected_mm3_s is not None
+                and flow_mm3_s < self.min_grip * expected_mm3_s):
+            return MIN_STEP_WINDOWS
+        return LIMIT_STEP_WINDOWS
 
     def flows(self, start_mm3_s: Optional[float] = None) -> Iterator[float]:
         """start (default START_FLOW), + STEP, ... up to MAX_FLOW."""
@@ -166,19 +182,24 @@ class StepResult:
     measured_mm3_s: float
     temp_c: Optional[float]
     windows: int
+    duration_s: Optional[float] = None   # how long the step extruded
 
     def describe(self) -> str:
         temp = "" if self.temp_c is None else f" at {self.temp_c:.1f} degC"
-        return (f"flow {self.commanded_mm3_s:.2f} mm^3/s: grip {self.grip:.3f},"
-                f" measured {self.measured_mm3_s:.2f} mm^3/s{temp}")
+        took = ("" if self.duration_s is None
+                else f" for {self.duration_s:.1f} s")
+        return (f"flow {self.commanded_mm3_s:.2f} mm^3/s{took}: grip"
+                f" {self.grip:.3f}, measured {self.measured_mm3_s:.2f}"
+                f" mm^3/s{temp}")
 
 
 def step_duration_s(step_time_s: float, flow_mm3_s: float,
-                    filament_area_mm2: float, window_mm: float) -> float:
+                    filament_area_mm2: float, window_mm: float,
+                    windows: int = MIN_STEP_WINDOWS) -> float:
     """How long a step at flow_mm3_s runs: step_time_s, or long enough for
-    MIN_STEP_WINDOWS grip windows of window_mm filament at a low flow."""
+    `windows` grip windows of window_mm filament at a low flow."""
     speed_mm_s = flow_mm3_s / filament_area_mm2
-    return max(step_time_s, MIN_STEP_WINDOWS * window_mm / speed_mm_s)
+    return max(step_time_s, windows * window_mm / speed_mm_s)
 
 
 def judge_step(windows: Sequence[Window], start_time: float, end_time: float,

@@ -119,11 +119,30 @@ def test_a_low_flow_step_lasts_long_enough_for_its_windows():
     assert measure.step_duration_s(3.0, 10.0, 2.405, 1.25) == 3.0
 
 
+def test_a_step_that_may_be_the_limit_lasts_more_windows():
+    p = plan(start_flow=None, min_grip=0.9)
+    # the base expects 10 mm^3/s: below 9 a step cannot be the limit
+    assert p.step_windows(8.9, 10.0) == measure.MIN_STEP_WINDOWS
+    assert p.step_windows(9.0, 10.0) == measure.LIMIT_STEP_WINDOWS
+    assert p.step_windows(2.0, None) == measure.LIMIT_STEP_WINDOWS
+    assert measure.LIMIT_STEP_WINDOWS > measure.MIN_STEP_WINDOWS
+    assert measure.step_duration_s(2.0, 2.0, 2.405, 1.25, 5) == pytest.approx(
+        5 * 1.25 / (2.0 / 2.405))
+
+
+def test_the_console_line_of_a_step_says_how_long_it_extruded():
+    step = measure.StepResult(6.0, 0.85, 5.1, 210.0, 3, duration_s=2.5)
+    assert step.describe() == ("flow 6.00 mm^3/s for 2.5 s: grip 0.850,"
+                               " measured 5.10 mm^3/s at 210.0 degC")
+
+
 def test_without_start_flow_a_level_starts_near_its_expected_limit():
     p = plan(start_flow=None, step=0.5, max_flow=20.0)
     assert not p.start_given and p.start_flow_mm3_s == measure.DEFAULT_START_FLOW_MM3_S
-    # 80 % of 9.6 is 7.68: the grid point below it, from 2 in steps of 0.5
-    assert p.ramp_start(9.6) == 7.5
+    # 80 % of 9.6 is 7.68: there, not on a grid from 2 (7.5 would spend
+    # filament below the limit for nothing)
+    assert p.ramp_start(9.6) == pytest.approx(7.68)
+    assert list(p.flows(p.ramp_start(9.6)))[:3] == pytest.approx([7.68, 8.18, 8.68])
     assert p.ramp_start(None) == 2.0
     assert p.ramp_start(1.0) == 2.0        # never below START_FLOW
     assert p.ramp_start(100.0) == 20.0     # never above MAX_FLOW
