@@ -12,6 +12,7 @@
 #   info.py           what flowloop has loaded in Moonraker and klippy
 #   api.py            the HTTP/JSON-RPC endpoints and klippy's remote method
 #   processor.py      uploaded G-code annotated for [autotemp]
+#   page.py           the live page (/server/flowloop/page/) and what it asks
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -24,6 +25,7 @@ from flowloop.material import profile as fl_profile
 from .api import Api
 from .info import Info
 from .klippy_sync import KlippySync
+from .page import Page
 from .processor import Processor
 from .profiles import Profiles
 from .spoolman_link import SpoolmanLink
@@ -56,6 +58,7 @@ class Flowloop:
         self.info = Info(self.server, self.store, spoolman_link,
                          self.processor.registered_name)
         self.api = Api(self.server, self.store, self.profiles, self.info, default_wp)
+        self.page = Page(self.server, self.store)
 
     async def component_init(self) -> None:
         await self.store.load()

