@@ -12,7 +12,7 @@
 # This file may be distributed under the terms of the GNU GPLv3 license.
 from flowloop.control import caps as fl_caps
 from flowloop.control import limiter as fl_limiter
-from flowloop.control.hotend import HotendModel
+from flowloop.control.hotend import NozzleEstimate
 from flowloop.errors import FlowloopError
 from flowloop.host.klipper_config import option_error
 
@@ -53,7 +53,7 @@ class FlowrateLimiter:
         self.limiter = None
         self.next_transform = None
         self.toolhead = self.heater = self.sensor = self.mcu = None
-        self.hotend_model = None   # the nozzle estimate where none is measured
+        self.nozzle = None   # the nozzle estimate where none is measured
         printer.register_event_handler('klippy:connect', self._handle_connect)
         printer.register_event_handler('flowloop:profile_activated',
                                        self._handle_profile)
@@ -71,17 +71,18 @@ class FlowrateLimiter:
         self.heater = extruder.get_heater()
         self.toolhead = self.printer.lookup_object('toolhead')
         self.mcu = self.printer.lookup_object('mcu')
-        self.limiter = fl_limiter.FlowLimiter(self.settings,
-                                              extruder.filament_area)
-        self.host_facts = flowloop_host.host_facts(self.printer, self.toolhead,
-                                                   self.heater)
+        self.filament_area = extruder.filament_area
+        self.limiter = fl_limiter.FlowLimiter(
+            self.settings, self.filament_area,
+            host=flowloop_host.host_facts(self.printer, self.toolhead,
+                                          self.heater))
         self.sensor = self._find_sensor()
         if self.sensor is not None:
             self.sensor.subscribe_grip_windows(self._handle_window)
         if self.mcu.is_fileoutput():
             # Batch mode: no temperature reading arrives; the thermal model
             # follows the heater's target instead.
-            self.hotend_model = HotendModel()
+            self.nozzle = NozzleEstimate()
         active = self.host.get_active_profile(self.extruder_name)
         if active is not None:
             self.limiter.set_profile(*active)
@@ -118,40 +119,37 @@ class FlowrateLimiter:
         return self.next_transform.get_position()
 
     def move(self, newpos, speed):
+        # Runs per G-code move: only what this move needs (make bench
+        # measures klippy's host time with and without it).
         # From where the toolhead really is: commands that move it directly
         # (calibrations) leave no stale start behind.
         shape = fl_caps.move_shape(self.next_transform.get_position(), newpos)
-        ours = self.toolhead.get_extruder() is self.extruder
-        if shape.extrudes and ours:
+        melted_mm3 = 0.
+        if shape.extrude_mm > 0. \
+                and self.toolhead.get_extruder() is self.extruder:
             self._update_inputs()
             speed = self.limiter.limit(shape, speed)
-        if self.hotend_model is not None:
-            self._advance_model(shape, speed, ours)
+            melted_mm3 = shape.extrude_mm * self.filament_area
+        nozzle = self.nozzle
+        if nozzle is not None and nozzle.add_move(shape.duration_s(speed),
+                                                  melted_mm3):
+            # Batch mode: the model runs on the moves' own (cruise) time
+            self.limiter.set_temperature(nozzle.read(
+                self.heater.get_status(None)['target']))
         self.next_transform.move(newpos, speed)
 
     def _update_inputs(self):
         if self.sensor is not None:
             self.limiter.set_sensor_fault(self.sensor.get_status()['fault'])
-        if self.hotend_model is None:
+        if self.nozzle is None:
             temp_c, _ = self.heater.get_temp(self.reactor.monotonic())
             self.limiter.set_temperature(temp_c)
-
-    def _advance_model(self, shape, speed, ours):
-        # Batch mode: the model runs on the moves' own (cruise) time
-        model = self.hotend_model
-        model.set_target(model.time_s, self.heater.get_status(None)['target'])
-        flow = shape.flow_mm3_s(speed, self.limiter.filament_area_mm2) \
-            if ours else 0.
-        self.limiter.set_temperature(
-            model.advance(model.time_s + shape.duration_s(speed), flow))
 
     # --- status and commands -------------------------------------------------
     def get_status(self, eventtime=None):
         if self.limiter is None:
             return {}
-        status = self.limiter.status()  # a fresh dict of held values
-        status['host'] = self.host_facts
-        return status
+        return self.limiter.status()  # built when it changed
 
     cmd_SET_FLOWRATE_LIMIT_help = (
         "Turn the flowrate limiter on or off, set its max_flow (mm^3/s) or"

@@ -51,7 +51,7 @@ class MoveShape(NamedTuple):
 
 def move_shape(start: Sequence[float], end: Sequence[float]) -> MoveShape:
     """The shape of a move between two G-code positions (x, y, z, e, ...)."""
-    dx, dy, dz = (end[i] - start[i] for i in range(3))
+    dx, dy, dz = end[0] - start[0], end[1] - start[1], end[2] - start[2]
     return MoveShape(math.sqrt(dx * dx + dy * dy + dz * dz), end[3] - start[3])
 
 

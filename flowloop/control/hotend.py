@@ -98,36 +98,107 @@ class HotendModel:
         return targets[0][1]
 
     def advance(self, until_s: float, flow_mm3_s: float = 0.0) -> float:
-        """Run the model to until_s at a steady flow; returns the temperature."""
+        """Run the model to until_s at a steady flow; returns the temperature.
+
+        In steps of STEP_S, each in closed form. Called once per G-code move
+        (the limiter in batch mode) and per sample (the twin), so the steps
+        that keep the heater on one side (within its limits, or clamped at
+        one) and see one target are taken as one closed-form step: the
+        power is linear in the temperature, which moves monotonically, so
+        both ends on one side means every step between is. The clock still
+        counts every step, so target changes and the last step fall where
+        single steps put them."""
         p = self.params
         flow = max(0.0, flow_mm3_s)
         k = p.loss_w_per_c + p.filament_j_per_mm3_c * flow
-        while self.time_s < until_s:
-            dt = min(STEP_S, until_s - self.time_s)
-            target = self.target_seen_at(self.time_s)
-            rise = self.temp_c - p.ambient_c
-            hold = k * rise
-            fixed = self.fixed_power_w
-            if fixed is not None:
-                power = fixed
-            elif target <= 0.0:
-                power = 0.0  # heater off
-            else:
-                drive = p.heat_capacity_j_per_c / p.time_constant_s
-                power = hold + drive * (target - self.temp_c)
-            power = min(p.max_power_w, max(0.0, power))
-            if 0.0 < power < p.max_power_w and target > 0.0 and fixed is None:
-                # Within the heater's limits: the exact first-order lag step.
-                self.temp_c = target + (self.temp_c - target) * math.exp(
-                    -dt / p.time_constant_s)
-            else:
-                # Clamped power: the block's own exponential toward balance.
-                balance = p.ambient_c + (power / k if k > 0 else 0.0)
-                if k > 0:
-                    self.temp_c = balance + (self.temp_c - balance) * math.exp(
-                        -dt * k / p.heat_capacity_j_per_c)
-                else:
-                    self.temp_c += power * dt / p.heat_capacity_j_per_c
-            self.power_w = power
-            self.time_s += dt
-        return self.temp_c
+        targets = self._targets
+        temp, time_s, power = self.temp_c, self.time_s, self.power_w
+        target = self.target_seen_at(time_s)
+        next_change = targets[1][0] if len(targets) > 1 else math.inf
+        # Whole steps before the last one and before the next target change
+        steps = int(min(until_s - time_s,
+                        next_change + p.dead_time_s - time_s) / STEP_S) - 1
+        if steps >= 2:
+            power, lag = self._power(temp, target, k)
+            after = self._after(temp, target, power, lag, k, steps * STEP_S)
+            end_power, end_lag = self._power(after, target, k)
+            if end_lag if lag else (not end_lag and end_power == power):
+                temp = after
+                for _ in range(steps):
+                    time_s += STEP_S
+        while time_s < until_s:
+            dt = min(STEP_S, until_s - time_s)
+            if next_change <= time_s - p.dead_time_s:
+                target = self.target_seen_at(time_s)
+                next_change = targets[1][0] if len(targets) > 1 else math.inf
+            power, lag = self._power(temp, target, k)
+            temp = self._after(temp, target, power, lag, k, dt)
+            time_s += dt
+        self.temp_c, self.time_s, self.power_w = temp, time_s, power
+        return temp
+
+    def _power(self, temp_c: float, target_c: float,
+               k: float) -> Tuple[float, bool]:
+        """The heater's power at temp_c, and whether it is within the
+        heater's limits (then the nozzle follows its target as a lag)."""
+        p = self.params
+        fixed = self.fixed_power_w
+        if fixed is not None:
+            power = fixed
+        elif target_c <= 0.0:
+            power = 0.0  # heater off
+        else:
+            drive = p.heat_capacity_j_per_c / p.time_constant_s
+            power = k * (temp_c - p.ambient_c) + drive * (target_c - temp_c)
+        power = min(p.max_power_w, max(0.0, power))
+        return power, (0.0 < power < p.max_power_w and target_c > 0.0
+                       and fixed is None)
+
+    def _after(self, temp_c: float, target_c: float, power: float, lag: bool,
+               k: float, dt: float) -> float:
+        """The temperature dt later, on the same side of the heater's limits."""
+        p = self.params
+        if lag:
+            # Within the heater's limits: the exact first-order lag step.
+            return target_c + (temp_c - target_c) * math.exp(
+                -dt / p.time_constant_s)
+        if k > 0:
+            # Clamped power: the block's own exponential toward balance.
+            balance = p.ambient_c + power / k
+            return balance + (temp_c - balance) * math.exp(
+                -dt * k / p.heat_capacity_j_per_c)
+        return temp_c + power * dt / p.heat_capacity_j_per_c
+
+
+# A new estimate as often as Klipper's thermistors report (adc_temperature's
+# REPORT_TIME): the caps see what they would on a printer.
+READING_PERIOD_S = 0.3
+
+
+class NozzleEstimate:
+    """The nozzle temperature where no reading exists (klippy batch mode):
+    the hotend model run on the moves' own time. Moves only add up their
+    time and melted plastic; every READING_PERIOD_S of it the model runs
+    once at their mean flow, so the cost is per reading, not per move."""
+
+    def __init__(self, model: Optional[HotendModel] = None):
+        self.model = HotendModel() if model is None else model
+        self._pending_s = 0.0
+        self._pending_mm3 = 0.0
+
+    def add_move(self, duration_s: float, melted_mm3: float) -> bool:
+        """One move's time and the plastic it melted; True when a reading
+        is due (call `read`)."""
+        self._pending_s += duration_s
+        self._pending_mm3 += melted_mm3
+        return self._pending_s >= READING_PERIOD_S
+
+    def read(self, target_c: float) -> float:
+        """Run the model over the moves added, with the heater's target now."""
+        model = self.model
+        model.set_target(model.time_s, target_c)
+        pending_s, self._pending_s = self._pending_s, 0.0
+        melted, self._pending_mm3 = self._pending_mm3, 0.0
+        if pending_s <= 0.0:
+            return model.temp_c
+        return model.advance(model.time_s + pending_s, melted / pending_s)

@@ -15,8 +15,14 @@ static (max_flow), temperature, reactive, predictive. The lowest cap wins.
 max_flow and temperature are hard caps; the grip caps never slow a move
 below min_speed_factor of the speed its G-code asked for. A cap that lacks
 its input (no profile, no temperature) is off, and the status says why; a
-sensor fault freezes the grip caps (never raising one). The status is
-rebuilt when something changes, never when read.
+sensor fault freezes the grip caps (never raising one).
+
+`limit` runs once per G-code move: what it needs (the lowest cap, the hard
+one, the floor) is worked out when a cap changes, and a move under the
+lowest cap returns at once. The status is a new dict whenever something in
+it changes (a slowed move too), never built when read and never changed in
+place: klippy's status poll keeps the dict it was handed and compares the
+next one with it.
 """
 
 from __future__ import annotations
@@ -80,9 +86,11 @@ class LimiterSettings:
 
 class FlowLimiter:
     def __init__(self, settings: LimiterSettings = LimiterSettings(),
-                 filament_area_mm2: float = 2.405):
+                 filament_area_mm2: float = 2.405,
+                 host: Optional[Dict[str, Any]] = None):
         self.settings = settings
         self.filament_area_mm2 = filament_area_mm2
+        self.host = host  # the klippy it runs in (status 'host'), if known
         self.enabled = True
         self.profile: Optional[Profile] = None
         self.working_point = 0.5
@@ -92,6 +100,11 @@ class FlowLimiter:
         self.reactive = ReactiveRule(self._reactive_settings())
         self.caps: Dict[str, Optional[float]] = {}
         self.active = fl_caps.ActiveCap(None, "none")
+        # For limit(): the lowest cap in force (None: none), the lowest hard
+        # one, and whether the grip floor applies
+        self._cap_mm3_s: Optional[float] = None
+        self._hard_cap_mm3_s: Optional[float] = None
+        self._grip_capped = False
         self.why = ""
         self.slowed_time_s = 0.0
         self.slowed_moves = 0
@@ -180,7 +193,7 @@ class FlowLimiter:
             self.windows_judged += 1
             if grip < self.min_grip:
                 self.windows_below_min_grip += 1
-            self._status["grip_windows"] = self._grip_windows()
+            self._status = {**self._status, "grip_windows": self._grip_windows()}
         flow = self.filament_area_mm2 * commanded_mm / duration_s
         before = self.reactive.cap_mm3_s
         self.reactive.on_window(grip, flow, duration_s)
@@ -213,6 +226,11 @@ class FlowLimiter:
                             else None) for name, v in caps.items()}
         self.active = fl_caps.lowest_cap(**self.caps) if self.enabled \
             else fl_caps.ActiveCap(None, "none")
+        self._cap_mm3_s = self.active.cap_mm3_s
+        hard = [c for c in (self.caps["max_flow"], self.caps["temperature"])
+                if c is not None]
+        self._hard_cap_mm3_s = min(hard) if hard else None
+        self._grip_capped = self.active.reason in ("grip", "model")
         if not self.enabled:
             why.insert(0, "disabled")
         self.why = "; ".join(why)
@@ -220,15 +238,13 @@ class FlowLimiter:
 
     def limit(self, shape: fl_caps.MoveShape, speed_mm_s: float) -> float:
         """The speed this move may run at (never above speed_mm_s)."""
-        cap = self.active.cap_mm3_s
-        if cap is None or not shape.extrudes:
-            return speed_mm_s
-        hard = [c for c in (self.caps["max_flow"], self.caps["temperature"])
-                if c is not None]
-        speed = fl_caps.capped_speed(shape, speed_mm_s,
-                                     min(hard) if hard else None,
+        cap = self._cap_mm3_s
+        if cap is None or shape.extrude_mm <= 0.0 or shape.flow_mm3_s(
+                speed_mm_s, self.filament_area_mm2) <= cap:
+            return speed_mm_s  # under the lowest cap: no cap slows it
+        speed = fl_caps.capped_speed(shape, speed_mm_s, self._hard_cap_mm3_s,
                                      self.filament_area_mm2)
-        if self.active.reason in ("grip", "model"):
+        if self._grip_capped:
             floor = self.settings.min_speed_factor * speed_mm_s
             speed = fl_caps.capped_speed(shape, speed, cap, self.filament_area_mm2,
                                          floor_mm_s=min(floor, speed))
@@ -236,8 +252,8 @@ class FlowLimiter:
             self.slowed_moves += 1
             self.slowed_time_s += shape.duration_s(speed) - shape.duration_s(
                 speed_mm_s)
-            self._status["slowed_moves"] = self.slowed_moves
-            self._status["slowed_time"] = round(self.slowed_time_s, 3)
+            self._status = {**self._status, "slowed_moves": self.slowed_moves,
+                            "slowed_time": round(self.slowed_time_s, 3)}
         return speed
 
     # --- status --------------------------------------------------------------
@@ -258,6 +274,7 @@ class FlowLimiter:
             "slowed_moves": self.slowed_moves,
             "model": None if self.model is None else self.model.status(),
             "grip_windows": self._grip_windows(),
+            "host": self.host,
         }
 
     def _grip_windows(self) -> Dict[str, int]:
@@ -265,6 +282,6 @@ class FlowLimiter:
                 "below_min_grip": self.windows_below_min_grip}
 
     def status(self) -> Dict[str, Any]:
-        """The held status (a fresh top-level dict; nested values are not
-        changed in place, they are replaced)."""
-        return dict(self._status)
+        """The held status: a new dict after every change, never changed in
+        place (hand it out as it is)."""
+        return self._status

@@ -10,7 +10,13 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from flowloop.control.hotend import HotendModel, HotendParams
+from flowloop.control.hotend import (
+    READING_PERIOD_S,
+    STEP_S,
+    HotendModel,
+    HotendParams,
+    NozzleEstimate,
+)
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import Line
 from flowloop.sensor.twin import SimulatedEms22
@@ -73,6 +79,64 @@ def test_the_nozzle_never_overshoots_a_target_it_approaches(start, target, t, fl
     lo = min(model.params.ambient_c, target, start)
     hi = max(target, start, model.params.ambient_c)
     assert lo - 1e-6 <= temp <= hi + 1e-6
+
+
+def _single_steps(model, until_s, flow):
+    """The model as it is defined: one closed-form step of STEP_S at a time."""
+    p = model.params
+    k = p.loss_w_per_c + p.filament_j_per_mm3_c * flow
+    while model.time_s < until_s:
+        dt = min(STEP_S, until_s - model.time_s)
+        target = model.target_seen_at(model.time_s)
+        if model.fixed_power_w is not None:
+            power = model.fixed_power_w
+        elif target <= 0.0:
+            power = 0.0
+        else:
+            power = k * (model.temp_c - p.ambient_c) + (
+                p.heat_capacity_j_per_c / p.time_constant_s) * (target - model.temp_c)
+        power = min(p.max_power_w, max(0.0, power))
+        if 0 < power < p.max_power_w and target > 0 and model.fixed_power_w is None:
+            end, rate = target, 1.0 / p.time_constant_s
+        else:
+            end, rate = p.ambient_c + power / k, k / p.heat_capacity_j_per_c
+        model.temp_c = end + (model.temp_c - end) * math.exp(-dt * rate)
+        model.time_s += dt
+    return model.temp_c
+
+
+@given(st.floats(25, 280), st.lists(st.tuples(
+    st.floats(0.0, 60.0), st.sampled_from([0.0, 180.0, 210.0, 260.0, 300.0]),
+    st.floats(0.1, 40), st.sampled_from([None, None, 5.0, 30.0])), max_size=12))
+def test_runs_of_steps_taken_at_once_end_where_single_steps_do(start, spans):
+    # advance() takes a run of steps in one closed form where the heater
+    # stays on one side of its limits
+    params = HotendParams(max_power_w=30.0, dead_time_s=0.37)
+    model, reference = (HotendModel(params, temp_c=start) for _ in range(2))
+    for seconds, target, flow, fixed in spans:
+        for m in (model, reference):
+            m.set_target(m.time_s, target)
+            m.fixed_power_w = fixed
+        temp = model.advance(model.time_s + seconds, flow)
+        assert temp == pytest.approx(
+            _single_steps(reference, reference.time_s + seconds, flow), abs=1e-6)
+        assert model.time_s == reference.time_s
+
+
+def test_a_nozzle_estimate_reads_as_often_as_a_thermistor_reports():
+    estimate = NozzleEstimate(HotendModel(PARAMS, temp_c=200.0, target_c=200.0))
+    reference = HotendModel(PARAMS, temp_c=200.0, target_c=200.0)
+    # moves of 0.1 s, extruding 1 mm^3 each (10 mm^3/s), then 0.1 s of travel
+    due = [estimate.add_move(0.1, 1.0 if i % 2 == 0 else 0.0) for i in range(3)]
+    assert due == [False, False, True]  # 0.3 s: READING_PERIOD_S
+    temp = estimate.read(230.0)
+    # the model ran once over the three moves at their mean flow, the new
+    # target from then on
+    reference.set_target(0.0, 230.0)
+    assert temp == reference.advance(0.3, 2.0 / 0.3)
+    assert READING_PERIOD_S == 0.3
+    assert estimate.add_move(0.2, 0.0) is False
+    assert estimate.read(230.0) == reference.advance(0.5, 0.0)
 
 
 def test_bad_parameters_are_one_line():

@@ -179,3 +179,26 @@ def test_the_status_is_plain_json_whatever_numbers_the_sensor_hands_over():
     lim.limit(FAST, 200.0)
     msgspec.json.encode(lim.status())  # no numpy scalar anywhere
     assert type(lim.status()["grip_windows"]["below_min_grip"]) is int
+
+
+def test_the_status_is_held_and_replaced_never_changed_in_place():
+    # klippy's status poll keeps the dict get_status handed it and compares
+    # the next one with it: a change made in place would never be reported
+    lim = FlowLimiter(LimiterSettings(max_flow_mm3_s=12.0), AREA)
+    held = lim.status()
+    assert lim.status() is held  # reading builds nothing
+    lim.limit(FAST, 200.0)       # slowed
+    lim.on_window(0.1, 1.25, 0.5, 212.0)
+    assert held["slowed_moves"] == 0 and held["grip_windows"]["judged"] == 0
+    now = lim.status()
+    assert now["slowed_moves"] == 1 and now["grip_windows"]["judged"] == 1
+    lim.limit(move_shape([0, 0, 0, 0], [100, 0, 0, 0.5]), 200.0)  # under the cap
+    assert lim.status() is now
+
+
+def test_a_move_under_every_cap_keeps_its_speed_and_counts_nothing():
+    lim = FlowLimiter(LimiterSettings(max_flow_mm3_s=flow(200.0)), AREA)
+    assert lim.limit(FAST, 200.0) == 200.0   # exactly at the cap
+    assert lim.limit(FAST, 199.0) == 199.0
+    assert lim.limit(FAST, 201.0) < 201.0
+    assert lim.status()["slowed_moves"] == 1
