@@ -691,6 +691,10 @@ class Planner:
             self.commanded_pos = list(newpos)
         else:
             self.commanded_pos = [start[0], start[1], start[2], newpos[3]]
+        self._queue(m)
+
+    def _queue(self, m: _Move) -> None:
+        """A new move into the lookahead (fastplan queues it in its own)."""
         if self.lookahead.add_move(m, self.instant_corner_v):
             self._emit(self.lookahead.flush(lazy=True))
 

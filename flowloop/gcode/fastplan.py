@@ -1,0 +1,737 @@
+"""The flow planner in numpy: the same moves as planner.Planner, in bulk.
+
+planner.Planner is the reference (checked against Klipper's own toolhead
+code, one line at a time); this module gives the same segments about twenty
+times faster, for the annotator that runs on every upload:
+
+- the file is read in chunks of whole lines; the lines slicers write most
+  (`G0`/`G1` with X Y Z E F words, `G92` with X Y Z E, comments, blank lines
+  and M-commands Klipper's motion ignores) are tokenised and parsed with
+  numpy for the whole chunk, and gcode_move's state (positions, G92 offsets,
+  the feed rate) follows them with prefix sums; every other line goes to the
+  reference Planner, which holds the state the two share;
+- moves are built, limited and joined (toolhead.Move, calc_junction) as
+  arrays; the lookahead's recurrences on squared speeds
+  (x[i] = min(a[i], x[i-1] + d[i])) are solved in closed form with one
+  minimum.accumulate and then relaxed to the exact sequential float result,
+  so a tie decides as it does in Klipper;
+- the queue is flushed as Klipper's lazy flush would flush it at the end of
+  each chunk: only moves whose speeds no later move can change leave it
+  (a lazy flush is final: later moves never change what it flushed), the
+  rest waits for the next chunk. Memory stays a chunk plus that queue.
+"""
+
+from __future__ import annotations
+
+from typing import BinaryIO, Iterator, List, NamedTuple, Optional, Union
+
+import numpy as np
+
+from .planner import (
+    MAX_ABS_VALUE,
+    Barrier,
+    Event,
+    Planner,
+    PrinterLimits,
+    Segment,
+    _Move,
+)
+
+CHUNK_BYTES = 1 << 20
+# Longest number word the bulk parser reads ("X-123.45678" is 11); longer ones
+# go to the reference planner.
+_WORD_BYTES = 24
+# M-commands Klipper's motion acts on or waits for: such lines go to the
+# reference planner, any other plain M<digits> line is ignored.
+_M_HANDLED = frozenset((b"M0", b"M1", b"M82", b"M83", b"M109", b"M190", b"M191",
+                        b"M204", b"M220", b"M221", b"M400", b"M600"))
+_OTHER, _SKIP, _MOVE, _G92 = 0, 1, 2, 3
+_AXES = b"XYZEF"
+_NUMBER_CHARS = np.zeros(256, bool)
+_NUMBER_CHARS[list(b"0123456789.+-")] = True
+_DIGITS = np.zeros(256, bool)
+_DIGITS[list(b"0123456789")] = True
+_LETTER = np.full(256, -1, np.int8)
+for _i, _c in enumerate(_AXES):
+    _LETTER[_c] = _i
+_COLUMNS = ("start_s", "duration_s", "flow_mm3_s", "accel_s", "decel_s",
+            "start_flow_mm3_s", "end_flow_mm3_s", "speed_mm_s", "distance_mm",
+            "filament_mm", "offset")
+
+
+class Segments(NamedTuple):
+    """Consecutive planner.Segment records as arrays, field by field."""
+    start_s: np.ndarray
+    duration_s: np.ndarray
+    flow_mm3_s: np.ndarray
+    accel_s: np.ndarray
+    decel_s: np.ndarray
+    start_flow_mm3_s: np.ndarray
+    end_flow_mm3_s: np.ndarray
+    speed_mm_s: np.ndarray
+    distance_mm: np.ndarray
+    filament_mm: np.ndarray
+    offset: np.ndarray
+
+    def __len__(self) -> int:        # NamedTuple's would count the fields
+        return len(self.start_s)
+
+    def records(self) -> Iterator[Segment]:
+        columns = [c.tolist() for c in self]
+        for row in zip(*columns):
+            yield Segment._make(row)
+
+
+Batch = Union[Segments, Barrier]
+
+
+def min_plus(a: np.ndarray, add: np.ndarray, x0: float) -> np.ndarray:
+    """x[i] = min(a[i], x[i-1] + add[i]) with x[-1] = x0, equal to the
+    sequential loop in float64 (the lookahead's speed recurrences).
+
+    Closed form x[i] = P[i] + min(x0, min_{k<=i} a[k] - P[k]) (P the prefix
+    sum of add) in long double, then relaxed: an element is recomputed from
+    its predecessor until none changes, which is the sequential result."""
+    n = len(a)
+    if n == 0:
+        return a.astype(float)
+    prefix = np.cumsum(add, dtype=np.longdouble)
+    guess = prefix + np.minimum(np.minimum.accumulate(a - prefix), x0)
+    x = guess.astype(float)
+    prev = np.empty(n)
+    prev[0] = x0
+    prev[1:] = x[:-1]
+    new = np.minimum(a, prev + add)
+    changed = np.flatnonzero(new != x)
+    x = new
+    while changed.size:
+        idx = changed + 1
+        idx = idx[idx < n]
+        if not idx.size:
+            break
+        cand = np.minimum(a[idx], x[idx - 1] + add[idx])
+        differs = cand != x[idx]
+        x[idx] = cand
+        changed = idx[differs]
+    return x
+
+
+class _Queue(NamedTuple):
+    """Moves as arrays: what toolhead.Move holds after calc_junction."""
+    ax: np.ndarray              # axes_r x, y, z, e
+    ay: np.ndarray
+    az: np.ndarray
+    ae: np.ndarray
+    move_d: np.ndarray
+    accel: np.ndarray
+    junction_deviation: np.ndarray
+    max_cruise_v2: np.ndarray
+    delta_v2: np.ndarray
+    mcr_delta_v2: np.ndarray
+    kinematic: np.ndarray
+    filament_mm: np.ndarray
+    flow_per_mm: np.ndarray
+    offset: np.ndarray
+    max_start_v2: np.ndarray    # NaN until joined to the move before
+    max_mcr_start_v2: np.ndarray
+
+
+_QUEUE_FIELDS = _Queue._fields
+_MOVE_ATTRS = {"ax": None, "ay": None, "az": None, "ae": None,
+               "move_d": "move_d", "accel": "accel",
+               "junction_deviation": "junction_deviation",
+               "max_cruise_v2": "max_cruise_v2", "delta_v2": "delta_v2",
+               "mcr_delta_v2": "mcr_delta_v2", "kinematic": "is_kinematic_move",
+               "filament_mm": "filament_mm", "flow_per_mm": "flow_per_mm",
+               "offset": "offset"}
+
+
+def _queue_of_moves(moves: List[_Move]) -> _Queue:
+    cols = {}
+    for name, attr in _MOVE_ATTRS.items():
+        if attr is None:
+            axis = "xyze".index(name[1])
+            cols[name] = np.array([m.axes_r[axis] for m in moves], float)
+        else:
+            dtype = bool if name == "kinematic" else (
+                np.int64 if name == "offset" else float)
+            cols[name] = np.array([getattr(m, attr) for m in moves], dtype)
+    cols["max_start_v2"] = np.full(len(moves), np.nan)
+    cols["max_mcr_start_v2"] = np.full(len(moves), np.nan)
+    return _Queue(**cols)
+
+
+def _concat(parts: List[_Queue]) -> _Queue:
+    if len(parts) == 1:
+        return parts[0]
+    return _Queue(*(np.concatenate([getattr(p, f) for p in parts])
+                    for f in _QUEUE_FIELDS))
+
+
+def _take(q: _Queue, sl) -> _Queue:
+    return _Queue(*(c[sl] for c in q))
+
+
+class _StatePlanner(Planner):
+    """The reference planner holding the state; its moves and flushes go to
+    the bulk lookahead."""
+
+    def __init__(self, limits: PrinterLimits, owner: FastPlanner):
+        super().__init__(limits)
+        self.owner = owner
+
+    def _queue(self, m: _Move) -> None:
+        self.owner.scalar_moves.append(m)
+
+    def _flush(self) -> None:
+        self.owner.flush(lazy=False)
+
+
+class FastPlanner:
+    """planner.Planner's timeline from whole chunks of lines."""
+
+    def __init__(self, limits: Optional[PrinterLimits] = None):
+        limits = limits if limits is not None else PrinterLimits()
+        self.limits = limits
+        self.state = _StatePlanner(limits, self)
+        self.out: List[Batch] = []
+        self.parts: List[_Queue] = []           # new moves, not yet joined
+        self.scalar_moves: List[_Move] = []
+        self.queue: Optional[_Queue] = None     # joined, not yet flushed
+        self.lines = 0                          # lines read so far
+
+    # --- reading ------------------------------------------------------------
+    def chunk(self, data: bytes, offset: int) -> List[Batch]:
+        """Plan whole lines (data ends at a line end, or the file's end) that
+        start at byte offset of the file; returns the batches completed."""
+        if data:
+            self._plan_chunk(data, offset)
+        self.flush(lazy=True)
+        out, self.out = self.out, []
+        return out
+
+    def finish(self) -> List[Batch]:
+        self.flush(lazy=False)
+        out, self.out = self.out, []
+        return out
+
+    def _plan_chunk(self, data: bytes, offset: int) -> None:
+        buf = np.frombuffer(data + b"\0" * _WORD_BYTES, np.uint8)
+        size = len(data)
+        nl = np.flatnonzero(buf[:size] == 10)
+        starts = np.concatenate(([0], nl + 1))
+        ends = np.concatenate((nl, [size]))
+        if starts[-1] == size:          # data ends with its newline
+            starts, ends = starts[:-1], ends[:-1]
+        kinds = self._kinds(data, buf, starts, ends)
+        words = self._words(buf, size, starts, ends, kinds)
+        first_line = self.lines
+        self.lines += len(starts)
+        other = np.flatnonzero(kinds == _OTHER)
+        run_start = 0
+        for stop in list(other) + [len(starts)]:
+            if stop > run_start:
+                self._run(run_start, stop, kinds, words, starts, ends, data,
+                          offset, first_line)
+            if stop < len(starts):
+                self._scalar_line(data, starts, ends, stop, offset, first_line)
+            run_start = stop + 1
+
+    def _kinds(self, data, buf, starts, ends) -> np.ndarray:
+        """What each line is: a move, a G92, nothing to plan, or other."""
+        b0, b1, b2, b3 = (buf[starts + k] for k in range(4))
+        length = ends - starts
+        kinds = np.full(len(starts), _OTHER, np.int8)
+        kinds[(length == 0) | (b0 == 59) | ((length == 1) & (b0 == 13))] = _SKIP
+        move = (b0 == 71) & ((b1 == 48) | (b1 == 49)) & (b2 == 32)
+        kinds[move] = _MOVE
+        kinds[(b0 == 71) & (b1 == 57) & (b2 == 50) & (b3 == 32)] = _G92
+        m_lines = np.flatnonzero(b0 == 77)
+        for i in m_lines.tolist():      # few: M-commands are not moves
+            head = data[starts[i]:ends[i]].split(b";", 1)[0].split()
+            cmd = head[0] if head else b""
+            if cmd[1:].isdigit() and cmd not in _M_HANDLED:
+                kinds[i] = _SKIP
+        if b"\0" in data or b"\t" in data or not data.isascii() \
+                or data.count(b"\r") > len(starts):
+            # binary, tabs, non-ASCII, stray CRs: such lines the slow way
+            odd = ~_ascii_plain(buf[:len(data)])
+            odd_lines = np.searchsorted(starts, np.flatnonzero(odd), "right") - 1
+            kinds[odd_lines] = _OTHER
+        return kinds
+
+    def _words(self, buf, size, starts, ends, kinds):
+        """Per line: X Y Z E F values (NaN: absent) of move and G92 lines;
+        a line whose words do not read as simple numbers becomes other."""
+        n = len(starts)
+        values = np.full((n, 5), np.nan)
+        code = (kinds == _MOVE) | (kinds == _G92)
+        if not code.any():
+            return values
+        spaces = np.flatnonzero(buf[:size] == 32)
+        semis = np.flatnonzero(buf[:size] == 59)
+        crs = np.flatnonzero(buf[:size] == 13)
+        word_start = spaces + 1
+        line = np.searchsorted(starts, word_start, "right") - 1
+        keep = code[line]
+        word_start, line = word_start[keep], line[keep]
+        # the code part of a line ends at its comment
+        k = np.searchsorted(semis, starts)
+        code_end = ends.copy()
+        has_semi = k < len(semis)
+        semi_at = semis[np.minimum(k, len(semis) - 1)] if len(semis) else ends
+        code_end[has_semi] = np.minimum(ends[has_semi], semi_at[has_semi])
+        keep = word_start < code_end[line]
+        word_start, line = word_start[keep], line[keep]
+        nxt = [np.searchsorted(spaces, word_start), np.searchsorted(crs, word_start)]
+        word_end = code_end[line].copy()
+        if len(spaces):
+            at = spaces[np.minimum(nxt[0], len(spaces) - 1)]
+            word_end = np.where(nxt[0] < len(spaces), np.minimum(word_end, at),
+                                word_end)
+        if len(crs):
+            at = crs[np.minimum(nxt[1], len(crs) - 1)]
+            word_end = np.where(nxt[1] < len(crs), np.minimum(word_end, at),
+                                word_end)
+        length = word_end - word_start
+        real = length > 0                       # not a double space
+        word_start, line, length = word_start[real], line[real], length[real]
+        bad_lines = []
+        if len(crs):
+            # a CR anywhere but at the end of its line
+            cr_line = np.searchsorted(starts, crs, "right") - 1
+            bad_lines.append(cr_line[crs != ends[cr_line] - 1])
+        too_long = length > _WORD_BYTES
+        bad_lines.append(line[too_long])
+        length = np.minimum(length, _WORD_BYTES)
+        width = int(length.max()) if len(length) else 2
+        numbers, ok = _read_numbers(buf, word_start, length, width)
+        letter = _LETTER[buf[word_start]]
+        ok &= (letter >= 0) & (length >= 2)
+        ok &= np.where(kinds[line] == _G92, letter < 4, True)
+        bad_lines.append(line[~ok])
+        # one word per axis and line (Klipper keeps the last, numpy may not)
+        key = line.astype(np.int64) * 5 + np.where(ok, letter, 0)
+        counts = np.bincount(key[ok], minlength=5 * n)
+        bad_lines.append(np.flatnonzero(counts > 1) // 5)
+        absurd = ~(np.abs(numbers) <= MAX_ABS_VALUE)
+        bad_lines.append(line[ok & absurd])
+        feed = ok & (letter == 4)
+        bad_lines.append(line[feed & (numbers <= 0.0)])
+        good = ok & ~absurd
+        values[line[good], letter[good]] = numbers[good]
+        bad = np.concatenate(bad_lines)
+        kinds[bad] = _OTHER
+        values[bad] = np.nan
+        return values
+
+    def _scalar_line(self, data, starts, ends, i, offset, first_line) -> None:
+        end = ends[i] + 1 if ends[i] < len(data) else ends[i]
+        raw = data[starts[i]:end]
+        events = self.state.line(raw, offset + int(starts[i]),
+                                 first_line + int(i) + 1)
+        self._take_scalar_moves()
+        self.out.extend(events)
+
+    def _take_scalar_moves(self) -> None:
+        if self.scalar_moves:
+            self.parts.append(_queue_of_moves(self.scalar_moves))
+            self.scalar_moves = []
+
+    # --- gcode_move over a run of move and G92 lines --------------------------
+    def _run(self, lo, hi, kinds, words, starts, ends, data, offset,
+             first_line) -> None:
+        rows = np.flatnonzero(kinds[lo:hi] >= _MOVE) + lo
+        if not rows.size:
+            return
+        st = self.state
+        kind = kinds[rows]
+        vals = words[rows]
+        is_move = kind == _MOVE
+        ef = st.extrude_factor
+        vals[:, 3] *= ef
+        last = np.empty((len(rows), 4))
+        base_out = list(st.base_position)
+        for axis in range(4):
+            absolute = st.absolute_coord and (axis < 3 or st.absolute_extrude)
+            last[:, axis], base_out[axis] = _axis_positions(
+                vals[:, axis], is_move, st.last_position[axis],
+                st.base_position[axis], absolute)
+        # the feed rate each move runs at
+        feed = vals[:, 4]
+        speeds = np.where(np.isnan(feed), np.nan, feed * st.speed_factor)
+        speeds = _ffill(speeds, st.speed)
+        pos = last[is_move]
+        if not len(pos):
+            self._set_state(last, base_out, speeds)
+            return
+        start = np.vstack((np.array(st.commanded_pos)[None, :], pos[:-1]))
+        d = pos - start
+        moves = self._moves(d, speeds[is_move],
+                            offset + starts[rows[is_move]])
+        if moves is None:               # an error or an odd move: the slow way
+            for i in range(lo, hi):
+                self._scalar_line(data, starts, ends, i, offset, first_line)
+            return
+        self._set_state(last, base_out, speeds)
+        st.commanded_pos = list(pos[-1])
+        self.parts.append(moves)
+
+    def _set_state(self, last, base, speeds) -> None:
+        st = self.state
+        st.last_position = [float(v) for v in last[-1]]
+        st.base_position = [float(v) for v in base]
+        st.speed = float(speeds[-1])
+
+    def _moves(self, d, speed, offsets) -> Optional[_Queue]:
+        """toolhead.Move and extruder.check_move for each row that moves."""
+        st = self.state
+        dx, dy, dz, de = d[:, 0], d[:, 1], d[:, 2], d[:, 3]
+        move_d = np.sqrt(dx * dx + dy * dy + dz * dz)
+        still = move_d < 0.000000001
+        if (still & ((dx != 0.0) | (dy != 0.0) | (dz != 0.0))).any():
+            return None                 # a sub-nanometre move: the slow way
+        moving = ~still | (de != 0.0)
+        dx, dy, dz, de = dx[moving], dy[moving], dz[moving], de[moving]
+        speed, offsets, still = speed[moving], offsets[moving], still[moving]
+        move_d = np.where(still, np.abs(de), move_d[moving])
+        kin = ~still
+        accel = np.where(kin, st.max_accel, 99999999.9)
+        velocity = np.where(kin, np.minimum(speed, st.max_velocity), speed)
+        inv_move_d = 1.0 / move_d
+        er = de * inv_move_d
+        max_cruise_v2 = velocity * velocity
+        delta_v2 = 2.0 * move_d * accel
+        mcr_delta_v2 = 2.0 * move_d * st.mcr_pseudo_accel
+        z = (dz != 0.0) & kin
+        if z.any():
+            z_ratio = move_d[z] / np.abs(dz[z])
+            _limit_speed(z, st.max_z_velocity * z_ratio, st.max_z_accel * z_ratio,
+                         move_d, max_cruise_v2, accel, delta_v2, mcr_delta_v2)
+        extrudes = de != 0.0
+        e_only = extrudes & (((dx == 0.0) & (dy == 0.0)) | (er < 0.0))
+        if (e_only & (np.abs(de) > st.max_e_dist)).any():
+            return None
+        if (extrudes & ~e_only & (er > st.max_extrude_ratio)
+                & (de > st.limits.nozzle_diameter * st.max_extrude_ratio)).any():
+            return None
+        if e_only.any():
+            inv_extrude_r = 1.0 / np.abs(er[e_only])
+            _limit_speed(e_only, st.max_e_velocity * inv_extrude_r,
+                         st.max_e_accel * inv_extrude_r,
+                         move_d, max_cruise_v2, accel, delta_v2, mcr_delta_v2)
+        filament = self._filament(de)
+        n = len(move_d)
+        return _Queue(
+            dx * inv_move_d, dy * inv_move_d, dz * inv_move_d, er, move_d,
+            accel, np.full(n, st.junction_deviation), max_cruise_v2, delta_v2,
+            mcr_delta_v2, kin, filament, filament * st.area * inv_move_d,
+            offsets.astype(np.int64), np.full(n, np.nan), np.full(n, np.nan))
+
+    def _filament(self, de: np.ndarray) -> np.ndarray:
+        """Net filament of each move: pushed back after a retraction it
+        refills the nozzle first (sequential where something is retracted)."""
+        st = self.state
+        filament = np.where(de > 0.0, de, 0.0)
+        retracted = st.retracted_mm
+        negative = np.flatnonzero(de < 0.0)
+        if not negative.size and retracted == 0.0:
+            return filament
+        values = de.tolist()
+        stops = negative.tolist() + [len(values)]
+        i = 0 if retracted > 0.0 else stops[0]
+        for stop in stops:
+            # from i (a retraction, or the start) until nothing is retracted
+            while i < len(values):
+                v = values[i]
+                if v < 0.0:
+                    retracted -= v
+                elif v > 0.0:
+                    refill = min(v, retracted)
+                    retracted -= refill
+                    filament[i] = v - refill
+                i += 1
+                if retracted == 0.0 or i > stop:
+                    break
+            i = max(i, stop)
+        st.retracted_mm = retracted
+        return filament
+
+    # --- toolhead lookahead ---------------------------------------------------
+    def flush(self, lazy: bool) -> None:
+        """Join new moves to the queue and flush it, as LookAheadQueue.flush
+        (lazy: only what later moves cannot change)."""
+        self._take_scalar_moves()
+        parts = ([self.queue] if self.queue is not None else []) + self.parts
+        self.parts = []
+        if not parts:
+            return
+        joined = 0 if self.queue is None else len(self.queue.move_d)
+        q = self._join(_concat(parts), joined)
+        self.queue = q
+        count = self._flush_count(q, lazy)
+        if count:
+            self._emit(q, count)
+            self.queue = None if count == len(q.move_d) \
+                else _take(q, slice(count, None))
+
+    def _join(self, q: _Queue, joined: int) -> _Queue:
+        """calc_junction for rows joined..end (rows before are joined)."""
+        n = len(q.move_d)
+        if joined == n:
+            return q
+        st = self.state
+        rows = np.arange(joined, n)
+        # a junction needs a move before, and both kinematic; else 0
+        has = (rows >= 1) & q.kinematic[rows] & q.kinematic[np.maximum(rows - 1, 0)]
+        a = np.zeros(n - joined)
+        cur = rows[has]
+        if cur.size:
+            pr = cur - 1
+            diff_r = q.ae[cur] - q.ae[pr]
+            v2 = np.minimum(q.max_cruise_v2[cur], q.max_cruise_v2[pr])
+            with np.errstate(divide="ignore"):
+                ea_v2 = np.where(diff_r != 0.0,
+                                 (st.instant_corner_v / diff_r) ** 2, np.inf)
+            v2 = np.minimum(np.minimum(v2, ea_v2), 999999999.9)
+            cos = -(q.ax[cur] * q.ax[pr] + q.ay[cur] * q.ay[pr]
+                    + q.az[cur] * q.az[pr])
+            sin_d2 = np.sqrt(np.maximum(0.5 * (1.0 - cos), 0.0))
+            cos_d2 = np.sqrt(np.maximum(0.5 * (1.0 + cos), 0.0))
+            one_minus = 1.0 - sin_d2
+            corner = (one_minus > 0.0) & (cos_d2 > 0.0)
+            if corner.any():
+                c, p = cur[corner], pr[corner]
+                s, cd = sin_d2[corner], cos_d2[corner]
+                r_jd = s / one_minus[corner]
+                quarter_tan = 0.25 * s / cd
+                lim = np.minimum(
+                    np.minimum(r_jd * q.junction_deviation[c] * q.accel[c],
+                               r_jd * q.junction_deviation[p] * q.accel[p]),
+                    np.minimum(q.delta_v2[c] * quarter_tan,
+                               q.delta_v2[p] * quarter_tan))
+                v2[corner] = np.minimum(v2[corner], lim)
+            a[has] = v2
+        # the reach from the move before, x[i] = min(a, x[i-1] + delta[i-1]);
+        # a row without a junction is 0 and so starts the chain again
+        before = np.maximum(rows - 1, 0)
+        add = np.where(rows >= 1, q.delta_v2[before], 0.0)
+        add_mcr = np.where(rows >= 1, q.mcr_delta_v2[before], 0.0)
+        x0 = q.max_start_v2[joined - 1] if joined else 0.0
+        x0_mcr = q.max_mcr_start_v2[joined - 1] if joined else 0.0
+        max_start = q.max_start_v2.copy()
+        max_mcr = q.max_mcr_start_v2.copy()
+        max_start[joined:] = min_plus(a, add, x0)
+        max_mcr[joined:] = min_plus(max_start[joined:], add_mcr, x0_mcr)
+        return q._replace(max_start_v2=max_start, max_mcr_start_v2=max_mcr)
+
+    def _flush_count(self, q: _Queue, lazy: bool) -> int:
+        self._pass = _backward(q)
+        if not lazy:
+            return len(q.move_d)
+        return self._pass.lazy_count
+
+    def _emit(self, q: _Queue, count: int) -> None:
+        p = self._pass
+        sl = slice(0, count)
+        start_v2, cruise_v2 = p.start_v2[sl], p.cruise_v2(count)
+        next_v2 = p.next_start_v2[sl]
+        s = np.minimum(start_v2, cruise_v2)
+        e = np.minimum(next_v2, cruise_v2)
+        accel, move_d = q.accel[sl], q.move_d[sl]
+        half_inv_accel = 0.5 / accel
+        accel_d = (cruise_v2 - s) * half_inv_accel
+        decel_d = (cruise_v2 - e) * half_inv_accel
+        cruise_d = move_d - accel_d - decel_d
+        start_v, cruise_v, end_v = np.sqrt(s), np.sqrt(cruise_v2), np.sqrt(e)
+        accel_t = accel_d / ((start_v + cruise_v) * 0.5)
+        cruise_t = cruise_d / cruise_v
+        decel_t = decel_d / ((end_v + cruise_v) * 0.5)
+        duration = accel_t + cruise_t + decel_t
+        times = np.cumsum(np.concatenate(([self.state.print_time], duration)))
+        self.state.print_time = float(times[-1])
+        k = q.flow_per_mm[sl]
+        self.out.append(Segments(
+            times[:-1], duration, cruise_v * k, accel_t, decel_t, start_v * k,
+            end_v * k, cruise_v, move_d, q.filament_mm[sl], q.offset[sl]))
+
+
+class _Backward:
+    """LookAheadQueue.flush's backward pass over a whole queue."""
+
+    def __init__(self, q: _Queue):
+        n = len(q.move_d)
+        delta, mcr_delta = q.delta_v2, q.mcr_delta_v2
+        start = min_plus(q.max_start_v2[::-1], delta[::-1], 0.0)[::-1]
+        mcr = min_plus(q.max_mcr_start_v2[::-1], mcr_delta[::-1], 0.0)[::-1]
+        self.start_v2 = start
+        self.next_start_v2 = np.concatenate((start[1:], [0.0]))
+        next_mcr = np.concatenate((mcr[1:], [0.0]))
+        reachable = self.next_start_v2 + delta
+        reach_mcr = next_mcr + mcr_delta
+        sat = mcr < reach_mcr
+        after_unassigned = np.zeros(n, bool)
+        after_unassigned[:-1] = ~sat[1:]
+        peak = sat & ((mcr + mcr_delta > next_mcr) | after_unassigned)
+        peak_value = np.where(peak, (mcr + reach_mcr) * 0.5, 0.0)
+        # the peak_cruise_v2 each assigned move sees: the nearest peak at or
+        # after it (scanning backward), 0 before the first
+        at = np.where(peak, np.arange(n), n)
+        nearest = np.minimum.accumulate(at[::-1])[::-1]
+        seen = np.concatenate((peak_value, [0.0]))[nearest]
+        self.sat = sat
+        self.assigned = np.minimum(np.minimum((start + reachable) * 0.5,
+                                              q.max_cruise_v2), seen)
+        self.lazy_count = 0
+        peaks = np.flatnonzero(peak)
+        sats = np.flatnonzero(sat)
+        if len(peaks) >= 2:
+            # scanning backward: the first peak met after another (nonzero) one
+            later_value = peak_value[peaks[1:]]
+            candidates = peaks[:-1][later_value != 0.0]
+            if candidates.size:
+                i = candidates[-1]
+                self.lazy_count = int(sats[np.searchsorted(sats, i, "right")])
+
+    def cruise_v2(self, count: int) -> np.ndarray:
+        """Cruise of the first count moves: assigned ones their own, the
+        others the lowest since the last assigned one (0 before the first)."""
+        sat = self.sat[:count]
+        values = np.where(sat, self.assigned[:count], self.start_v2[:count])
+        segment = np.cumsum(sat)
+        keyed = np.empty(count + 1, complex)
+        keyed[0] = 0.0
+        keyed[1:] = -segment + 1j * values
+        return np.minimum.accumulate(keyed)[1:].imag
+
+
+def _backward(q: _Queue) -> _Backward:
+    return _Backward(q)
+
+
+def _limit_speed(mask, speed, accel, move_d, max_cruise_v2, accel_arr,
+                 delta_v2, mcr_delta_v2) -> None:
+    """toolhead Move.limit_speed on the rows of mask, in place."""
+    speed2 = speed * speed
+    max_cruise_v2[mask] = np.minimum(max_cruise_v2[mask], speed2)
+    accel_arr[mask] = np.minimum(accel_arr[mask], accel)
+    delta_v2[mask] = 2.0 * move_d[mask] * accel_arr[mask]
+    mcr_delta_v2[mask] = np.minimum(mcr_delta_v2[mask], delta_v2[mask])
+
+
+def _ffill(values: np.ndarray, first: float) -> np.ndarray:
+    """NaN replaced by the last value before it (first before any)."""
+    filled = np.concatenate(([first], values))
+    idx = np.where(np.isnan(filled), 0, np.arange(len(filled)))
+    np.maximum.accumulate(idx, out=idx)
+    return filled[idx][1:]
+
+
+def _axis_positions(vals, is_move, last0, base0, absolute):
+    """gcode_move's position of one axis after each row (moves set it, G92
+    rows move its origin), and the origin after the last row."""
+    given = ~np.isnan(vals)
+    g92 = np.flatnonzero(given & ~is_move)
+    moves = given & is_move
+    if not absolute:
+        steps = np.where(moves, vals, 0.0)
+        last = np.cumsum(np.concatenate(([last0], steps)))[1:]
+        base = base0
+        for i in g92.tolist():
+            base = float(last[i]) - float(vals[i])
+        return last, base
+    if not g92.size:
+        return _ffill(np.where(moves, vals + base0, np.nan), last0), base0
+    # each G92 starts a new origin from the position at that row
+    bases = [base0]
+    cur_last, cur_base, prev = last0, base0, 0
+    move_rows = np.flatnonzero(moves)
+    for i in g92.tolist():
+        k = np.searchsorted(move_rows, i) - 1
+        if k >= 0 and move_rows[k] >= prev:
+            cur_last = float(vals[move_rows[k]]) + cur_base
+        cur_base = cur_last - float(vals[i])
+        bases.append(cur_base)
+        prev = i
+    epoch = np.searchsorted(g92, np.arange(len(vals)), "right")
+    base_of_row = np.array(bases)[epoch]
+    return _ffill(np.where(moves, vals + base_of_row, np.nan), last0), cur_base
+
+
+def _read_numbers(buf, start, length, width):
+    """The numbers after each word's letter ([-+]digits[.digits]) as float()
+    reads them, and whether the word is one. An integer mantissa below 2^53
+    divided by an exact power of ten is the correctly rounded value, which
+    is float()'s; longer mantissas are read by numpy's own parser."""
+    n = len(start)
+    mantissa = np.zeros(n, np.int64)
+    frac = np.zeros(n, np.int64)
+    digits = np.zeros(n, np.int64)
+    dots = np.zeros(n, np.int64)
+    negative = np.zeros(n, bool)
+    ok = np.ones(n, bool)
+    for c in range(1, width):
+        inside = c < length
+        ch = buf[start + c]
+        is_digit = inside & (ch >= 48) & (ch <= 57)
+        is_dot = inside & (ch == 46)
+        if c == 1:
+            negative = inside & (ch == 45)
+            sign = negative | (inside & (ch == 43))
+            ok &= ~inside | is_digit | is_dot | sign
+        else:
+            ok &= ~inside | is_digit | is_dot
+        mantissa = np.where(is_digit, mantissa * 10 + (ch.astype(np.int64) - 48),
+                            mantissa)
+        frac += is_digit & (dots > 0)
+        digits += is_digit
+        dots += is_dot
+    ok &= (digits > 0) & (dots <= 1)
+    exact = ok & (digits <= 15) & (frac <= 22)
+    values = mantissa / 10.0 ** frac
+    values = np.where(negative, -values, values)
+    slow = np.flatnonzero(ok & ~exact)
+    for i in slow.tolist():
+        values[i] = float(bytes(buf[start[i] + 1:start[i] + length[i]]))
+    return values, ok
+
+
+def _ascii_plain(buf: np.ndarray) -> np.ndarray:
+    """Bytes the bulk path reads: printable ASCII, newline, CR at line end."""
+    ok = (buf >= 32) & (buf < 127)
+    ok |= buf == 10
+    ok |= buf == 13
+    return ok
+
+
+def plan_batches(f: BinaryIO, limits: Optional[PrinterLimits] = None,
+                 chunk_bytes: int = CHUNK_BYTES) -> Iterator[Batch]:
+    """Segments (as arrays) and barriers of a G-code file opened in binary."""
+    planner = FastPlanner(limits)
+    offset, rest = 0, b""
+    while True:
+        data = f.read(chunk_bytes)
+        if not data:
+            break
+        data = rest + data
+        cut = data.rfind(b"\n") + 1
+        if cut == 0:
+            rest = data
+            continue
+        rest = data[cut:]
+        yield from planner.chunk(data[:cut], offset)
+        offset += cut
+    if rest:
+        yield from planner.chunk(rest, offset)
+    yield from planner.finish()
+
+
+def plan_file(f: BinaryIO, limits: Optional[PrinterLimits] = None,
+              chunk_bytes: int = CHUNK_BYTES) -> Iterator[Event]:
+    """planner.plan_file's events, planned in bulk."""
+    for batch in plan_batches(f, limits, chunk_bytes):
+        if isinstance(batch, Barrier):
+            yield batch
+        else:
+            yield from batch.records()
+

@@ -1,0 +1,120 @@
+"""The bulk planner (fastplan) against the reference planner, which
+test_planner_klipper checks against Klipper's own toolhead code: the same
+events, bit for bit, from any file and at any chunk size."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from flowloop.errors import FlowloopError
+from flowloop.gcode import fastplan, planner
+from flowloop.gcode.planner import PrinterLimits
+
+pytestmark = pytest.mark.unit
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
+LIMITS = PrinterLimits(max_velocity=300, max_accel=3000, retract_length=1.0,
+                       max_extrude_cross_section=50.0)
+
+
+def reference(data: bytes, limits: PrinterLimits = LIMITS):
+    return list(planner.plan_file(io.BytesIO(data), limits))
+
+
+def fast(data: bytes, limits: PrinterLimits = LIMITS, chunk_bytes=1 << 20):
+    return list(fastplan.plan_file(io.BytesIO(data), limits, chunk_bytes))
+
+
+def assert_same(data: bytes, limits: PrinterLimits = LIMITS, chunk_bytes=1 << 20):
+    ours, theirs = fast(data, limits, chunk_bytes), reference(data, limits)
+    assert len(ours) == len(theirs)
+    for i, (a, b) in enumerate(zip(ours, theirs)):
+        assert type(a) is type(b), f"event {i}"
+        assert tuple(a) == tuple(b), f"event {i}"     # exactly, not approx
+
+
+@pytest.mark.parametrize("name", ["block_layers_1_2.gcode", "box_bridge_layer.gcode"])
+@pytest.mark.parametrize("chunk_bytes", [1 << 20, 4096, 97])
+def test_a_real_file_gives_the_reference_plan_at_any_chunk_size(name, chunk_bytes):
+    data = (DATA / name).read_bytes()
+    assert_same(data, PrinterLimits(), chunk_bytes)
+
+
+def test_the_lines_it_reads_in_bulk_and_the_ones_it_hands_over():
+    text = ("; header\n\nM82\nG90\nG1 Z0.2 F7800\nG1 X10 Y10 E1.5 F1800\n"
+            "G0 F9000 X20 Y5\nG1 E-2 F2400\nG92 E0\nG1 E2\nM106 S255\n"
+            "M73 P5 R10\nG1 X30 Y30 E1 ; a comment\nG1 X30.0 Y30 E1\n"
+            "G1 X40 Y30 E+2.5 F.5e3\ng1 x50\nG1\tX60 E3\nG1 X70 E4 X71\n"
+            "M83\nG1 X80 E0.5\nG91\nG1 X1 Y1 E0.1\nG90\nG10\nG1 X90 Y40\nG11\n"
+            "G2 X100 Y50 I5 J5 E1\nM221 S90\nG1 X110 Y50 E1\nM220 S50\n"
+            "G1 X120 Y50 E1\nG4 P100\nG1 X125\nM400\nG1 X130 E0.4\nM109 S200\n"
+            "G1 X10 Y10 E1 F3000\r\nG1 X15 Y10 E0.2\r\n"
+            "SET_VELOCITY_LIMIT ACCEL=1000\nG1 X20 Y20 E1\nG92 X0 Y0\n"
+            "G1 X5 Y5 E0.5\nG28\nG1 X1 Y1 E1\n")
+    assert_same(text.encode())
+    assert_same(text.encode(), chunk_bytes=13)
+
+
+def test_bad_input_fails_with_the_reference_message():
+    for text in ("G1 X10 F0", "G1 X10\nG1 X100000000000", "G1 X1.2.3",
+                 "G92 E-", "M83\nG1 X1 E5 F600", "M83\nG1 E60 F600",
+                 "G1 X1\n\x00\x01G1\n", "G1 X\xff\n"):
+        data = text.encode("latin-1")
+        with pytest.raises(FlowloopError) as ours:
+            fast(data, PrinterLimits())
+        with pytest.raises(FlowloopError) as theirs:
+            reference(data, PrinterLimits())
+        assert str(ours.value) == str(theirs.value)
+
+
+def test_min_plus_is_the_sequential_recurrence():
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        n = int(rng.integers(1, 300))
+        a = rng.choice([0.0, 25.0, 1e4, 999999999.9], n) * rng.random(n)
+        add = rng.random(n) * rng.choice([1.0, 3000.0, 1e6], n)
+        x0 = float(rng.random() * 100)
+        x, out = x0, []
+        for ai, di in zip(a.tolist(), add.tolist()):
+            x = min(ai, x + di)
+            out.append(x)
+        assert fastplan.min_plus(a, add, x0).tolist() == out
+
+
+number = st.floats(min_value=-120, max_value=120, allow_nan=False).map(
+    lambda v: f"{v:.3f}".rstrip("0").rstrip("."))
+word = st.tuples(st.sampled_from("XYZEF"), number).map(
+    lambda w: w[0] + (w[1].lstrip("-") if w[0] == "F" else w[1]))
+line = st.one_of(
+    st.lists(word, min_size=0, max_size=5).map(lambda ws: " ".join(["G1"] + ws)),
+    st.lists(word, min_size=1, max_size=3).map(lambda ws: " ".join(["G0"] + ws)),
+    st.sampled_from(["G92 E0", "G92 E1.5", "G92 X0 Y0", "M82", "M83", "G90",
+                     "G91", "G10", "G11", "M106 S255", "; comment", "",
+                     "M221 S95", "M220 S110", "G4 P50", "M400", "G1 E-1 F2400",
+                     "G1 E1", "G1 Z0.4", "G1 F600", "G2 X10 Y10 I5 J0",
+                     "M109 S210", "G1 X1 ; c", "SET_VELOCITY_LIMIT ACCEL=500"]))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(line, min_size=1, max_size=60), st.integers(1, 400),
+       st.sampled_from([0.0, 0.5, 0.9]))
+def test_any_file_gives_the_reference_plan_at_any_chunk_size(lines, chunk, mcr):
+    limits = PrinterLimits(max_velocity=300, max_accel=3000, minimum_cruise_ratio=mcr,
+                           retract_length=1.0, max_extrude_cross_section=1e6,
+                           max_extrude_only_distance=1e4)
+    data = ("G90\n" + "\n".join(lines) + "\n").encode()
+    try:
+        expected = reference(data, limits)
+    except FlowloopError as e:
+        with pytest.raises(FlowloopError) as ours:
+            fast(data, limits, chunk)
+        assert str(ours.value) == str(e)
+        return
+    ours = fast(data, limits, chunk)
+    assert [tuple(e) for e in ours] == [tuple(e) for e in expected]
