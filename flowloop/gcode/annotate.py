@@ -24,7 +24,7 @@ file processor), so annotating twice changes nothing; the last line sums up
 
 from __future__ import annotations
 
-import collections
+import bisect
 import math
 import os
 import re
@@ -32,10 +32,13 @@ import shutil
 import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import BinaryIO, Deque, Iterable, Optional, Tuple
+from typing import BinaryIO, Iterable, List, Optional, Tuple, Union
+
+import numpy as np
 
 from ..errors import FlowloopError
-from .planner import Barrier, Event, PrinterLimits, plan_file
+from .fastplan import Segments, plan_batches
+from .planner import Barrier, Event, PrinterLimits
 
 FORMAT_VERSION = 1
 DEFAULT_LEAD_S = 60.0
@@ -119,6 +122,43 @@ class _Window:
         self.insert_time_s = insert_time_s
 
 
+class _Candidates:
+    """(print time, byte offset) of the lines a command may go before, in
+    time order; the ones before the last useful one are dropped."""
+
+    def __init__(self, time_s: float, offset: int):
+        self.times: List[float] = [time_s]
+        self.offsets: List[int] = [offset]
+        self.head = 0
+
+    def reset(self, time_s: float, offset: int) -> None:
+        self.__init__(time_s, offset)
+
+    @property
+    def last_offset(self) -> int:
+        return self.offsets[-1]
+
+    def add(self, time_s: float, offset: int) -> None:
+        self.times.append(time_s)
+        self.offsets.append(offset)
+
+    def add_many(self, times: np.ndarray, offsets: np.ndarray) -> None:
+        self.times.extend(times.tolist())
+        self.offsets.extend(offsets.tolist())
+
+    def first(self) -> Tuple[float, int]:
+        return self.times[self.head], self.offsets[self.head]
+
+    def prune(self, target_s: float) -> None:
+        """Keep from the last line at or before target_s (at least one)."""
+        last = bisect.bisect_right(self.times, target_s, self.head) - 1
+        if last > self.head:
+            self.head = last
+        if self.head > 256 and self.head * 2 > len(self.times):
+            del self.times[:self.head], self.offsets[:self.head]
+            self.head = 0
+
+
 class _Annotator:
     """Windows from planner events, each placed at a line of the file."""
 
@@ -129,9 +169,9 @@ class _Annotator:
         self.out = out
         self.newline = newline
         self.copied = 0                  # bytes of src written to out
-        # (print time, byte offset) of lines a command may go before: move
-        # lines, the file's first line and the line after each barrier
-        self.candidates: Deque[Tuple[float, int]] = collections.deque([(0.0, 0)])
+        # lines a command may go before: move lines, the file's first line
+        # and the line after each barrier
+        self.candidates = _Candidates(0.0, 0)
         self.bin_start = 0.0
         self.bin_peak = 0.0
         self.pending: Optional[_Window] = None
@@ -144,8 +184,8 @@ class _Annotator:
     # --- windows ------------------------------------------------------------------
 
     def segment(self, seg) -> None:
-        if not self.candidates or self.candidates[-1][1] != seg.offset:
-            self.candidates.append((seg.start_s, seg.offset))
+        if self.candidates.last_offset != seg.offset:
+            self.candidates.add(seg.start_s, seg.offset)
         self._advance_to(seg.start_s)
         window = self.settings.window_s
         end = seg.start_s + seg.duration_s
@@ -190,26 +230,104 @@ class _Annotator:
         offset, time_s = self._place(start)
         self.pending = _Window(start, end_s, flow, offset, time_s)
 
+    def segments(self, batch: Segments) -> None:
+        """segment() for each of a batch of consecutive segments, at once:
+        the peak of each window they cross, then the windows closed in order."""
+        start, duration, flow = batch.start_s, batch.duration_s, batch.flow_mm3_s
+        n = len(start)
+        if not n:
+            return
+        offsets = batch.offset
+        new_line = np.empty(n, bool)
+        new_line[0] = offsets[0] != self.candidates.last_offset
+        new_line[1:] = offsets[1:] != offsets[:-1]
+        self.candidates.add_many(start[new_line], offsets[new_line])
+        self._advance_to(float(start[0]))
+        end = start + duration
+        window = self.settings.window_s
+        last_end = float(end[-1])
+        count = int((last_end - self.bin_start) / window) + 3
+        edges = np.cumsum(np.concatenate(([self.bin_start], np.full(count, window))))
+        while edges[-1] < last_end:     # never short of the last segment
+            more = np.cumsum(np.concatenate(([edges[-1]], np.full(count, window))))
+            edges = np.concatenate((edges, more[1:]))
+        first = np.maximum(np.searchsorted(edges, start, "right") - 1, 0)
+        last = np.maximum(np.searchsorted(edges, end, "left") - 1, first)
+        spans = last - first + 1
+        seg = np.repeat(np.arange(n), spans)
+        steps = np.arange(len(seg)) - np.repeat(np.cumsum(spans) - spans, spans)
+        bins = first[seg] + steps
+        peaks = _peak_flow_between(batch, seg, edges[bins], edges[bins + 1])
+        bounds = np.flatnonzero(np.concatenate(([True], bins[1:] != bins[:-1])))
+        bin_peak = np.maximum.reduceat(peaks, bounds)
+        bin_index = bins[bounds]
+        final = int(last[-1])
+        top = float(flow.max())
+        if top > self.peak:
+            self.peak = top
+        raw = np.zeros(final + 1)
+        raw[bin_index] = bin_peak
+        raw[0] = max(raw[0], self.bin_peak)
+        self._close_bins(edges[:final + 1], raw[:final])
+        self.bin_start, self.bin_peak = float(edges[final]), float(raw[final])
+        self.end_s = max(self.end_s, last_end)
+
+    def _close_bins(self, edges: np.ndarray, peaks: np.ndarray) -> None:
+        """_close_bin for bins edges[k]..edges[k+1] with raw peaks[k], in
+        order: a run of bins that only lengthens the pending window is
+        taken at once."""
+        count = len(peaks)
+        if not count:
+            return
+        steps = np.ceil(peaks / FLOW_STEP_MM3_S - 1e-6)
+        flows = np.maximum(steps, 0.0) * FLOW_STEP_MM3_S
+        ends = edges[1:]
+        lead = self.settings.lead_s
+        # where the flow changes: a run of equal flows ends before it
+        change = np.flatnonzero(flows[1:] != flows[:-1]) + 1
+        run_end = np.append(change, count)
+        flow_list, edge_list = flows.tolist(), edges.tolist()
+        k = 0
+        if not self.started:
+            zeros = np.flatnonzero(flows != 0.0)
+            lead_in = int(zeros[0]) if zeros.size else count
+            if lead_in:
+                self._prune(edge_list[lead_in] - self.settings.placement_s)
+                k = lead_in
+        while k < count:
+            self.bin_start, self.bin_peak = edge_list[k], 0.0
+            p = self.pending
+            if p is not None and p.flow == flow_list[k] \
+                    and p.end_s == edge_list[k]:
+                stop = int(run_end[np.searchsorted(run_end, k, "right")])
+                fits = (ends[k:stop] - p.start_s) <= lead
+                n = int(fits.argmin()) if not fits.all() else stop - k
+                if n:
+                    p.end_s = edge_list[k + n]
+                    k += n
+                    continue
+            self.bin_peak = peaks[k]
+            self._close_bin(edge_list[k + 1])
+            k += 1
+        self.bin_start, self.bin_peak = edge_list[count], 0.0
+
     def _place(self, window_start_s: float) -> Tuple[int, float]:
         """The last line at least placement_s before the window (or the first
         one left, just after a barrier or at the start)."""
         self._prune(window_start_s - self.settings.placement_s)
-        time_s, offset = self.candidates[0]
+        time_s, offset = self.candidates.first()
         return offset, time_s
 
     def _prune(self, target_s: float) -> None:
         """Forget move lines before the last one at or before target_s."""
-        cands = self.candidates
-        while len(cands) > 1 and cands[1][0] <= target_s:
-            cands.popleft()
+        self.candidates.prune(target_s)
 
     def barrier(self, barrier: Barrier) -> None:
         self._advance_to(barrier.time_s)
         if barrier.time_s > self.bin_start:
             self._close_bin(barrier.time_s)
         self._finish_pending()
-        self.candidates.clear()
-        self.candidates.append((barrier.time_s, barrier.offset))
+        self.candidates.reset(barrier.time_s, barrier.offset)
         self.bin_start, self.bin_peak = barrier.time_s, 0.0
 
     def finish(self) -> None:
@@ -251,7 +369,26 @@ class _Annotator:
                 want -= len(chunk)
 
 
-def annotate_stream(events: Iterable[Event], src: BinaryIO, out: BinaryIO,
+def _peak_flow_between(batch: Segments, seg: np.ndarray, t0: np.ndarray,
+                       t1: np.ndarray) -> np.ndarray:
+    """planner.Segment.peak_flow_between for segments seg over [t0, t1]."""
+    s, d = batch.start_s[seg], batch.duration_s[seg]
+    flow, accel, decel = batch.flow_mm3_s[seg], batch.accel_s[seg], batch.decel_s[seg]
+    a = np.maximum(t0, s) - s
+    b = np.minimum(t1, s + d) - s
+    cruise_end = d - decel
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rising = batch.start_flow_mm3_s[seg] + (
+            flow - batch.start_flow_mm3_s[seg]) * b / accel
+        falling = flow - (flow - batch.end_flow_mm3_s[seg]) * (
+            (a - cruise_end) / decel)
+    out = np.where(b < accel, rising, falling)
+    out = np.where((a <= cruise_end) & (b >= accel), flow, out)
+    return np.where(b < a, 0.0, out)
+
+
+def annotate_stream(events: Iterable[Union[Event, Segments]], src: BinaryIO,
+                    out: BinaryIO,
                     settings: AnnotateSettings = AnnotateSettings(),
                     newline: bytes = b"\n") -> Summary:
     """Write src to out with annotations; events are src's planner events.
@@ -263,6 +400,8 @@ def annotate_stream(events: Iterable[Event], src: BinaryIO, out: BinaryIO,
     for event in events:
         if isinstance(event, Barrier):
             a.barrier(event)
+        elif isinstance(event, Segments):
+            a.segments(event)
         else:
             a.segment(event)
     a.finish()
@@ -326,7 +465,7 @@ def annotate_file(src: Path, dst: Optional[Path] = None,
         nonlocal summary
         with open(src, "rb") as lines, open(src, "rb") as copy:
             try:
-                summary = annotate_stream(plan_file(lines, limits), copy, out,
+                summary = annotate_stream(plan_batches(lines, limits), copy, out,
                                           settings, newline)
             except FlowloopError as e:
                 raise FlowloopError(f"{src}: {e}") from None

@@ -43,7 +43,8 @@ from .annotate import (
     _replace_atomically,
     is_annotated,
 )
-from .planner import Barrier, PrinterLimits, plan_file
+from .fastplan import plan_file
+from .planner import Barrier, PrinterLimits
 
 BAKE_STEP_S = 0.5
 _ANNOUNCEMENT = re.compile(

@@ -646,11 +646,16 @@ def _axis_positions(vals, is_move, last0, base0, absolute):
     bases = [base0]
     cur_last, cur_base, prev = last0, base0, 0
     move_rows = np.flatnonzero(moves)
-    for i in g92.tolist():
-        k = np.searchsorted(move_rows, i) - 1
-        if k >= 0 and move_rows[k] >= prev:
-            cur_last = float(vals[move_rows[k]]) + cur_base
-        cur_base = cur_last - float(vals[i])
+    before = np.searchsorted(move_rows, g92) - 1
+    last_move = np.full(len(g92), -1)
+    if move_rows.size:
+        last_move = np.where(before >= 0, move_rows[np.maximum(before, 0)], -1)
+    for i, k, v, o in zip(g92.tolist(), last_move.tolist(),
+                          vals[np.maximum(last_move, 0)].tolist(),
+                          vals[g92].tolist()):
+        if k >= prev:
+            cur_last = v + cur_base
+        cur_base = cur_last - o
         bases.append(cur_base)
         prev = i
     epoch = np.searchsorted(g92, np.arange(len(vals)), "right")
@@ -661,39 +666,40 @@ def _axis_positions(vals, is_move, last0, base0, absolute):
 def _read_numbers(buf, start, length, width):
     """The numbers after each word's letter ([-+]digits[.digits]) as float()
     reads them, and whether the word is one. An integer mantissa below 2^53
-    divided by an exact power of ten is the correctly rounded value, which
-    is float()'s; longer mantissas are read by numpy's own parser."""
+    (exact in float64) divided by an exact power of ten is the correctly
+    rounded value, which is float()'s; longer mantissas are read by float()."""
     n = len(start)
-    mantissa = np.zeros(n, np.int64)
+    mantissa = np.zeros(n)
     frac = np.zeros(n, np.int64)
     digits = np.zeros(n, np.int64)
     dots = np.zeros(n, np.int64)
-    negative = np.zeros(n, bool)
-    ok = np.ones(n, bool)
+    bad = np.zeros(n, bool)
+    negative = None
     for c in range(1, width):
-        inside = c < length
+        inside = length > c
         ch = buf[start + c]
-        is_digit = inside & (ch >= 48) & (ch <= 57)
-        is_dot = inside & (ch == 46)
+        value = ch - np.uint8(48)
+        is_digit = (value < 10) & inside
+        is_dot = (ch == 46) & inside
         if c == 1:
-            negative = inside & (ch == 45)
-            sign = negative | (inside & (ch == 43))
-            ok &= ~inside | is_digit | is_dot | sign
+            negative = (ch == 45) & inside
+            bad |= inside & ~(is_digit | is_dot | negative | (ch == 43))
         else:
-            ok &= ~inside | is_digit | is_dot
-        mantissa = np.where(is_digit, mantissa * 10 + (ch.astype(np.int64) - 48),
-                            mantissa)
+            bad |= inside & ~(is_digit | is_dot)
+        mantissa = np.where(is_digit, mantissa * 10.0 + value, mantissa)
         frac += is_digit & (dots > 0)
         digits += is_digit
         dots += is_dot
-    ok &= (digits > 0) & (dots <= 1)
-    exact = ok & (digits <= 15) & (frac <= 22)
-    values = mantissa / 10.0 ** frac
-    values = np.where(negative, -values, values)
-    slow = np.flatnonzero(ok & ~exact)
-    for i in slow.tolist():
+    ok = ~bad & (digits > 0) & (dots <= 1)
+    values = mantissa / _POWERS[np.minimum(frac, 22)]
+    if negative is not None:
+        values = np.where(negative, -values, values)
+    for i in np.flatnonzero(ok & (digits > 15)).tolist():
         values[i] = float(bytes(buf[start[i] + 1:start[i] + length[i]]))
     return values, ok
+
+
+_POWERS = 10.0 ** np.arange(23)
 
 
 def _ascii_plain(buf: np.ndarray) -> np.ndarray:

@@ -22,6 +22,7 @@ from flowloop.gcode.annotate import (
     annotate_file,
     annotate_stream,
 )
+from flowloop.gcode.fastplan import plan_batches
 from flowloop.gcode.planner import Barrier, Segment, plan_file
 
 pytestmark = pytest.mark.unit
@@ -339,28 +340,70 @@ def test_announcements_cover_the_flow_of_any_file(moves, lead_window):
 
 
 
+
+def annotated_by(events, data: bytes, settings_: AnnotateSettings) -> bytes:
+    out = io.BytesIO()
+    annotate_stream(events, io.BytesIO(data), out, settings_)
+    return out.getvalue()
+
+
+@settings(max_examples=80, deadline=None)
+@given(steps, st.sampled_from([(4.0, 0.5), (15.0, 1.0), (8.0, 3.0), (2.0, 0.1)]),
+       st.integers(20, 2000))
+def test_windows_taken_in_bulk_are_the_ones_taken_one_move_at_a_time(
+        moves, lead_window, chunk_bytes):
+    lines, x = ["M83"], 0.0
+    for i, (length, e_per_mm, feed, extra) in enumerate(moves):
+        x = x + length if i % 2 else x - length
+        lines.append(f"G1 X{x:.3f} Y{i * 0.5:.1f} E{length * e_per_mm:.4f} F{feed}")
+        if extra:
+            lines.append(extra)
+    data = "\n".join(lines).encode() + b"\n"
+    settings_ = AnnotateSettings(*lead_window)
+    one_by_one = annotated_by(plan_file(io.BytesIO(data)), data, settings_)
+    in_bulk = annotated_by(plan_batches(io.BytesIO(data), chunk_bytes=chunk_bytes),
+                           data, settings_)
+    assert in_bulk == one_by_one
+
+
+@pytest.mark.parametrize("lead_window", [(60.0, 1.0), (10.0, 0.3), (2.0, 0.1)])
+@pytest.mark.parametrize("name", ["block_layers_1_2.gcode", "box_bridge_layer.gcode"])
+def test_a_real_file_annotated_in_bulk_is_annotated_as_one_move_at_a_time(
+        name, lead_window):
+    data = (DATA / name).read_bytes()
+    settings_ = AnnotateSettings(*lead_window)
+    one_by_one = annotated_by(plan_file(io.BytesIO(data)), data, settings_)
+    for chunk_bytes in (1 << 20, 3000):
+        in_bulk = annotated_by(plan_batches(io.BytesIO(data), chunk_bytes=chunk_bytes),
+                               data, settings_)
+        assert in_bulk == one_by_one
+
+
 class Discard:
     def write(self, data: bytes) -> int:
         return len(data)
 
 
-def peak_memory_annotating(data: bytes) -> int:
+def peak_memory_annotating(data: bytes, plan) -> int:
     import tracemalloc
     lines, src = io.BytesIO(data), io.BytesIO(data)
     tracemalloc.start()
     try:
-        annotate_stream(plan_file(lines), src, Discard())
+        annotate_stream(plan(lines), src, Discard())
         return tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
 
 
+@pytest.mark.parametrize("plan", [
+    plan_file, lambda f: plan_batches(f, chunk_bytes=4096)],
+    ids=["line by line", "in chunks"])
 @pytest.mark.parametrize("extruding", [False, True])
-def test_memory_does_not_grow_with_the_file(extruding):
+def test_memory_does_not_grow_with_the_file(extruding, plan):
     def file(lines: int) -> bytes:
         e = " E0.05" if extruding else ""
         return b"M83\n" + b"".join(f"G1 X{i % 2 * 10} Y{i % 7}{e} F3000\n".encode()
                                    for i in range(lines))
-    small = peak_memory_annotating(file(800))
-    large = peak_memory_annotating(file(8000))
+    small = peak_memory_annotating(file(2000), plan)
+    large = peak_memory_annotating(file(20000), plan)
     assert large < 1.5 * small
