@@ -169,6 +169,8 @@ class _Annotator:
         self.out = out
         self.newline = newline
         self.copied = 0                  # bytes of src written to out
+        self.block = memoryview(b"")     # of src, from byte block_start
+        self.block_start = 0
         # lines a command may go before: move lines, the file's first line
         # and the line after each barrier
         self.candidates = _Candidates(0.0, 0)
@@ -281,11 +283,10 @@ class _Annotator:
             return
         steps = np.ceil(peaks / FLOW_STEP_MM3_S - 1e-6)
         flows = np.maximum(steps, 0.0) * FLOW_STEP_MM3_S
-        ends = edges[1:]
         lead = self.settings.lead_s
         # where the flow changes: a run of equal flows ends before it
         change = np.flatnonzero(flows[1:] != flows[:-1]) + 1
-        run_end = np.append(change, count)
+        run_end = np.append(change, count).tolist()
         flow_list, edge_list = flows.tolist(), edges.tolist()
         k = 0
         if not self.started:
@@ -299,9 +300,17 @@ class _Annotator:
             p = self.pending
             if p is not None and p.flow == flow_list[k] \
                     and p.end_s == edge_list[k]:
-                stop = int(run_end[np.searchsorted(run_end, k, "right")])
-                fits = (ends[k:stop] - p.start_s) <= lead
-                n = int(fits.argmin()) if not fits.all() else stop - k
+                stop = run_end[bisect.bisect_right(run_end, k)]
+                # bins k.. while the window stays within the lead (end - start
+                # grows with the end: the ones that fit come first)
+                lo, hi = k, stop
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if edge_list[mid + 1] - p.start_s <= lead:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                n = lo - k
                 if n:
                     p.end_s = edge_list[k + n]
                     k += n
@@ -356,17 +365,22 @@ class _Annotator:
         self.out.write(line.encode() + self.newline)
 
     def copy_to(self, offset: Optional[int]) -> None:
-        """Copy the source up to byte offset (None: to its end)."""
-        want = None if offset is None else offset - self.copied
-        while want is None or want > 0:
-            chunk = self.src.read(1 << 20 if want is None else min(want, 1 << 20))
-            if not chunk:
-                break
-            self.out.write(chunk)
-            self.copied += len(chunk)
-            self.last_byte = chunk[-1:]
-            if want is not None:
-                want -= len(chunk)
+        """Copy the source up to byte offset (None: to its end), read in
+        blocks of a MB."""
+        while offset is None or self.copied < offset:
+            at = self.copied - self.block_start
+            if at >= len(self.block):
+                self.block_start += len(self.block)
+                self.block = memoryview(self.src.read(1 << 20))
+                if not self.block:
+                    break
+                at = 0
+            stop = len(self.block) if offset is None \
+                else min(len(self.block), offset - self.block_start)
+            piece = self.block[at:stop]
+            self.out.write(piece)
+            self.copied += len(piece)
+            self.last_byte = bytes(piece[-1:])
 
 
 def _peak_flow_between(batch: Segments, seg: np.ndarray, t0: np.ndarray,
