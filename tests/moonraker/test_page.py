@@ -36,13 +36,24 @@ max_flow: 9
 
 [autotemp]
 
-[heater_bed]
-heater_pin: PH5
+# a second extruder with no sensor and no profile: the page says so
+[extruder1]
+step_pin: PC1
+dir_pin: PC3
+enable_pin: !PC7
+microsteps: 16
+rotation_distance: 33.5
+nozzle_diameter: 0.400
+filament_diameter: 1.750
+heater_pin: PH6
 sensor_type: EPCOS 100K B57560G104F
-sensor_pin: PK6
-control: watermark
+sensor_pin: PK7
+control: pid
+pid_Kp: 22.2
+pid_Ki: 1.08
+pid_Kd: 114
 min_temp: 0
-max_temp: 110
+max_temp: 260
 """
 
 
@@ -196,3 +207,77 @@ def test_the_page_shows_the_printer_objects_numbers_live(printer, browser):
     if shot:
         Path(shot).parent.mkdir(parents=True, exist_ok=True)
         browser.save_screenshot(shot)
+
+
+def print_file(ps, name):
+    ps.gcode(f"SDCARD_PRINT_FILE FILENAME={name}")
+    done = stack.wait_until(
+        lambda: ps.query("print_stats").get("state") in ("complete", "error"), 60)
+    assert done, ps.query("print_stats")
+
+
+def test_the_printed_files_plan_shows_with_the_position_marked(printer, browser):
+    browser.get(page_url(printer))
+    wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
+    assert "No file is being printed" in message(browser, "plan-chart")
+    print_file(printer, "annotated.gcode")
+    wait_for(browser, "!!document.querySelector('#plan-chart canvas')")
+    assert message(browser, "plan-chart") == ""
+    assert "annotated.gcode" in js(
+        browser, "return document.getElementById('plan-name').textContent")
+    # the whole file ran in batch mode: the mark is at its last announcement
+    plan = printer.moonraker.request(
+        "GET", "/server/flowloop/page/plan?filename=annotated.gcode")[1]["result"]
+    assert plan["annotated"] is True and plan["why"] is None
+    position = float(wait_for(
+        browser, "document.getElementById('plan-chart').dataset.position"))
+    assert position == pytest.approx(plan["positions"][-1][1])
+    print_file(printer, "plain.gcode")
+    wait_for(browser, "document.getElementById('plan-chart').dataset.message"
+                      ".includes('plain.gcode has no autotemp annotations')")
+    assert severe_console(browser) == []
+
+
+def test_the_page_carries_on_after_klippy_restarts(printer, browser):
+    browser.get(page_url(printer))
+    wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
+    status, body = printer.moonraker.request("POST", "/printer/restart")
+    assert status == 200, body
+    wait_for(browser, "document.getElementById('connection').dataset.state != 'live'")
+    printer.moonraker.wait_ready(klippy=True)
+    wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
+    printer.gcode("SET_AUTOTEMP ENABLE=0\n"
+                  "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=201")
+    wait_for(browser, f"+{FIELD.format('target')}.dataset.value == 201")
+    before = int(js(browser, "return document.getElementById('flow-chart')"
+                             ".dataset.samples"))
+    wait_for(browser, f"+document.getElementById('flow-chart').dataset.samples"
+                      f" > {before}")
+    assert severe_console(browser) == []
+
+
+def test_bad_input_is_said_where_the_chart_would_be(printer, browser):
+    browser.get(page_url(printer, "extruder7"))
+    wait_for(browser, "document.getElementById('flow-chart').dataset.message")
+    for chart in ("flow-chart", "temp-chart", "profile-chart", "plan-chart"):
+        assert "This printer has no [extruder7]: its extruders are extruder, " \
+               "extruder1." == message(browser, chart)
+    browser.get(page_url(printer, "extruder1"))
+    wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
+    assert message(browser, "flow-chart").startswith(
+        "No [flow_sensor] watches extruder1")
+    assert message(browser, "temp-chart") == ""
+    wait_for(browser, "document.getElementById('profile-chart').dataset.message")
+    assert message(browser, "profile-chart").startswith(
+        "No active profile for extruder1")
+    assert field(browser, "grip") == ""
+    # the active profile deleted while the page shows it
+    activate_profile(printer, "short-lived")
+    browser.get(page_url(printer))
+    wait_for(browser, "!!document.querySelector('#profile-chart canvas')")
+    status, body = printer.moonraker.request(
+        "DELETE", "/server/flowloop/profile?name=short-lived")
+    assert status == 200, body
+    wait_for(browser, "document.getElementById('profile-chart').dataset.message"
+                      ".startsWith('No active profile for extruder')")
+    assert severe_console(browser) == []
