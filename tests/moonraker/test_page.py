@@ -281,3 +281,46 @@ def test_bad_input_is_said_where_the_chart_would_be(printer, browser):
     wait_for(browser, "document.getElementById('profile-chart').dataset.message"
                       ".startsWith('No active profile for extruder')")
     assert severe_console(browser) == []
+
+
+@pytest.fixture(scope="module")
+def locked(moonraker_venv):
+    """A Moonraker that trusts no client (trusted_clients names another host),
+    and its API key, read while it still trusted this one (GET /access/api_key,
+    what a user does from a trusted machine)."""
+    data_dir = stack.short_tempdir("fl-page-auth-")
+    try:
+        with stack.printer_stack(with_klippy=False, data_dir=data_dir) as ps:
+            status, body = ps.moonraker.request("GET", "/access/api_key")
+            assert status == 200, body
+            key = body["result"]
+        with stack.printer_stack(with_klippy=False, data_dir=data_dir,
+                                 trusted="192.0.2.1") as ps:
+            yield ps, key
+    finally:
+        shutil.rmtree(data_dir, ignore_errors=True)
+
+
+def test_without_authorization_the_page_shows_nothing(locked, browser):
+    ps, _ = locked
+    for path in ("/server/flowloop/page/", "/server/flowloop/page/lines",
+                 "/server/flowloop/page/plan?filename=x.gcode"):
+        assert ps.moonraker.request("GET", path)[0] == 401, path
+    browser.get(page_url(ps) + "#api_key=wrong")
+    assert "Unauthorized" in page_state(browser)
+    assert js(browser, "return document.getElementById('readout')") is None
+
+
+def test_an_api_key_opens_the_page_where_moonraker_asks_for_one(locked, browser):
+    ps, key = locked
+    status, body = ps.moonraker.request("GET", "/access/oneshot_token",
+                                        headers={"X-Api-Key": key})
+    assert status == 200, body
+    # the oneshot token authorises the page's one request; the key in the
+    # fragment (never sent to a server) the page's websocket
+    browser.get(page_url(ps) + f"?token={body['result']}#api_key={key}")
+    state = wait_for(browser, "document.getElementById('connection').dataset.state"
+                              " == 'waiting' && document.body.innerText")
+    assert "klippy is" in state  # Moonraker answered: no klippy behind it
+    assert key not in browser.current_url  # taken out of the address
+    browser.execute_script("localStorage.clear()")
