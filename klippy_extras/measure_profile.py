@@ -39,7 +39,14 @@ class MeasurementStopped(Exception):
 class FixedPowerControl:
     """A heater control that holds one PWM (runs in the heater's thread:
     no reactor or G-code calls). On every reading it applies the watchdog's
-    temperature and host rules and cuts the power if one says stop."""
+    temperature and host rules and cuts the power if one says stop.
+
+    Klipper's heater calls temperature_update and check_busy; Kalico's
+    calls more of its control (get_profile, get_type, check_valid,
+    update_smooth_time, a second sensor's temperature): those answer as
+    Kalico's own calibration controls do, and a host that never calls them
+    loses nothing."""
+    KIND = 'fixed_power'
 
     def __init__(self, heater, pwm, limits):
         self.heater = heater
@@ -48,7 +55,9 @@ class FixedPowerControl:
         self.heartbeat = None    # print time of the reactor's last heartbeat
         self.stopped = None      # why the power was cut (the reactor reports)
 
-    def temperature_update(self, read_time, temp, target_temp):
+    def temperature_update(self, read_time, temp, target_temp,
+                           secondary_temp=None):
+        # (Kalico's dual-sensor heaters pass secondary_temp; not used)
         if self.stopped is None:
             self.stopped = (watchdog.temperature_stop(self.limits, temp)
                             or watchdog.host_stop(self.limits, read_time,
@@ -57,6 +66,20 @@ class FixedPowerControl:
 
     def check_busy(self, eventtime, smoothed_temp, target_temp):
         return False
+
+    # --- what Kalico's heaters ask of a control --------------------------------
+    def get_profile(self):
+        # Not a PID profile: PID_PROFILE SAVE refuses it, GET lists it
+        return {'name': self.KIND, 'control': self.KIND}
+
+    def get_type(self):
+        return self.KIND
+
+    def check_valid(self):
+        pass     # a fixed power needs no model constants
+
+    def update_smooth_time(self, *args):
+        pass     # no smoothing: the power is fixed
 
 
 class MeasureProfile:

@@ -149,6 +149,10 @@ def test_a_run_stopped_mid_ramp_stores_nothing_and_gives_the_heater_back(
                                 and s), 300, 0.2)
         assert "heater_pwm" in held, (held, watcher.status())
         assert 0 < held["heater_pwm"] < 1
+        # the host's heater answers with the fixed power swapped in (Kalico
+        # asks its control for a profile name in every status)
+        extruder = watcher.query("extruder")
+        assert extruder.get("pid_profile", "fixed_power") == "fixed_power"
         watcher.call(stop, **({"fault": "missing"} if "fault" in stop else {}))
         thread.join(300)
     finally:
