@@ -136,6 +136,16 @@ def test_an_installed_release_links_everything_a_checkout_links(dists, form,
         _run([flowloop, cmd, "-o", gcode], cwd=tmp_path)
         assert gcode.stat().st_size > 1000
 
+    # the live page's files (the component serves them from the package)
+    page = PROJECT / "flowloop" / "host" / "page"
+    for asset in sorted(page.iterdir()):
+        assert (package / "host" / "page" / asset.name).read_bytes() == \
+            asset.read_bytes(), asset.name
+    out = _run([tmp_path / "venv" / "bin" / "python", "-c",
+                "from flowloop.host import live_page; "
+                "print(live_page.document().count(b'<script>'))"], cwd=tmp_path)
+    assert out.strip() == "2"
+
 
 def test_the_sdist_carries_the_host_files_and_no_build_leftovers(dists):
     import tarfile
