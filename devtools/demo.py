@@ -126,7 +126,8 @@ def main(argv=None) -> int:
             if data_dir else f"removed when the demo stops (set {DATA_ENV}=DIR "
                              f"or --data-dir DIR to keep it)"))
         print(f"  GET {printer.moonraker.url}/server/flowloop/info")
-        print("  " + describe(body["result"]).replace("\n", "\n  "))
+        print("  " + describe(body["result"], printer.moonraker.url).replace(
+            "\n", "\n  "))
         failed = run_steps(DemoContext(printer), args.step)
         if failed:
             print(f"\n!!! {failed} demo step(s) failed (see above)")

@@ -20,5 +20,6 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     info = fetch_info(args.moonraker)
-    print(json.dumps(info, indent=2) if args.json else describe(info))
+    print(json.dumps(info, indent=2) if args.json
+          else describe(info, args.moonraker))
     return 0

@@ -5,8 +5,17 @@ from __future__ import annotations
 import json
 import urllib.error
 import urllib.request
+from typing import Optional
 
 from ..errors import FlowloopError
+
+# Where the component serves the live page (flowloop.host.live_page).
+PAGE_PATH = "/server/flowloop/page/"
+
+
+def page_url(moonraker_url: str) -> str:
+    """Where a browser opens the live page of the Moonraker at moonraker_url."""
+    return moonraker_url.rstrip("/") + PAGE_PATH
 
 
 def fetch_info(url: str, timeout: float = 5.0) -> dict:
@@ -24,8 +33,11 @@ def fetch_info(url: str, timeout: float = 5.0) -> dict:
         raise FlowloopError(f"{url}: cannot reach Moonraker ({e})") from None
 
 
-def describe(info: dict) -> str:
+def describe(info: dict, moonraker_url: Optional[str] = None) -> str:
+    """What Moonraker answered, in words; with its URL, where the live page is."""
     lines = [f"flowloop {info['version']} in Moonraker"]
+    if moonraker_url is not None:
+        lines.append(f"live page: {page_url(moonraker_url)}")
     active = info.get("active_profiles") or {}
     lines.append(f"profiles: {info.get('profiles', 0)} stored; active: " + (", ".join(
         f"{ext} {json.dumps(entry['name'])} at working point {entry['working_point']:g}"

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
 
 from flowloop.errors import FlowloopError
+from flowloop.host import info as host_info
 from flowloop.host import live_page
 from flowloop.material import profile as fl_profile
 
@@ -31,7 +32,7 @@ from .store import ProfileStore
 if TYPE_CHECKING:
     from ...server import Server
 
-PAGE_PATH = "/server/flowloop/page/"
+PAGE_PATH = host_info.PAGE_PATH
 
 
 class Page:

@@ -14,6 +14,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -324,3 +326,13 @@ def test_an_api_key_opens_the_page_where_moonraker_asks_for_one(locked, browser)
     assert "klippy is" in state  # Moonraker answered: no klippy behind it
     assert key not in browser.current_url  # taken out of the address
     browser.execute_script("localStorage.clear()")
+
+
+def test_flowloop_info_prints_the_address_that_serves_the_page(printer):
+    out = subprocess.run([sys.executable, "-m", "flowloop", "info", "--moonraker",
+                          printer.moonraker.url], capture_output=True, text=True,
+                         check=True).stdout
+    (line,) = [x for x in out.splitlines() if x.startswith("live page: ")]
+    url = line.split(": ", 1)[1]
+    status, body = printer.moonraker.request("GET", url[len(printer.moonraker.url):])
+    assert status == 200 and "<title>flowloop live</title>" in body

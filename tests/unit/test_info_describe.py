@@ -32,3 +32,10 @@ def test_info_without_klippy_or_profiles():
     assert text.splitlines() == ["flowloop 0.1.0 in Moonraker",
                                  "profiles: 0 stored; active: none",
                                  "klippy: not connected"]
+
+
+def test_info_given_the_moonraker_url_names_the_live_page():
+    text = describe(INFO, "http://printer.local:7125/")
+    assert text.splitlines()[1] == \
+        "live page: http://printer.local:7125/server/flowloop/page/"
+    assert "live page" not in describe(INFO)
