@@ -14,7 +14,8 @@ times faster, for the annotator that runs on every upload:
   arrays; the lookahead's recurrences on squared speeds
   (x[i] = min(a[i], x[i-1] + d[i])) are solved in closed form with one
   minimum.accumulate and then relaxed to the exact sequential float result,
-  so a tie decides as it does in Klipper;
+  so a tie decides as it does in Klipper (the events are bit for bit the
+  reference's: tests/unit/test_planner_fast.py);
 - the queue is flushed as Klipper's lazy flush would flush it at the end of
   each chunk: only moves whose speeds no later move can change leave it
   (a lazy flush is final: later moves never change what it flushed), the
@@ -90,14 +91,15 @@ def min_plus(a: np.ndarray, add: np.ndarray, x0: float) -> np.ndarray:
     sequential loop in float64 (the lookahead's speed recurrences).
 
     Closed form x[i] = P[i] + min(x0, min_{k<=i} a[k] - P[k]) (P the prefix
-    sum of add) in long double, then relaxed: an element is recomputed from
-    its predecessor until none changes, which is the sequential result."""
+    sum of add), which rounds differently, then relaxed: an element is
+    recomputed from its predecessor until none changes, which is the
+    sequential result (a few rounds: chains of moves accelerating from one
+    another are short)."""
     n = len(a)
     if n == 0:
         return a.astype(float)
-    prefix = np.cumsum(add, dtype=np.longdouble)
-    guess = prefix + np.minimum(np.minimum.accumulate(a - prefix), x0)
-    x = guess.astype(float)
+    prefix = np.cumsum(add)
+    x = prefix + np.minimum(np.minimum.accumulate(a - prefix), x0)
     prev = np.empty(n)
     prev[0] = x0
     prev[1:] = x[:-1]
@@ -272,9 +274,11 @@ class FastPlanner:
         semis = np.flatnonzero(buf[:size] == 59)
         crs = np.flatnonzero(buf[:size] == 13)
         word_start = spaces + 1
+        # a word ends at the next space at the latest
+        next_space = np.append(spaces[1:], size)
         line = np.searchsorted(starts, word_start, "right") - 1
         keep = code[line]
-        word_start, line = word_start[keep], line[keep]
+        word_start, line, next_space = word_start[keep], line[keep], next_space[keep]
         # the code part of a line ends at its comment
         k = np.searchsorted(semis, starts)
         code_end = ends.copy()
@@ -282,17 +286,12 @@ class FastPlanner:
         semi_at = semis[np.minimum(k, len(semis) - 1)] if len(semis) else ends
         code_end[has_semi] = np.minimum(ends[has_semi], semi_at[has_semi])
         keep = word_start < code_end[line]
-        word_start, line = word_start[keep], line[keep]
-        nxt = [np.searchsorted(spaces, word_start), np.searchsorted(crs, word_start)]
-        word_end = code_end[line].copy()
-        if len(spaces):
-            at = spaces[np.minimum(nxt[0], len(spaces) - 1)]
-            word_end = np.where(nxt[0] < len(spaces), np.minimum(word_end, at),
-                                word_end)
+        word_start, line, next_space = word_start[keep], line[keep], next_space[keep]
+        word_end = np.minimum(code_end[line], next_space)
         if len(crs):
-            at = crs[np.minimum(nxt[1], len(crs) - 1)]
-            word_end = np.where(nxt[1] < len(crs), np.minimum(word_end, at),
-                                word_end)
+            nxt = np.searchsorted(crs, word_start)
+            at = crs[np.minimum(nxt, len(crs) - 1)]
+            word_end = np.where(nxt < len(crs), np.minimum(word_end, at), word_end)
         length = word_end - word_start
         real = length > 0                       # not a double space
         word_start, line, length = word_start[real], line[real], length[real]
@@ -670,30 +669,34 @@ def _read_numbers(buf, start, length, width):
     rounded value, which is float()'s; longer mantissas are read by float()."""
     n = len(start)
     mantissa = np.zeros(n)
-    frac = np.zeros(n, np.int64)
-    digits = np.zeros(n, np.int64)
-    dots = np.zeros(n, np.int64)
-    bad = np.zeros(n, bool)
-    negative = None
+    frac = np.zeros(n, np.int16)
+    digits = np.zeros(n, np.int16)
+    dots = np.zeros(n, np.int16)
+    seen_dot = np.zeros(n, bool)
+    # a word is read while its characters are number characters; it is one
+    # if that lasts to its end
+    alive = np.ones(n, bool)
+    read = np.zeros(n, np.int16)
+    negative = np.zeros(n, bool)
     for c in range(1, width):
-        inside = length > c
         ch = buf[start + c]
         value = ch - np.uint8(48)
-        is_digit = (value < 10) & inside
-        is_dot = (ch == 46) & inside
+        is_digit = (value < 10) & alive
+        is_dot = (ch == 46) & alive
         if c == 1:
-            negative = (ch == 45) & inside
-            bad |= inside & ~(is_digit | is_dot | negative | (ch == 43))
+            negative = (ch == 45) & alive
+            alive &= is_digit | is_dot | negative | (ch == 43)
         else:
-            bad |= inside & ~(is_digit | is_dot)
+            alive &= is_digit | is_dot
+        read += alive
         mantissa = np.where(is_digit, mantissa * 10.0 + value, mantissa)
-        frac += is_digit & (dots > 0)
+        frac += is_digit & seen_dot
         digits += is_digit
         dots += is_dot
-    ok = ~bad & (digits > 0) & (dots <= 1)
+        seen_dot |= is_dot
+    ok = (read >= length - 1) & (digits > 0) & (dots <= 1)
     values = mantissa / _POWERS[np.minimum(frac, 22)]
-    if negative is not None:
-        values = np.where(negative, -values, values)
+    values = np.where(negative, -values, values)
     for i in np.flatnonzero(ok & (digits > 15)).tolist():
         values[i] = float(bytes(buf[start[i] + 1:start[i] + length[i]]))
     return values, ok
