@@ -314,17 +314,26 @@ class Process:
         return text
 
 
+REALTIME_KLIPPY = PROJECT / "devtools" / "realtime_klippy.py"
+
+
 class Klippy(Process):
-    """klippy in batch mode (MCU output to a file) with an API socket and a pty."""
+    """klippy in batch mode (MCU output to a file) with an API socket and a pty.
+
+    realtime: run it through devtools/realtime_klippy.py, print time paced to
+    the clock (G-code executes in real time, the toolhead holds the reader
+    1-2 s ahead, a simulated flow sensor samples as time passes)."""
 
     def __init__(self, build: KlipperBuild, venv: Venv, config: Path, workdir: Path,
                  dictionaries: Optional[Dict[str, str]] = None,
-                 api_socket: Optional[Path] = None):
+                 api_socket: Optional[Path] = None, realtime: bool = False):
         self.workdir = workdir
         self.api_socket = api_socket or workdir / "klippy.sock"
         self.pty = workdir / "printer"
+        self.realtime = realtime
         dictionaries = dictionaries or {"mcu": "linuxprocess"}
-        cmd = [str(venv.python), str(build.klippy), str(config),
+        launcher = [str(REALTIME_KLIPPY)] if realtime else []
+        cmd = [str(venv.python)] + launcher + [str(build.klippy), str(config),
                "-a", str(self.api_socket), "-I", str(self.pty),
                "-o", str(workdir / "mcu-output"), "-l", str(workdir / "klippy.log")]
         for mcu, target in dictionaries.items():
@@ -459,7 +468,8 @@ def printer_stack(printer_cfg: Optional[Path] = None, with_klippy: bool = True,
                   target: str = "atmega2560",
                   data_dir: Optional[Path] = None,
                   build: Optional[KlipperBuild] = None,
-                  klippy_ready: bool = True) -> Iterator[PrinterStack]:
+                  klippy_ready: bool = True,
+                  realtime: bool = False) -> Iterator[PrinterStack]:
     """Start Moonraker (and klippy with printer_cfg, default config/printer.cfg).
 
     The printer config in data_dir/config/printer.cfg includes the given file
@@ -468,7 +478,8 @@ def printer_stack(printer_cfg: Optional[Path] = None, with_klippy: bool = True,
     database and G-code files carry over, its config files are rewritten);
     without one, a temporary directory is used and removed. build: a Klipper
     tree to run instead of build_klipper()'s; klippy_ready=False only waits
-    for Moonraker (a broken printer's klippy never gets ready).
+    for Moonraker (a broken printer's klippy never gets ready). realtime:
+    klippy's print time follows the clock (see Klippy), for live views.
     """
     own_dir = data_dir is None
     data_dir = data_dir or short_tempdir("fl-stack-")
@@ -486,7 +497,7 @@ def printer_stack(printer_cfg: Optional[Path] = None, with_klippy: bool = True,
                            f"path: {data_dir / 'gcodes'}\n")
             klippy = Klippy(build or build_klipper(), klippy_venv(), cfg,
                             data_dir / "logs",
-                            {"mcu": target}, api_socket=uds)
+                            {"mcu": target}, api_socket=uds, realtime=realtime)
         moonraker = Moonraker(moonraker_venv(), data_dir,
                               klippy_uds=klippy.api_socket if klippy else None,
                               extra_conf=moonraker_conf, trusted=trusted)

@@ -85,9 +85,9 @@ class FlowSensor:
         self.window_callbacks = []
         self.dump_samples = None
         self.extruder = self.toolhead = self.heater = None
+        self.source = source_class(config, self)
         self.status = {}
         self._update_status()
-        self.source = source_class(config, self)
         self.batch_bulk = bulk_sensor.BatchBulkHelper(
             printer, self._dump_batch, self._dump_start, self._dump_stop,
             DUMP_INTERVAL)
@@ -227,6 +227,7 @@ class FlowSensor:
             'errors': dict(self.faults.errors),
             'fault': fault,
             'calibration': round(self.grip.calibration, 6),
+            'simulation': self.source.simulation,
         }
 
     def _report_fault(self, fault):
@@ -313,6 +314,9 @@ class FlowSensor:
         """(commanded mm, sensor mm) of one extrude-only move."""
         toolhead = self.toolhead
         toolhead.wait_moves()
+        # A sample period on: after a calibration (which drops the sensor's
+        # position) a batch-mode twin has a new sample before the move.
+        toolhead.dwell(self.sample_period)
         start = toolhead.get_last_move_time()
         sensor0 = self._wait_for_samples(start)
         pos = toolhead.get_position()
@@ -430,6 +434,8 @@ class FlowSensor:
 class Ems22Source:
     """The real EMS22 on an MCU SPI bus: the MCU reads it on a timer, the
     serial thread only queues its messages, a reactor timer decodes them."""
+
+    simulation = None   # a real sensor: no simulation facts in its status
 
     def __init__(self, config, sensor):
         self.sensor = sensor
@@ -569,10 +575,10 @@ class SimulatedSource:
             temp_c=melt_temp,
             flow_mm3_s=config.getfloat('melt_flow',
                                        default.flow_mm3_s(melt_temp), above=0.))
-        low, high = twin.SENSOR_SCALE_RANGE
         low, high = twin.MELT_SCALE_RANGE
         self.melt_scale = config.getfloat('melt_scale', 1., minval=low,
                                           maxval=high)
+        low, high = twin.SENSOR_SCALE_RANGE
         self.twin = twin.SimulatedEms22(
             twin.scaled_line(melt.line(), self.melt_scale),
             counts_per_mm=sensor.counts_per_mm,
@@ -587,8 +593,11 @@ class SimulatedSource:
             'true_rotation_distance', None, above=0.)
         self.start_clock = None
         self.rest_ticks = self.time_shift = 0
-        self.stepper = self.motion_queuing = None
+        self.stepper = self.heater = None
+        self.steps = None     # StepClock: how far the extruder's steps are final
+        self.realtime = False
         self.mm_per_step = 0.
+        self.simulation = None
         self.printer.register_event_handler('flowloop:profile_activated',
                                             self._handle_profile)
         self.printer.register_event_handler('flowloop:heater_fixed_power',
@@ -632,8 +641,8 @@ class SimulatedSource:
         area = getattr(extruder, 'filament_area', None)
         if area:
             self.twin.filament_area_mm2 = area
-        self.motion_queuing = self.printer.lookup_object('motion_queuing')
-        self.motion_queuing.register_flush_callback(self._flush)
+        self.heater = sensor.heater
+        self.steps = StepClock(self.printer, sensor.toolhead, self._flush)
         self.stepper = extruder.extruder_stepper.stepper
         rotation_distance, steps_per_rotation = \
             self.stepper.get_rotation_distance()
@@ -646,30 +655,41 @@ class SimulatedSource:
         print_time = self.mcu.estimated_print_time(
             self.printer.get_reactor().monotonic())
         self.start_clock = self.mcu.print_time_to_clock(print_time)
+        # Batch mode reports print time 0 for ever; a paced batch-mode klippy
+        # (devtools/realtime_klippy.py) lets it follow the clock: then the twin
+        # samples as real time passes and is the heater's thermometer.
+        self.realtime = self.mcu.is_fileoutput() and print_time > 0.
+        self.simulation = {'clock': self.steps.kind, 'realtime': self.realtime}
+        self.sensor._update_status()
 
     def temp_c(self, eventtime):
         # The twin's nozzle: its hotend model's, else at its target at once
-        return self.twin.temp_c(self.sensor.heater.get_status(eventtime)['target'])
+        return self.twin.temp_c(self.heater.get_status(eventtime)['target'])
 
     def power(self, eventtime):
         hotend = self.twin.hotend
         if hotend is None:
-            return self.sensor.heater.get_status(eventtime)['power']
+            return self.heater.get_status(eventtime)['power']
         return hotend.power_w / hotend.params.max_power_w
 
-    def _flush(self, flush_time, step_gen_time):
-        # Steps up to motion_queuing's last_step_gen_time exist already (it is
-        # updated after the callbacks), so the twin can read the extruder there.
+    def _flush(self):
+        # Runs as the host generates steps (before the new ones are final)
         self.catch_up()
 
     def catch_up(self, until=None):
-        """Samples up to the generated steps; up to `until` (inclusive) if
-        the caller waited for the moves (nothing is queued beyond)."""
+        """Samples up to where the extruder's steps are final; up to `until`
+        (inclusive) if the caller waited for the moves (nothing is queued
+        beyond). In real time, never beyond now."""
         if self.start_clock is None:
             return
-        done_time = self.motion_queuing.last_step_gen_time
+        done_time = self.steps.final_until()
         if until is not None:
             done_time = max(done_time, until + 1e-9)
+        now = None
+        if self.realtime:
+            now = self.mcu.estimated_print_time(self.printer.get_reactor()
+                                                .monotonic())
+            done_time = now if self.steps.idle() else min(done_time, now)
         to_time = self.mcu.clock_to_print_time
         index = self.twin.next_index
         times = []
@@ -678,20 +698,23 @@ class SimulatedSource:
             if t >= done_time:
                 break
             times.append(t)
-        if not times:
-            return
-        # Filament the stepper really fed: its steps times the true mm/step
-        steps = self.stepper.get_past_mcu_position
-        fed = [steps(t) * self.mm_per_step for t in times]
-        # The heater's target: the nozzle's temperature, or its hotend's goal
-        target_c = self.sensor.heater.get_status(None)['target']
-        self.sensor.process(self.twin.messages(times, fed, target_c))
+        if times:
+            # Filament the stepper really fed: its steps times the true mm/step
+            steps = self.stepper.get_past_mcu_position
+            fed = [steps(t) * self.mm_per_step for t in times]
+            # The heater's target: the nozzle's temperature, or its hotend's goal
+            target_c = self.heater.get_status(None)['target']
+            self.sensor.process(self.twin.messages(times, fed, target_c))
+        if now is not None:
+            # No MCU measures this heater: the twin's nozzle is its reading
+            self.heater.temperature_callback(now, self.temp_c(None))
 
     def sync(self, until=None):
         # In batch mode steps are generated only when the reactor gets to
         # its flush timer, which a G-code batch never yields to: generate
-        # them now so the twin can follow the motion queued so far.
-        if self.mcu.is_fileoutput():
+        # them now so the twin can follow the motion queued so far. In real
+        # time the samples come as the clock passes the motion.
+        if self.mcu.is_fileoutput() and not self.realtime:
             self.sensor.toolhead.flush_step_generation()
         self.catch_up(until)
 
@@ -706,6 +729,41 @@ class SimulatedSource:
             raise gcmd.error(str(e)) from None
         gcmd.respond_info(
             f"flow_sensor {self.sensor.name}: simulated fault {fault}")
+
+
+class StepClock:
+    """How far the extruder's steps (and its trapq history) are final, on
+    either host: Klipper's motion_queuing (2025-08 on) calls flush callbacks,
+    Kalico's toolhead calls step generators. Either way the callback runs
+    before that round's steps are final, so the round before it counts."""
+
+    def __init__(self, printer, toolhead, on_flush):
+        self.on_flush = on_flush
+        self.generated = 0.
+        motion_queuing = printer.lookup_object('motion_queuing', None)
+        if motion_queuing is not None:
+            self.kind, self.flusher = 'motion_queuing', motion_queuing
+            motion_queuing.register_flush_callback(
+                lambda flush_time, step_gen_time: self._round(step_gen_time))
+        else:
+            # Registered after the extruder's own: runs once its steps exist
+            self.kind, self.flusher = 'step_generator', toolhead
+            toolhead.register_step_generator(self._round)
+
+    def _round(self, step_gen_time):
+        self.on_flush()
+        self.generated = max(self.generated, step_gen_time)
+
+    def final_until(self):
+        # Steps are final to the last flush; the trapq history (the planned
+        # E position) to the last generation less the scan window.
+        flusher = self.flusher
+        return min(flusher.last_flush_time,
+                   self.generated - flusher.kin_flush_delay)
+
+    def idle(self):
+        """Nothing is queued beyond the final steps (the position holds)."""
+        return self.flusher.need_flush_time <= self.flusher.last_flush_time
 
 
 SOURCES = {'ems22': Ems22Source, 'simulated': SimulatedSource}
