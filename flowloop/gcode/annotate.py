@@ -53,6 +53,7 @@ COMMAND = "AUTOTEMP_FLOW"
 HEADER_BYTES = 1024 * 1024
 MARKER_REGEX = r"^; flowloop autotemp annotations (?P<version>v\d+)"
 _MARKER = re.compile(MARKER_REGEX.encode(), re.MULTILINE)
+_MARKER_TEXT = b"; flowloop autotemp annotations v"
 SUMMARY_PREFIX = "; flowloop autotemp summary:"
 FLOW_STEP_MM3_S = 0.1
 
@@ -95,7 +96,13 @@ def marker_line(settings: AnnotateSettings) -> str:
 
 def is_annotated(head: bytes) -> bool:
     """Whether a file's head (its first HEADER_BYTES) carries the marker."""
-    return _MARKER.search(head) is not None
+    # the literal first (fast), then the line it is on
+    at = head.find(_MARKER_TEXT)
+    while at >= 0:
+        if _MARKER.match(head, at):
+            return True
+        at = head.find(_MARKER_TEXT, at + 1)
+    return False
 
 
 def quantise_flow(flow_mm3_s: float) -> float:
@@ -377,10 +384,10 @@ class _Annotator:
                 at = 0
             stop = len(self.block) if offset is None \
                 else min(len(self.block), offset - self.block_start)
-            piece = self.block[at:stop]
-            self.out.write(piece)
-            self.copied += len(piece)
-            self.last_byte = bytes(piece[-1:])
+            if stop > at:
+                self.out.write(self.block[at:stop])
+                self.copied += stop - at
+                self.last_byte = self.block[stop - 1:stop]
 
 
 def _peak_flow_between(batch: Segments, seg: np.ndarray, t0: np.ndarray,
