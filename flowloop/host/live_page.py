@@ -162,8 +162,9 @@ def file_plan(path: Path, profile: Optional[Profile], working_point: float,
     """What an annotated file tells [autotemp] over the whole print: the
     announced flow, and with a profile the targets autotemp's controller
     sets from them (the same replay as `flowloop annotate --bake`), at most
-    MAX_PLAN_POINTS of each; `positions` maps file offsets to print time so
-    the page can mark where the print is."""
+    MAX_PLAN_POINTS of each; `positions` maps file offsets (each command's,
+    then the file's end) to print time so the page can mark where the print
+    is."""
     timed, end_s = _timed(announcements(path))
     if not timed:
         raise FlowloopError(f"{path.name}: its annotations announce no flow")
@@ -191,6 +192,9 @@ def file_plan(path: Path, profile: Optional[Profile], working_point: float,
     positions = [(a.offset, round(a.time_s, 2)) for a in timed]
     if len(positions) > MAX_PLAN_POINTS:
         positions = positions[::math.ceil(len(positions) / MAX_PLAN_POINTS)]
+    # the file's end is the print's end: the moves after the last command
+    # (its LEAD before the last window) get their time too
+    positions.append((path.stat().st_size, round(end_s, 2)))
     return {
         "file": path.name,
         "print_time_s": round(end_s, 1),

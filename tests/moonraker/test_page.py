@@ -205,10 +205,16 @@ def test_the_page_shows_the_printer_objects_numbers_live(printer, browser):
                                     printer.moonraker.url.replace("http", "ws", 1),
                                     "data:"))]
     assert outside == []
+
+
+def screenshot(driver):
+    """Saved where FLOWLOOP_PAGE_SCREENSHOT says (docs/page.png for the docs)."""
     shot = os.environ.get("FLOWLOOP_PAGE_SCREENSHOT")
     if shot:
         Path(shot).parent.mkdir(parents=True, exist_ok=True)
-        browser.save_screenshot(shot)
+        driver.set_window_size(1400, 1500)
+        assert driver.save_screenshot(shot)
+        driver.set_window_size(1400, 1100)
 
 
 def print_file(ps, name):
@@ -219,6 +225,7 @@ def print_file(ps, name):
 
 
 def test_the_printed_files_plan_shows_with_the_position_marked(printer, browser):
+    activate_profile(printer)
     browser.get(page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
     assert "No file is being printed" in message(browser, "plan-chart")
@@ -227,13 +234,15 @@ def test_the_printed_files_plan_shows_with_the_position_marked(printer, browser)
     assert message(browser, "plan-chart") == ""
     assert "annotated.gcode" in js(
         browser, "return document.getElementById('plan-name').textContent")
-    # the whole file ran in batch mode: the mark is at its last announcement
+    # the whole file ran in batch mode: the mark is at the print's end
     plan = printer.moonraker.request(
         "GET", "/server/flowloop/page/plan?filename=annotated.gcode")[1]["result"]
     assert plan["annotated"] is True and plan["why"] is None
-    position = float(wait_for(
-        browser, "document.getElementById('plan-chart').dataset.position"))
-    assert position == pytest.approx(plan["positions"][-1][1])
+    end = printer.query("virtual_sdcard")["file_position"]
+    assert end == (printer.data_dir / "gcodes" / "annotated.gcode").stat().st_size
+    wait_for(browser, "Math.abs(document.getElementById('plan-chart').dataset"
+                      f".position - {plan['print_time_s']}) < 0.01")
+    screenshot(browser)
     print_file(printer, "plain.gcode")
     wait_for(browser, "document.getElementById('plan-chart').dataset.message"
                       ".includes('plain.gcode has no autotemp annotations')")

@@ -87,7 +87,8 @@ def test_the_plan_times_each_announcement_where_the_planner_placed_it(annotated)
     plan = live_page.file_plan(annotated, None, 0.5)
     assert plan["windows"] == len(rec.commands)
     placed = [t for _, t, _ in rec.commands]
-    read = [t for _, t in plan["positions"]]
+    read = [t for _, t in plan["positions"][:-1]]
+    assert plan["positions"][-1] == (annotated.stat().st_size, plan["print_time_s"])
     # only the announcements' rounding (0.01 s a window) separates them
     assert max(abs(a - b) for a, b in zip(placed, read)) < 0.5
     assert plan["print_time_s"] == pytest.approx(rec.end_s, abs=1.5)
@@ -125,7 +126,7 @@ def test_a_long_plan_is_bounded(annotated, monkeypatch):
     plan = live_page.file_plan(annotated, PROFILE, 0.5)
     assert len(plan["time_s"]) == len(plan["flow_mm3_s"]) == len(plan["target_c"])
     assert len(plan["time_s"]) <= 51
-    assert len(plan["positions"]) <= 50
+    assert len(plan["positions"]) <= 51
     assert plan["time_s"][-1] <= plan["print_time_s"] + GRID_S * 200
 
 

@@ -241,11 +241,15 @@
     if (!charts["flow-chart"]) makeChart("flow-chart", flow, flowData);
     if (!charts["temp-chart"]) makeChart("temp-chart", temp, tempData);
     const now = Date.now() / 1000;
+    // from the oldest sample (at least the last 30 s) to now: a page opened
+    // a minute ago shows its minute across the chart
+    const oldest = data[0].length ? data[0][0] : now;
+    const from = Math.min(now - 30, Math.max(now - WINDOW_S, oldest));
     for (const [id, d] of [["flow-chart", flowData], ["temp-chart", tempData]]) {
       const chart = charts[id];
       chart.batch(() => {
         chart.setData(d, false);
-        chart.setScale("x", {min: now - WINDOW_S, max: now});
+        chart.setScale("x", {min: from, max: now});
       });
       chart.root.parentElement.dataset.samples = String(ring.count);
     }
@@ -291,17 +295,23 @@
     $("#profile-name").textContent = lines.name + " at working point " + lines.working_point;
   }
 
+  // The print time of the file position: linear between the two
+  // announcements (or the file's end) around it.
   function planPosition() {
     const sd = status.virtual_sdcard || {};
-    if (!plan || !plan.positions || !plan.positions.length) return null;
-    if (typeof sd.file_position !== "number") return null;
+    const pos = plan && plan.positions;
+    if (!pos || !pos.length || typeof sd.file_position !== "number") return null;
+    if (sd.file_position <= pos[0][0]) return pos[0][1];
     let lo = 0;
-    let hi = plan.positions.length - 1;
-    while (lo < hi) {  // the last command at or before the position
+    let hi = pos.length - 1;
+    while (lo < hi) {  // the last entry at or before the position
       const mid = (lo + hi + 1) >> 1;
-      if (plan.positions[mid][0] <= sd.file_position) lo = mid; else hi = mid - 1;
+      if (pos[mid][0] <= sd.file_position) lo = mid; else hi = mid - 1;
     }
-    return plan.positions[lo][1];
+    if (lo === pos.length - 1) return pos[lo][1];
+    const [o0, t0] = pos[lo];
+    const [o1, t1] = pos[lo + 1];
+    return t0 + (t1 - t0) * (sd.file_position - o0) / Math.max(1, o1 - o0);
   }
 
   function planChart() {
@@ -383,6 +393,7 @@
 
   function addEvent(text) {
     const list = $("#events");
+    $("#now .message").hidden = true;
     const item = document.createElement("li");
     item.textContent = new Date().toLocaleTimeString() + " " + text;
     list.prepend(item);
@@ -530,6 +541,10 @@
     names.ready = true;
     setConnection("live", "live");
     sayAll(null);
+    if (!$("#events").children.length) {
+      $("#now .message").hidden = false;
+      $("#now .message").textContent = "None since the page opened.";
+    }
     if (!names.sensor) {
       say("flow-chart", `No [flow_sensor] watches ${extruder}: measured flow and grip ` +
           "need one (see flow_sensor.md; sensor_type: simulated needs no hardware).");
