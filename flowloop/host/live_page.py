@@ -20,7 +20,7 @@ from ..errors import FlowloopError
 from ..gcode.annotate import COMMAND, HEADER_BYTES, is_annotated
 from ..gcode.bake import _parse as parse_announcement
 from ..gcode.bake import replay
-from ..material.profile import Profile, profile_line
+from ..material.profile import Profile, decode_profile, encode_profile, profile_line
 
 ASSETS = Path(__file__).resolve().parent / "page"
 # What the page draws of a file's plan and a profile's lines: enough for a
@@ -206,3 +206,35 @@ def file_plan(path: Path, profile: Optional[Profile], working_point: float,
         "positions": positions,
         "why": why,
     }
+
+
+# ---------------------------------------------------------------------------
+# The plan in a process of its own
+
+PLAN_TIMEOUT_S = 300.0
+
+
+def plan_command(python: str, path: Path, profile: Optional[Profile],
+                 working_point: float) -> Tuple[List[str], bytes]:
+    """(argv, stdin) that print file_plan's answer as one JSON line: a long
+    print's replay is seconds of pure Python, which Moonraker runs apart so
+    it holds neither its loop nor its GIL."""
+    argv = [python, "-c", "from flowloop.host.live_page import plan_main; "
+            "plan_main()", str(path), repr(float(working_point))]
+    return argv, b"" if profile is None else encode_profile(profile, indent=0)
+
+
+def plan_main(argv: Optional[List[str]] = None) -> None:
+    """plan_command's other end: the file and working point in argv, the
+    profile (or nothing) on stdin; a refusal is {"why": ...}."""
+    import json
+    import sys
+    path, wp = (argv or sys.argv[1:])[:2]
+    data = sys.stdin.buffer.read()
+    try:
+        profile = decode_profile(data) if data.strip() else None
+        answer = file_plan(Path(path), profile, float(wp))
+        answer["annotated"] = True
+    except FlowloopError as e:
+        answer = {"file": Path(path).name, "annotated": False, "why": str(e)}
+    sys.stdout.write(json.dumps(answer) + "\n")

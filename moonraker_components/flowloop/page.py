@@ -14,9 +14,12 @@
 
 from __future__ import annotations
 
+import asyncio
 import html
+import json
 import logging
 import os
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
 
@@ -106,12 +109,29 @@ class Page:
         key = (str(path), stat.st_size, stat.st_mtime_ns,
                None if profile is None else profile.identity.name, wp)
         if key != self._plan_key:
-            try:  # reads the whole file: off Moonraker's loop
-                plan = await self.eventloop.run_in_thread(
-                    live_page.file_plan, path, profile, wp)
-            except FlowloopError as e:
-                plan = {"file": path.name, "why": str(e), "annotated": False}
-            else:
-                plan["annotated"] = True
+            plan = await self._run_plan(path, profile, wp)
             self._plan_key, self._plan = key, plan
         return {"extruder": extruder, **self._plan}
+
+    async def _run_plan(self, path: Path, profile: Optional[fl_profile.Profile],
+                        wp: float) -> Dict[str, Any]:
+        # A long print's replay is seconds of pure Python: in a process of
+        # its own, so it holds neither Moonraker's loop nor its GIL.
+        argv, stdin = live_page.plan_command(sys.executable, path, profile, wp)
+        proc = await asyncio.create_subprocess_exec(
+            *argv, stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE)
+        try:
+            out, err = await asyncio.wait_for(proc.communicate(stdin),
+                                              live_page.PLAN_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            proc.kill()
+            await proc.wait()
+            raise self._error(f"planning {quoted(path.name)} took longer than "
+                              f"{live_page.PLAN_TIMEOUT_S:g} s", 500) from None
+        if proc.returncode != 0:
+            logging.error(f"flowloop: the plan of {path} failed: "
+                          f"{err.decode(errors='replace')[-2000:]}")
+            raise self._error(f"planning {quoted(path.name)} failed (see "
+                              f"moonraker.log)", 500)
+        return json.loads(out)

@@ -4,8 +4,11 @@ draws, and an annotated file's plan (flowloop.host.live_page)."""
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -138,3 +141,21 @@ def test_a_file_without_annotations_is_said_in_words():
 def test_an_unreadable_file_is_one_line(tmp_path):
     with pytest.raises(FlowloopError, match="cannot read"):
         live_page.file_plan(tmp_path / "gone.gcode", PROFILE, 0.5)
+
+
+def test_the_plan_process_answers_what_file_plan_answers(annotated):
+    argv, stdin = live_page.plan_command(sys.executable, annotated, PROFILE, 0.5)
+    out = subprocess.run(argv, input=stdin, capture_output=True, check=True).stdout
+    answer = json.loads(out)
+    direct = live_page.file_plan(annotated, PROFILE, 0.5)
+    assert answer["annotated"] is True
+    assert answer["target_c"] == direct["target_c"]
+    assert answer["positions"] == [list(p) for p in direct["positions"]]
+
+
+def test_the_plan_process_says_why_in_one_answer():
+    argv, stdin = live_page.plan_command(sys.executable, EXCERPT, None, 0.5)
+    out = subprocess.run(argv, input=stdin, capture_output=True, check=True).stdout
+    answer = json.loads(out)
+    assert answer["annotated"] is False
+    assert "has no autotemp annotations" in answer["why"]
