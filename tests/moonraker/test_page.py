@@ -345,3 +345,20 @@ def test_flowloop_info_prints_the_address_that_serves_the_page(printer):
     url = line.split(": ", 1)[1]
     status, body = printer.moonraker.request("GET", url[len(printer.moonraker.url):])
     assert status == 200 and "<title>flowloop live</title>" in body
+
+
+def test_the_page_connects_again_after_moonraker_restarts(moonraker_venv, browser):
+    with stack.printer_stack(with_klippy=False) as ps:
+        browser.get(page_url(ps))
+        connection = "document.getElementById('connection').dataset.state"
+        wait_for(browser, f"{connection} == 'waiting'")  # no klippy behind it
+        port = ps.moonraker.port
+        ps.moonraker.stop()
+        wait_for(browser, f"{connection} == 'down'")
+        again = stack.Moonraker(moonraker_venv, ps.data_dir, port=port)
+        try:
+            again.wait_ready()
+            wait_for(browser, f"{connection} == 'waiting'")
+            assert "klippy is" in page_state(browser)
+        finally:
+            again.stop()
