@@ -79,9 +79,12 @@ class FlowrateLimiter:
         self.sensor = self._find_sensor()
         if self.sensor is not None:
             self.sensor.subscribe_grip_windows(self._handle_window)
-        if self.mcu.is_fileoutput():
+        if self.mcu.is_fileoutput() and not self.mcu.estimated_print_time(
+                self.reactor.monotonic()):
             # Batch mode: no temperature reading arrives; the thermal model
-            # follows the heater's target instead.
+            # follows the heater's target instead. (Paced to the clock by
+            # devtools/realtime_klippy.py, the simulated sensor's twin gives
+            # the heater its reading.)
             self.nozzle = NozzleEstimate()
         active = self.host.get_active_profile(self.extruder_name)
         if active is not None:
