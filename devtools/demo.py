@@ -17,6 +17,7 @@ config files in it are rewritten on every start, the database is not).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import shutil
@@ -33,9 +34,16 @@ DATA_ENV = "FLOWLOOP_DEMO_DATA"
 
 
 class DemoContext:
-    def __init__(self, printer: Optional[stack.PrinterStack]):
+    def __init__(self, printer: Optional[stack.PrinterStack],
+                 kept: Optional[contextlib.ExitStack] = None):
         self.printer = printer
         self.project = stack.PROJECT
+        self.kept = kept or contextlib.ExitStack()
+
+    def keep(self, context):
+        """Enter a context (another stack, for the live step) that stays up
+        until the demo stops; its value."""
+        return self.kept.enter_context(context)
 
     @property
     def moonraker(self) -> Optional[stack.Moonraker]:
@@ -118,7 +126,8 @@ def main(argv=None) -> int:
     print("Starting the local stack (first run builds Klipper and two "
           "virtualenvs: a few minutes)...", flush=True)
     with stack.printer_stack(with_klippy=reason is None,
-                             data_dir=data_dir) as printer:
+                             data_dir=data_dir) as printer, \
+            contextlib.ExitStack() as kept:
         status, body = printer.moonraker.request("GET", "/server/flowloop/info")
         print(f"\nMoonraker: {printer.moonraker.url}  (data: {printer.data_dir})")
         print("  data directory " + (
@@ -128,7 +137,7 @@ def main(argv=None) -> int:
         print(f"  GET {printer.moonraker.url}/server/flowloop/info")
         print("  " + describe(body["result"], printer.moonraker.url).replace(
             "\n", "\n  "))
-        failed = run_steps(DemoContext(printer), args.step)
+        failed = run_steps(DemoContext(printer, kept), args.step)
         if failed:
             print(f"\n!!! {failed} demo step(s) failed (see above)")
         if not args.once:

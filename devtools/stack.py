@@ -27,6 +27,7 @@ import tempfile
 import time
 import urllib.error
 import urllib.request
+import uuid
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional
 from urllib.parse import quote
@@ -421,6 +422,19 @@ class Moonraker(Process):
             status, raw, ctype = e.code, e.read(), e.headers.get("Content-Type", "")
         text = raw.decode(errors="replace")
         return status, (json.loads(text) if "json" in ctype else text)
+
+    def upload(self, name: str, data: bytes, timeout: float = 120.0) -> dict:
+        """POST /server/files/upload (multipart, as a browser sends it): the
+        decoded answer (Moonraker waits for its file processors first)."""
+        boundary = uuid.uuid4().hex
+        body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\";"
+                f" filename=\"{name}\"\r\nContent-Type: application/octet-stream"
+                f"\r\n\r\n").encode() + data + f"\r\n--{boundary}--\r\n".encode()
+        req = urllib.request.Request(
+            self.url + "/server/files/upload", data=body, method="POST",
+            headers={"Content-Type": f"multipart/form-data; boundary={boundary}"})
+        with urllib.request.urlopen(req, timeout=timeout) as resp:
+            return json.loads(resp.read())
 
     def _ready(self, klippy: bool) -> bool:
         try:
