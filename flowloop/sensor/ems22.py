@@ -137,7 +137,7 @@ def frame_statuses(frames: np.ndarray) -> np.ndarray:
 
 # Every 16-bit frame's status, looked up instead of computed per batch (the
 # host decodes ~10 batches a second; a lookup is one numpy operation)
-_STATUS_OF_FRAME = frame_statuses(np.arange(1 << 16, dtype=np.int64)).astype(np.int8)
+_STATUS_OF_FRAME = frame_statuses(np.arange(1 << 16, dtype=np.int64))
 
 
 # --- bit-level model of the chip on the wire ---------------------------------
@@ -236,6 +236,8 @@ class Samples:
         return self.status == OK
 
     def error_counts(self) -> Dict[str, int]:
+        if not (self.status.any() or self.lost_messages or self.breaks.any()):
+            return {}   # the usual batch (OK is 0)
         counts = np.bincount(self.status, minlength=len(STATUS_NAMES))
         out = {STATUS_NAMES[v]: int(counts[v])
                for v in np.flatnonzero(counts[1:]) + 1}
@@ -296,6 +298,7 @@ class Decoder:
     def decode(self, messages: Sequence[Tuple[int, bytes]]) -> Samples:
         """Decode (sequence, payload) pairs, in arrival order."""
         starts, bodies, lost = [], [], 0
+        first_index, contiguous = None, True
         for sequence, payload in messages:
             if self.last_sequence >= 0 and (
                     (sequence - self.last_sequence) & 0xFFFF) != 1:
@@ -313,48 +316,87 @@ class Decoder:
                 slots = record_slots(rec)
                 body = np.repeat(rec, slots, axis=0).tobytes()
                 n = int(slots.sum())
+            if first_index is None:
+                first_index = index
+            elif index != self.next_index:
+                contiguous = False
             starts.append((index, n))
             bodies.append(body)
             self.next_index = index + n
         if not bodies:
             return _empty()
         rec = np.frombuffer(b"".join(bodies), dtype=np.uint8).reshape(-1, RECORD_BYTES)
-        first = np.array([i for i, _ in starts], dtype=np.int64)
-        count = np.array([n for _, n in starts], dtype=np.int64)
-        offset = np.cumsum(count) - count
-        index = (np.arange(len(rec), dtype=np.int64)
-                 + np.repeat(first - offset, count))
-        samples = self._decode_records(index, rec)
+        if contiguous:   # the usual batch: one run of record slots
+            index = np.arange(first_index, first_index + len(rec), dtype=np.int64)
+        else:
+            first = np.array([i for i, _ in starts], dtype=np.int64)
+            count = np.array([n for _, n in starts], dtype=np.int64)
+            offset = np.cumsum(count) - count
+            index = (np.arange(len(rec), dtype=np.int64)
+                     + np.repeat(first - offset, count))
+        samples = self._decode_records(index, rec, contiguous)
         samples.lost_messages = lost
         return samples
 
-    def _decode_records(self, index: np.ndarray, rec: np.ndarray) -> Samples:
+    def _decode_records(self, index: np.ndarray, rec: np.ndarray,
+                        contiguous: bool = False) -> Samples:
         # a record is big-endian tcode:24-bit read
         packed = rec.view(">u4")[:, 0].astype(np.int64)
         tcode = packed >> 24
         word = packed & 0xFFFFFF
         frame = (word >> (8 - self.bit_offset)) & 0xFFFF
-        status = _STATUS_OF_FRAME[frame].astype(np.int64)
-        if self._other >= 0:
+        status = _STATUS_OF_FRAME[frame]
+        all_good = not status.any()     # OK is 0
+        if not all_good and self._other >= 0:
             bad = status != OK
-            if bad.any():
-                other = _STATUS_OF_FRAME[(word >> (8 - self._other)) & 0xFFFF]
-                status[bad & (other == OK) & (status != MISSING)] = MISALIGNED
+            other = _STATUS_OF_FRAME[(word >> (8 - self._other)) & 0xFFFF]
+            status[bad & (other == OK) & (status != MISSING)] = MISALIGNED
         is_error = tcode == TCODE_ERROR
         if is_error.any():
+            all_good = False
             codes = rec[is_error, 1]
             status[is_error] = [_MCU_ERRORS.get(int(c), SPI_TIME) for c in codes]
-        self._mark_time_lost(status)
+        if not all_good or self._overflow_run or self.time_lost:
+            self._mark_time_lost(status)
+            all_good = not status.any()
+        pos = frame >> POSITION_SHIFT
+        if all_good and contiguous:
+            counts = self._unwrap_run(index, pos)
+            if counts is not None:
+                return Samples(index, tcode, status, counts)
         counts = np.zeros(len(index), dtype=np.int64)
         breaks = np.zeros(len(index), dtype=bool)
         good = np.flatnonzero(status == OK)
         if len(good):
-            pos = (frame[good] >> POSITION_SHIFT).astype(np.int64)
+            pos = pos[good]
             if self.max_counts_per_record is None:
                 self._unwrap(pos, counts, good)
             else:
                 self._unwrap_checked(index, pos, counts, good, status, breaks)
         return Samples(index, tcode, status, counts, breaks=breaks)
+
+    def _unwrap_run(self, index: np.ndarray, pos: np.ndarray) -> Optional[np.ndarray]:
+        """Unwrapped counts of a run of good reads one record slot apart,
+        following the last good read, when every step is plausible; else
+        None (the general path sorts it out)."""
+        limit = self.max_counts_per_record
+        if self.last_position < 0 or self.last_good_index is None:
+            return None
+        half = POSITIONS // 2
+        first_gap = int(index[0]) - self.last_good_index
+        if limit is None or first_gap < 1 or first_gap * limit >= half:
+            return None
+        steps = np.empty_like(pos)
+        steps[0] = pos[0] - self.last_position
+        np.subtract(pos[1:], pos[:-1], out=steps[1:])
+        steps = (steps + half) % POSITIONS - half
+        if int(np.abs(steps).max()) > limit + JUMP_MARGIN_COUNTS:
+            return None
+        counts = self.counts + np.cumsum(steps)
+        self.counts = int(counts[-1])
+        self.last_position = int(pos[-1])
+        self.last_good_index = int(index[-1])
+        return counts
 
     def _unwrap(self, pos, counts, good) -> None:
         prev = np.empty_like(pos)
@@ -529,8 +571,12 @@ class FaultMonitor:
         bad = samples.status != OK
         if len(bad) and not bad[-1] and not self._run:
             # the usual batch: only the bad samples between good ones count
-            runs = np.diff(np.flatnonzero(np.concatenate(([True], ~bad))))
-            if not len(runs) or runs.max() <= self.limit:
+            if bad.any():
+                runs = np.diff(np.flatnonzero(np.concatenate(([True], ~bad))))
+                short = runs.max() <= self.limit
+            else:
+                short = True
+            if short:
                 if self.fault is not None and self.fault != "stuck":
                     self.fault = None
                 return None

@@ -19,6 +19,7 @@ seized sensor looks exactly the same.
 from __future__ import annotations
 
 import collections
+import itertools
 from dataclasses import dataclass
 from typing import Deque, List, Optional, Sequence, Tuple
 
@@ -103,36 +104,48 @@ class GripEstimator:
         window is dropped and a new one starts there.
         """
         self._temp_c = temp_c
-        if nominal_mm is None:
-            nominal_mm = commanded_mm
-        if breaks is None:
-            breaks = [False] * len(times)
-        closed = []
+        # plain floats: numpy scalars cost several times more per operation
+        times, sensor_mm, commanded_mm = (
+            _plain(times), _plain(sensor_mm), _plain(commanded_mm))
+        nominal_mm = commanded_mm if nominal_mm is None else _plain(nominal_mm)
+        if breaks is None or not np.any(breaks):
+            breaks = itertools.repeat(False)
+        else:
+            breaks = _plain(breaks)
         cal = self.calibration
-        for t, s, c, n, b in zip(times, sensor_mm, commanded_mm, nominal_mm,
-                                 breaks):
-            m = s / cal
+        measured_mm = [v / cal for v in sensor_mm]
+        window_mm, max_window_s = self.window_mm, self.max_window_s
+        retract_mm, stuck_mm = self.retract_tolerance_mm, self.stuck_tolerance_mm
+        closed, high, kept_from = [], self._high, None
+        for i, (t, m, c, n, b) in enumerate(zip(times, measured_mm, commanded_mm,
+                                                nominal_mm, breaks)):
             if b:
-                self._start = None
-                self._recent.clear()
-            self._note_recent(t, m, c)
+                self._start, kept_from = None, i
             if self._start is None:
-                self._start, self._high = (t, m, c), n
+                self._start, high = (t, m, c), n
                 continue
             t0, m0, c0 = self._start
-            if n < self._high - self.retract_tolerance_mm:
+            if n < high - retract_mm:
                 closed.append(self._close(t, m, c, None, "retraction"))
-                self._high = n
+                high = n
                 continue
-            self._high = max(self._high, n)
-            if c - c0 >= self.window_mm:
+            if n > high:
+                high = n
+            if c - c0 >= window_mm:
                 measured = m - m0
-                if abs(measured) <= self.stuck_tolerance_mm:
+                if abs(measured) <= stuck_mm:
                     closed.append(self._close(t, m, c, None, "stuck"))
                 else:
                     closed.append(self._close(t, m, c, measured / (c - c0), "judged"))
-            elif t - t0 > self.max_window_s:
+            elif t - t0 > max_window_s:
                 closed.append(self._close(t, m, c, None, "too_little_motion"))
+        self._high = high
+        if kept_from is not None:
+            self._recent.clear()
+        else:
+            kept_from = 0
+        self._note_recent(times[kept_from:], measured_mm[kept_from:],
+                          commanded_mm[kept_from:])
         return closed
 
     def _close(self, t, m, c, grip, reason) -> Window:
@@ -144,16 +157,15 @@ class GripEstimator:
         self._start = (t, m, c)
         return window
 
-    def _note_recent(self, t: float, m: float, c: float) -> None:
+    def _note_recent(self, times: List[float], measured: List[float],
+                     commanded: List[float]) -> None:
+        """Keep the samples of the last FLOW_PERIOD_S (for flows())."""
         recent = self._recent
-        # Points >= 5 ms apart over the last FLOW_PERIOD_S are enough for
-        # flows; the newest sample always replaces the last point if it is
-        # too close.
-        if len(recent) >= 2 and t - recent[-2][0] < 0.005:
-            recent[-1] = (t, m, c)
+        recent.extend(zip(times, measured, commanded))
+        if not recent:
             return
-        recent.append((t, m, c))
-        while len(recent) > 2 and recent[1][0] <= t - FLOW_PERIOD_S:
+        oldest = recent[-1][0] - FLOW_PERIOD_S
+        while len(recent) > 2 and recent[1][0] <= oldest:
             recent.popleft()
 
     @property
@@ -177,6 +189,10 @@ class GripEstimator:
         return (area * (m1 - m0) / (t1 - t0), area * (c1 - c0) / (t1 - t0))
 
 
+def _plain(values) -> list:
+    return values.tolist() if isinstance(values, np.ndarray) else list(values)
+
+
 # The extruder stepper's position is read this often and interpolated in
 # between: over 10 ms a hotend's E acceleration (~100 mm/s^2) bends it by a
 # few micrometres, and a host call per sample (1000/s) is what it saves.
@@ -186,17 +202,17 @@ COMMANDED_SPACING_S = 0.010
 def positions_at(times: Sequence[float], position_at,
                  spacing_s: float = COMMANDED_SPACING_S) -> np.ndarray:
     """position_at(t) (e.g. klippy's extruder.find_past_position) at each
-    time, called about every spacing_s (and at the last time) and linearly
-    interpolated in between."""
+    time, called every spacing_s from the first time (and at the last) and
+    linearly interpolated in between."""
     times = np.asarray(times, dtype=np.float64)
     if not len(times):
         return np.zeros(0)
-    slot = np.floor((times - times[0]) / spacing_s)
-    first_in_slot = np.diff(slot, prepend=-1.0) != 0
-    first_in_slot[-1] = True
-    picks = np.flatnonzero(first_in_slot)
-    at = times[picks]
-    return np.interp(times, at, [position_at(t) for t in at.tolist()])
+    first, last = float(times[0]), float(times[-1])
+    at = [first + i * spacing_s
+          for i in range(int((last - first) / spacing_s) + 1)]
+    if at[-1] < last:
+        at.append(last)
+    return np.interp(times, at, [position_at(t) for t in at])
 
 
 def trapq_positions(moves: Sequence[Tuple[float, float, float, float, float,

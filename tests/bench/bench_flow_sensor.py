@@ -12,7 +12,8 @@
   the ems22 sensor's real path; the CPU time in its process() (decode,
   times, commanded and nominal E, grip, status) per second of sensor data,
   processed in 100 ms batches as the reactor timer does, against the same
-  data processed one MCU message at a time (how it was done before).
+  data processed one MCU message at a time (how it was done before); the
+  least CPU time of three runs each (the machine may be shared).
   Goal: <= 5 ms per second of data at the default sample_period.
 - Link: bytes per second the sensor puts on the MCU's serial link (Klipper's
   framing: 5 bytes per block, message id, oid, sequence, data length),
@@ -233,6 +234,9 @@ def _feed_run(klipper_build, klippy_venv, workdir, period_s, seconds,
     return float(cpu), int(samples)
 
 
+RUNS = 3
+
+
 def test_host_cpu_per_second_of_data(klipper_build, klippy_venv, bench, tmp_path,
                                      monkeypatch):
     monkeypatch.setenv("FLOW_SENSOR_PROFILE", "1")
@@ -241,10 +245,12 @@ def test_host_cpu_per_second_of_data(klipper_build, klippy_venv, bench, tmp_path
         rest = round(period * TICKS_PER_S)
         per_message_s = ems22.records_per_message(rest, TICKS_PER_S) * period
         per_100ms = max(1, round(0.1 / per_message_s))
-        batched, _ = _feed_run(klipper_build, klippy_venv, tmp_path, period,
-                               seconds, per_100ms)
-        single, _ = _feed_run(klipper_build, klippy_venv, tmp_path, period,
-                              seconds, 1)
+        # best of RUNS: the same work each run, so the least CPU time is the
+        # cost without other processes' interference (the machine is shared)
+        batched = min(_feed_run(klipper_build, klippy_venv, tmp_path, period,
+                                seconds, per_100ms)[0] for _ in range(RUNS))
+        single = min(_feed_run(klipper_build, klippy_venv, tmp_path, period,
+                               seconds, 1)[0] for _ in range(RUNS))
         goal = "<= 5 ms" if period == ems22.DEFAULT_SAMPLE_PERIOD_S else ""
         bench.figure(f"flow_sensor host CPU per second of data at"
                      f" {period * 1000:g} ms period (100 ms batches)",
