@@ -46,7 +46,7 @@ _WORD_BYTES = 24
 # reference planner, any other plain M<digits> line is ignored.
 _M_HANDLED = frozenset((b"M0", b"M1", b"M82", b"M83", b"M109", b"M190", b"M191",
                         b"M204", b"M220", b"M221", b"M400", b"M600"))
-_OTHER, _SKIP, _MOVE, _G92 = 0, 1, 2, 3
+_OTHER, _SKIP, _MOVE, _G92, _G10, _G11 = 0, 1, 2, 3, 4, 5
 _AXES = b"XYZEF"
 _NUMBER_CHARS = np.zeros(256, bool)
 _NUMBER_CHARS[list(b"0123456789.+-")] = True
@@ -248,6 +248,11 @@ class FastPlanner:
         move = (b0 == 71) & ((b1 == 48) | (b1 == 49)) & (b2 == 32)
         kinds[move] = _MOVE
         kinds[(b0 == 71) & (b1 == 57) & (b2 == 50) & (b3 == 32)] = _G92
+        # firmware retraction: G10 / G11 (Klipper ignores their parameters)
+        bare = (b3 == 10) | (b3 == 13) | (b3 == 32) | (b3 == 59) | (b3 == 0)
+        retraction = (b0 == 71) & (b1 == 49) & bare
+        kinds[retraction & (b2 == 48)] = _G10
+        kinds[retraction & (b2 == 49)] = _G11
         m_lines = np.flatnonzero(b0 == 77)
         for i in m_lines.tolist():      # few: M-commands are not moves
             head = data[starts[i]:ends[i]].split(b";", 1)[0].split()
@@ -344,10 +349,36 @@ class FastPlanner:
         if not rows.size:
             return
         st = self.state
+        ef = st.extrude_factor
+        retracted = st.is_retracted
+        step_e = step_speed = None
+        retractions = np.flatnonzero(kinds[rows] >= _G10)
+        if retractions.size:
+            # firmware_retraction: a G10 acts only when not retracted, a G11
+            # only when retracted; each that acts is an E-only move (its own
+            # speed) that leaves the G-code E coordinate where it was
+            keep = np.ones(len(rows), bool)
+            step_e = np.full(len(rows), np.nan)
+            step_speed = np.full(len(rows), np.nan)
+            for r, k in zip(retractions.tolist(), kinds[rows[retractions]].tolist()):
+                if k == _G10 and not retracted:
+                    length, speed = -st.retract_length, st.retract_speed
+                elif k == _G11 and retracted:
+                    length = st.retract_length + st.unretract_extra_length
+                    speed = st.unretract_speed
+                else:
+                    keep[r] = False
+                    continue
+                retracted = not retracted
+                step_e[r] = length * ef
+                step_speed[r] = float(int(speed * 60)) * st.speed_factor
+            rows, step_e, step_speed = rows[keep], step_e[keep], step_speed[keep]
+            if not rows.size:
+                st.is_retracted = retracted
+                return
         kind = kinds[rows]
         vals = words[rows]
         is_move = kind == _MOVE
-        ef = st.extrude_factor
         vals[:, 3] *= ef
         last = np.empty((len(rows), 4))
         base_out = list(st.base_position)
@@ -355,24 +386,31 @@ class FastPlanner:
             absolute = st.absolute_coord and (axis < 3 or st.absolute_extrude)
             last[:, axis], base_out[axis] = _axis_positions(
                 vals[:, axis], is_move, st.last_position[axis],
-                st.base_position[axis], absolute)
-        # the feed rate each move runs at
+                st.base_position[axis], absolute, step_e if axis == 3 else None)
+        # the feed rate each move runs at (a retraction's own, not kept)
         feed = vals[:, 4]
         speeds = np.where(np.isnan(feed), np.nan, feed * st.speed_factor)
         speeds = _ffill(speeds, st.speed)
+        move_speeds = speeds
+        if step_e is not None:
+            stepping = ~np.isnan(step_e)
+            is_move = is_move | stepping
+            move_speeds = np.where(stepping, step_speed, speeds)
         pos = last[is_move]
         if not len(pos):
             self._set_state(last, base_out, speeds)
+            st.is_retracted = retracted
             return
         start = np.vstack((np.array(st.commanded_pos)[None, :], pos[:-1]))
         d = pos - start
-        moves = self._moves(d, speeds[is_move],
+        moves = self._moves(d, move_speeds[is_move],
                             offset + starts[rows[is_move]])
         if moves is None:               # an error or an odd move: the slow way
             for i in range(lo, hi):
                 self._scalar_line(data, starts, ends, i, offset, first_line)
             return
         self._set_state(last, base_out, speeds)
+        st.is_retracted = retracted
         st.commanded_pos = list(pos[-1])
         self.parts.append(moves)
 
@@ -626,40 +664,55 @@ def _ffill(values: np.ndarray, first: float) -> np.ndarray:
     return filled[idx][1:]
 
 
-def _axis_positions(vals, is_move, last0, base0, absolute):
+def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
     """gcode_move's position of one axis after each row (moves set it, G92
-    rows move its origin), and the origin after the last row."""
+    rows move its origin, steps (firmware retraction, E only) move it and its
+    origin together), and the origin after the last row."""
     given = ~np.isnan(vals)
-    g92 = np.flatnonzero(given & ~is_move)
+    g92 = given & ~is_move
     moves = given & is_move
+    stepping = np.zeros(len(vals), bool) if steps is None else ~np.isnan(steps)
+    special = np.flatnonzero(g92 | stepping)
     if not absolute:
-        steps = np.where(moves, vals, 0.0)
-        last = np.cumsum(np.concatenate(([last0], steps)))[1:]
+        add = np.where(moves, vals, np.where(stepping, steps, 0.0)) \
+            if steps is not None else np.where(moves, vals, 0.0)
+        last = np.cumsum(np.concatenate(([last0], add)))[1:]
         base = base0
-        for i in g92.tolist():
-            base = float(last[i]) - float(vals[i])
+        for i in special.tolist():
+            if stepping[i]:
+                before = float(last[i - 1]) if i else last0
+                base = base + (float(last[i]) - before)
+            else:
+                base = float(last[i]) - float(vals[i])
         return last, base
-    if not g92.size:
+    if not special.size:
         return _ffill(np.where(moves, vals + base0, np.nan), last0), base0
-    # each G92 starts a new origin from the position at that row
+    # each G92 or step starts a new origin from the position at that row
     bases = [base0]
-    cur_last, cur_base, prev = last0, base0, 0
+    at_step = np.full(len(vals), np.nan)
+    cur_last, cur_base, prev = last0, base0, -1
     move_rows = np.flatnonzero(moves)
-    before = np.searchsorted(move_rows, g92) - 1
-    last_move = np.full(len(g92), -1)
+    before = np.searchsorted(move_rows, special) - 1
+    last_move = np.full(len(special), -1)
     if move_rows.size:
         last_move = np.where(before >= 0, move_rows[np.maximum(before, 0)], -1)
-    for i, k, v, o in zip(g92.tolist(), last_move.tolist(),
-                          vals[np.maximum(last_move, 0)].tolist(),
-                          vals[g92].tolist()):
-        if k >= prev:
+    for i, k, v in zip(special.tolist(), last_move.tolist(),
+                       vals[np.maximum(last_move, 0)].tolist()):
+        if k > prev:
             cur_last = v + cur_base
-        cur_base = cur_last - o
+        if stepping[i]:
+            new_last = cur_last + float(steps[i])
+            cur_base = cur_base + (new_last - cur_last)
+            cur_last = new_last
+            at_step[i] = cur_last
+        else:
+            cur_base = cur_last - float(vals[i])
         bases.append(cur_base)
         prev = i
-    epoch = np.searchsorted(g92, np.arange(len(vals)), "right")
+    epoch = np.searchsorted(special, np.arange(len(vals)), "right")
     base_of_row = np.array(bases)[epoch]
-    return _ffill(np.where(moves, vals + base_of_row, np.nan), last0), cur_base
+    known = np.where(moves, vals + base_of_row, at_step)
+    return _ffill(known, last0), cur_base
 
 
 def _read_numbers(buf, start, length, width):

@@ -46,6 +46,32 @@ def test_a_real_file_gives_the_reference_plan_at_any_chunk_size(name, chunk_byte
     assert_same(data, PrinterLimits(), chunk_bytes)
 
 
+def with_firmware_retraction(data: bytes) -> bytes:
+    """A G10 before and a G11 after every travel that follows an extrusion."""
+    out, extruded = [], False
+    for line in data.split(b"\n"):
+        move = line.startswith(b"G1 ") and b"X" in line
+        if move and b" E" not in line and extruded:
+            out += [b"G10", line, b"G11 ; unretract"]
+            extruded = False
+            continue
+        out.append(line)
+        if move:
+            extruded = b" E" in line
+    return b"\n".join(out)
+
+
+@pytest.mark.parametrize("chunk_bytes", [1 << 20, 500])
+def test_firmware_retraction_gives_the_reference_plan(chunk_bytes):
+    data = with_firmware_retraction((DATA / "block_layers_1_2.gcode").read_bytes()
+                                    + (DATA / "box_bridge_layer.gcode").read_bytes())
+    assert data.count(b"\nG10\n") >= 5
+    limits = PrinterLimits(retract_length=0.8, retract_speed=35,
+                           unretract_extra_length=0.05, unretract_speed=30)
+    assert_same(data, limits, chunk_bytes)
+    assert_same(b"M83\n" + data.replace(b"G92 E0", b"G92 E5"), limits, chunk_bytes)
+
+
 def test_the_lines_it_reads_in_bulk_and_the_ones_it_hands_over():
     text = ("; header\n\nM82\nG90\nG1 Z0.2 F7800\nG1 X10 Y10 E1.5 F1800\n"
             "G0 F9000 X20 Y5\nG1 E-2 F2400\nG92 E0\nG1 E2\nM106 S255\n"
