@@ -5,11 +5,12 @@ code, one line at a time); this module gives the same segments about twenty
 times faster, for the annotator that runs on every upload:
 
 - the file is read in chunks of whole lines; the lines slicers write most
-  (`G0`/`G1` with X Y Z E F words, `G92` with X Y Z E, comments, blank lines
-  and M-commands Klipper's motion ignores) are tokenised and parsed with
-  numpy for the whole chunk, and gcode_move's state (positions, G92 offsets,
-  the feed rate) follows them with prefix sums; every other line goes to the
-  reference Planner, which holds the state the two share;
+  (`G0`/`G1` with X Y Z E F words, `G92` with X Y Z E, `G10`/`G11`,
+  comments, blank lines and M-commands Klipper's motion ignores) are
+  tokenised and parsed with numpy for the whole chunk, and gcode_move's
+  state (positions, G92 offsets, the feed rate) follows them with prefix
+  sums; every other line goes to the reference Planner, which holds the
+  state the two share;
 - moves are built, limited and joined (toolhead.Move, calc_junction) as
   arrays; the lookahead's recurrences on squared speeds
   (x[i] = min(a[i], x[i-1] + d[i])) are solved in closed form with one
