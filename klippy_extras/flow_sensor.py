@@ -33,6 +33,7 @@ MIN_MSG_TIME = 0.100
 BATCH_INTERVAL = 0.100
 DUMP_INTERVAL = 0.100
 SAMPLE_WAIT_TIMEOUT = 2.0
+PLANNED_NEVER = 1e99   # print time past every planned move
 # Which way the counts run depends on the side of the filament the axle sits
 DIRECTIONS = {'forward': 1., 'reverse': -1.}
 REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: install "
@@ -682,7 +683,7 @@ class SimulatedSource:
         beyond). In real time, never beyond now."""
         if self.start_clock is None:
             return
-        done_time = self.steps.final_until()
+        done_time = self._planned_until(self.steps.final_until())
         if until is not None:
             done_time = max(done_time, until + 1e-9)
         now = None
@@ -708,6 +709,24 @@ class SimulatedSource:
         if now is not None:
             # No MCU measures this heater: the twin's nozzle is its reading
             self.heater.temperature_callback(now, self.temp_c(None))
+
+    def _planned_until(self, done_time):
+        """No later than the extruder's planned E position can be read (the
+        sensor tells pressure advance from a retraction by it): Kalico's
+        trapq_extract_old reads only moves finalized into the history,
+        Klipper's the queued ones too."""
+        ffi_main, ffi_lib = chelper.get_ffi()
+        data = ffi_main.new('struct pull_move[1]')
+        extruder = self.sensor.extruder
+        if not ffi_lib.trapq_extract_old(extruder.get_trapq(), data, 1, 0.,
+                                         PLANNED_NEVER):
+            return done_time
+        m = data[0]
+        end_mm = m.start_x + m.x_r * (m.start_v + .5 * m.accel * m.move_t) \
+            * m.move_t
+        if abs(end_mm - extruder.last_position) < 1e-6:
+            return done_time    # nothing planned beyond what can be read
+        return min(done_time, m.print_time + m.move_t)
 
     def sync(self, until=None):
         # In batch mode steps are generated only when the reactor gets to
