@@ -69,7 +69,10 @@ def print_closed_loop(enable: int, build=None, venv=None,
     Batch mode never holds the G-code reader back as a printer does (about
     1 s of moves ahead), so feedback would arrive only after the whole file:
     an M400 every CHUNK_LINES lines bounds how far G-code runs ahead of the
-    steps the twin has seen."""
+    steps the twin has seen, and QUERY_FLOW_SENSOR after it generates those
+    steps and hands the twin's samples to the sensor there and then (left to
+    klippy's flush timer, how much of it is done before the next lines run
+    depends on how busy the machine is: the figures varied run to run)."""
     workdir = stack.short_tempdir("fl-limiter-")
     klippy = stack.Klippy(build or stack.build_klipper(),
                           venv or stack.klippy_venv(), config, workdir,
@@ -87,7 +90,8 @@ def print_closed_loop(enable: int, build=None, venv=None,
             start = api.query("toolhead")["print_time"]
             lines = GCODE.read_text().splitlines()
             for i in range(0, len(lines), CHUNK_LINES):
-                api.gcode("\n".join(lines[i:i + CHUNK_LINES] + ["M400"]))
+                api.gcode("\n".join(lines[i:i + CHUNK_LINES]
+                                    + ["M400", "QUERY_FLOW_SENSOR"]))
             moved = api.query("flow_sensor sim")["filament_position"] - before
             status = dict(api.query("flowrate_limiter"),
                           print_time=api.query("toolhead")["print_time"] - start)
