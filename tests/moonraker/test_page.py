@@ -5,8 +5,10 @@ batch-mode klippy with the simulated sensor, a flowrate limiter and autotemp.
 It checks what a user relies on: the timeline fills with samples, the numbers
 on the page are the printer objects' numbers, nothing is loaded from outside
 127.0.0.1, no console errors, the page carries on after klippy restarts, and
-bad input reads as words where the chart would be. FLOWLOOP_PAGE_SCREENSHOT=
-docs/page.png makes the screenshot docs/page.md shows.
+bad input reads as words where the chart would be. On klippy paced to the
+clock (devtools/realtime_klippy.py) the page moves while a real slicer
+file prints; FLOWLOOP_PAGE_SCREENSHOT=docs/page.png saves that view, the
+screenshot docs/page.md shows.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -242,7 +245,6 @@ def test_the_printed_files_plan_shows_with_the_position_marked(printer, browser)
     assert end == (printer.data_dir / "gcodes" / "annotated.gcode").stat().st_size
     wait_for(browser, "Math.abs(document.getElementById('plan-chart').dataset"
                       f".position - {plan['print_time_s']}) < 0.01")
-    screenshot(browser)
     print_file(printer, "plain.gcode")
     wait_for(browser, "document.getElementById('plan-chart').dataset.message"
                       ".includes('plain.gcode has no autotemp annotations')")
@@ -362,3 +364,66 @@ def test_the_page_connects_again_after_moonraker_restarts(moonraker_venv, browse
             assert "klippy is" in page_state(browser)
         finally:
             again.stop()
+
+
+REALTIME_CFG = PRINTER_CFG.split("# a second extruder")[0] + """
+# realtime klippy's M109 does not wait (batch mode) while its twin nozzle
+# heats in real time: extrusion is allowed cold, and the limiter keeps to
+# max_flow (its temperature cap would hold the cold start to a crawl)
+[extruder]
+min_extrude_temp: 0
+
+[flowrate_limiter]
+mode: static
+
+# a strong heater: the twin's nozzle is hot enough to melt within seconds
+[flow_sensor sim]
+heater_power: 150
+
+# realtime klippy has no endstops that answer: homing declares the position
+[force_move]
+enable_force_move: True
+
+[homing_override]
+gcode: SET_KINEMATIC_POSITION X=0 Y=0 Z=0
+"""
+
+
+@pytest.fixture(scope="module")
+def live_printer(klipper_build, klippy_venv, moonraker_venv):
+    """The same printer on klippy paced to the clock (devtools/realtime_klippy.py):
+    a print runs in real time, as the page is meant to watch it."""
+    cfg_dir = stack.short_tempdir("fl-page-rt-")
+    cfg = cfg_dir / "page_realtime.cfg"
+    cfg.write_text(REALTIME_CFG.format(project=PROJECT))
+    try:
+        with stack.printer_stack(printer_cfg=cfg, realtime=True) as ps:
+            annotate_file(EXCERPT, ps.data_dir / "gcodes" / "annotated.gcode")
+            yield ps
+    finally:
+        shutil.rmtree(cfg_dir, ignore_errors=True)
+
+
+def test_the_page_moves_while_a_print_runs_in_real_time(live_printer, browser):
+    ps = live_printer
+    activate_profile(ps)
+    browser.get(page_url(ps))
+    wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
+    ps.gcode("SDCARD_PRINT_FILE FILENAME=annotated.gcode")
+    wait_for(browser, "!!document.querySelector('#plan-chart canvas')")
+    seen, marks = set(), []
+    deadline = time.monotonic() + 25
+    while time.monotonic() < deadline:
+        seen.add((field(browser, "measured_flow"), field(browser, "temperature")))
+        mark = js(browser, "return document.getElementById('plan-chart')"
+                           ".dataset.position")
+        if mark:
+            marks.append(float(mark))
+        time.sleep(0.5)
+    # flow and the twin's nozzle change under the page's eyes, and the mark
+    # moves along the plan as the file is read
+    assert len(seen) > 10, seen
+    assert marks and marks[-1] > marks[0] + 5, marks
+    assert ps.query("print_stats")["state"] == "printing"
+    screenshot(browser)
+    assert severe_console(browser) == []
