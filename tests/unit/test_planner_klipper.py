@@ -4,12 +4,14 @@ Klipper's `Move`, `LookAheadQueue` (klippy/toolhead.py) and the extruder's
 `check_move` / `calc_junction` (klippy/kinematics/extruder.py) are loaded from
 the Klipper checkout (KLIPPER_PATH, read only; their host imports stubbed) and
 driven the way `ToolHead.move` drives them. Every move must get the same
-accel, cruise and decel times from both. Skipped without a checkout.
+accel, cruise and decel times from both, from the reference planner and
+from the bulk one (fastplan). Skipped without a checkout.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import io
 import math
 import sys
 import types
@@ -20,6 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from devtools import stack
+from flowloop.gcode import fastplan
 from flowloop.gcode.planner import PrinterLimits, Segment, plan_text
 
 pytestmark = pytest.mark.unit
@@ -109,18 +112,22 @@ def klipper_moves(klipper, limits: PrinterLimits, moves):
     return out
 
 
-def planner_moves(limits: PrinterLimits, moves):
+def planner_moves(limits: PrinterLimits, moves, in_bulk: bool = False):
     text = "\n".join(["G90", "M82"] + [f"G1 X{x!r} Y{y!r} E{e!r} F{speed * 60!r}"
                                        for x, y, e, speed in moves])
+    events = fastplan.plan_file(io.BytesIO(text.encode()), limits) if in_bulk \
+        else plan_text(text, limits)
     return [(s.accel_s, s.duration_s - s.accel_s - s.decel_s, s.decel_s, s.speed_mm_s)
-            for s in plan_text(text, limits) if isinstance(s, Segment)]
+            for s in events if isinstance(s, Segment)]
 
 
 def assert_same_plan(klipper, limits, moves):
-    ours, theirs = planner_moves(limits, moves), klipper_moves(klipper, limits, moves)
-    assert len(ours) == len(theirs)
-    for i, (a, b) in enumerate(zip(ours, theirs)):
-        assert a == pytest.approx(b, rel=1e-9, abs=1e-12), f"move {i}"
+    theirs = klipper_moves(klipper, limits, moves)
+    for in_bulk in (False, True):       # the reference and fastplan
+        ours = planner_moves(limits, moves, in_bulk)
+        assert len(ours) == len(theirs)
+        for i, (a, b) in enumerate(zip(ours, theirs)):
+            assert a == pytest.approx(b, rel=1e-9, abs=1e-12), f"move {i}"
 
 
 def excerpt_moves(name: str):
