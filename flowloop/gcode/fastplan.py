@@ -30,6 +30,7 @@ from typing import BinaryIO, Iterator, List, NamedTuple, Optional, Union
 import numpy as np
 
 from .planner import (
+    BARRIER_COMMANDS,
     MAX_ABS_VALUE,
     Barrier,
     Event,
@@ -43,22 +44,16 @@ CHUNK_BYTES = 1 << 20
 # Longest number word the bulk parser reads ("X-123.45678" is 11); longer ones
 # go to the reference planner.
 _WORD_BYTES = 24
-# M-commands Klipper's motion acts on or waits for: such lines go to the
-# reference planner, any other plain M<digits> line is ignored.
-_M_HANDLED = frozenset((b"M0", b"M1", b"M82", b"M83", b"M109", b"M190", b"M191",
-                        b"M204", b"M220", b"M221", b"M400", b"M600"))
+# M-commands the reference planner acts on or waits for: such lines go to
+# it, any other plain M<digits> line is ignored, as it ignores them.
+_M_HANDLED = frozenset(name.encode() for name in
+                       (*Planner._handlers, *BARRIER_COMMANDS)
+                       if name.startswith("M"))
 _OTHER, _SKIP, _MOVE, _G92, _G10, _G11 = 0, 1, 2, 3, 4, 5
 _AXES = b"XYZEF"
-_NUMBER_CHARS = np.zeros(256, bool)
-_NUMBER_CHARS[list(b"0123456789.+-")] = True
-_DIGITS = np.zeros(256, bool)
-_DIGITS[list(b"0123456789")] = True
 _LETTER = np.full(256, -1, np.int8)
 for _i, _c in enumerate(_AXES):
     _LETTER[_c] = _i
-_COLUMNS = ("start_s", "duration_s", "flow_mm3_s", "accel_s", "decel_s",
-            "start_flow_mm3_s", "end_flow_mm3_s", "speed_mm_s", "distance_mm",
-            "filament_mm", "offset")
 
 
 class Segments(NamedTuple):
@@ -564,7 +559,7 @@ class FastPlanner:
         return q._replace(max_start_v2=max_start, max_mcr_start_v2=max_mcr)
 
     def _flush_count(self, q: _Queue, lazy: bool) -> int:
-        self._pass = _backward(q)
+        self._pass = _Backward(q)
         if not lazy:
             return len(q.move_d)
         return self._pass.lazy_count
@@ -641,10 +636,6 @@ class _Backward:
         keyed[0] = 0.0
         keyed[1:] = -segment + 1j * values
         return np.minimum.accumulate(keyed)[1:].imag
-
-
-def _backward(q: _Queue) -> _Backward:
-    return _Backward(q)
 
 
 def _limit_speed(mask, speed, accel, move_d, max_cruise_v2, accel_arr,
