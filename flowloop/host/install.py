@@ -414,12 +414,9 @@ def host_notes(klipper: Path) -> List[str]:
     klipper = Path(klipper).expanduser()
     if not is_kalico(klipper):
         return []
-    notes = []
-    if not (klipper / "klippy" / "extras" / "motion_queuing.py").is_file():
-        notes.append(f"Kalico at {klipper} has no motion_queuing (Klipper's since"
-                     " 2025-08): the simulated [flow_sensor] and [autotemp] do not"
-                     " run there yet (docs/install.md, Kalico)")
-    return notes
+    # (The simulated [flow_sensor] and [autotemp] follow Kalico's step
+    # generators where it has no motion_queuing: nothing to note today.)
+    return []
 
 
 def _own_file(changes: List[Change], path: Path, text: str, uninstall: bool) -> None:
