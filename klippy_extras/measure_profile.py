@@ -497,6 +497,7 @@ class Run:
         self.area = extruder.filament_area
         self.old_target = heater.get_status(self.reactor.monotonic())['target']
         self.windows = []
+        self.holds = []     # (mean power, temp) of each POWERS= heating
         self.old_control = self.control = None
         self.heartbeat_timer = self.reactor.register_timer(
             self._heartbeat, self.reactor.NOW)
@@ -603,22 +604,40 @@ class Run:
             self._say(f"{where}: heating to {level:g} degC")
             pwm = self._heat_and_settle(level)
         else:
-            self._say(f"{where}: heating to {self.bounds.recommended_temp_c:g}"
-                      f" degC")
-            self._heat_and_settle(self.bounds.recommended_temp_c)
             pwm = level * self.heater.get_max_power()
+            self._heat_to_power(where, pwm)
         self._say(f"{where}: heater held at {pwm:.1%} power, settling")
         self.hold_power(pwm)
         settled_c = self._settle(fixed=True)[-1][1]
         return self._ramp(where, pwm, settled_c)
 
-    def _heat_and_settle(self, temp_c):
+    def _heat_to_power(self, where, pwm):
+        """Heat (the heater's own control) to where pwm holds the nozzle,
+        from the powers that held the temperatures so far."""
+        if not self.holds:
+            recommended = self.bounds.recommended_temp_c
+            self._say(f"{where}: heating to {recommended:g} degC for the power"
+                      " that holds it")
+            self.holds.append((self._heat_and_settle(
+                recommended, fl_measure.POWER_LEVEL_WAITS), recommended))
+        for _ in range(fl_measure.POWER_LEVEL_TRIES):
+            temp_c = fl_measure.power_level_target(
+                pwm, self.holds, self.bounds.min_temp_c,
+                self.bounds.max_temp_c)
+            if temp_c is None:
+                return
+            self._say(f"{where}: heating to {temp_c:.1f} degC, where"
+                      f" {pwm:.1%} power should hold")
+            self.holds.append((self._heat_and_settle(
+                temp_c, fl_measure.POWER_LEVEL_WAITS), temp_c))
+
+    def _heat_and_settle(self, temp_c, waits=1):
         """Heat with the heater's own control; the mean power that held
-        temp_c, over a second settle_time once settled (the approach's
-        extra power left out)."""
+        temp_c, over a settle_time after `waits` more once settled (the
+        approach's extra power left out)."""
         self.pheaters.set_temperature(self.heater, temp_c)
-        self._settle(fixed=False, target_c=temp_c)
-        readings = self._settle(fixed=False, target_c=temp_c)
+        for _ in range(waits + 1):
+            readings = self._settle(fixed=False, target_c=temp_c)
         return sum(p for _, _, p in readings) / len(readings)
 
     def _settle(self, fixed, target_c=None):

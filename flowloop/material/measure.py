@@ -57,6 +57,9 @@ STEP_TRANSIENT_SHARE = 0.3
 # A window closes on the first sample past its filament: just after the step.
 STEP_END_SLACK_S = 0.25
 PWM_MAX = 255.0          # the profile's PWM scale (ddPrint's)
+# Where a heater's loss to the room is zero (Klipper's heaters.AMBIENT_TEMP,
+# flowloop.control.hotend's default ambient_c).
+AMBIENT_C = 25.0
 
 
 @dataclass(frozen=True)
@@ -159,6 +162,53 @@ def make_plan(temps: Optional[Sequence[float]], powers: Optional[Sequence[float]
     return Plan("temperature" if temps is not None else "power",
                 tuple(sorted(levels)), start_flow, step, max_flow, min_grip,
                 start_given)
+
+
+# Heatings a POWERS= level may take to find where its power holds, and how
+# near that is near enough (the fixed power settles the rest)
+POWER_LEVEL_TRIES = 4
+POWER_LEVEL_BAND_C = 2.0
+# settle_time waits after settling before a POWERS= heating's power is read
+# (a TEMPS= level waits one): the rest of the approach in the mean power
+# moves the level's temperature by hundreds of times as much
+POWER_LEVEL_WAITS = 2
+
+
+def power_level_target(power: float, holds: Sequence[Tuple[float, float]],
+                       min_temp_c: float, max_temp_c: float) -> Optional[float]:
+    """Where to heat next (with the heater's own control) so that `power`
+    holds the nozzle once it is fixed; None: the last heating is there
+    (within POWER_LEVEL_BAND_C). holds: (mean power, temperature) of each
+    heating so far, the last one where the nozzle is now.
+
+    A held power alone takes minutes (the block's time constant, C / loss)
+    to reach its temperature and the settle test passes long before, so a
+    POWERS= level heats there first. The mean power over a settle still
+    carries the approach (high after heating up, low after cooling down,
+    and a 1 % error moves a 30 % level's temperature by 6 degC), so the
+    target is on the line through ambient fitted to all heatings (the
+    errors of both signs cancel). Beyond the profile's bounds: the bound, then
+    FlowloopError."""
+    hold_power, hold_temp_c = holds[-1]
+    # the loss through ambient fitted to every heating: P = k (T - ambient),
+    # flowloop.control.hotend's balance
+    rises = [t - AMBIENT_C for _, t in holds]
+    k = (sum(p * r for (p, _), r in zip(holds, rises))
+         / sum(r * r for r in rises))
+    if not (k > 0.0 and min(rises) > 0.0):
+        raise FlowloopError(
+            f"POWERS: {hold_power:.1%} power held {hold_temp_c:g} degC: no"
+            " power level can be placed from that")
+    estimate = AMBIENT_C + power / k
+    if abs(estimate - hold_temp_c) <= POWER_LEVEL_BAND_C:
+        return None
+    target = min(max(estimate, min_temp_c), max_temp_c)
+    if target != estimate and abs(target - hold_temp_c) <= POWER_LEVEL_BAND_C:
+        raise FlowloopError(
+            f"POWERS: {power:.1%} power holds about {estimate:.0f} degC,"
+            f" outside the profile's {min_temp_c:g}..{max_temp_c:g} degC"
+            f" ({hold_power:.1%} held {hold_temp_c:g} degC)")
+    return target
 
 
 def settled(readings: Sequence[Tuple[float, float]], hold_s: float,

@@ -18,7 +18,9 @@ import pytest
 
 from devtools import stack
 from devtools.klippy_api import KlippyApi
+from flowloop.control.hotend import HotendParams
 from flowloop.gcode import measure_part
+from flowloop.material import measure
 from flowloop.material.profile import profile_from_dict
 
 HERE = Path(__file__).resolve().parent
@@ -202,6 +204,91 @@ def test_the_measurement_recovers_the_profile_and_hands_it_to_moonraker(printer)
     assert_heater_given_back(watcher)
     log = (klippy.workdir / "klippy.log").read_text(errors="replace")
     assert "level 3/3 (240 degC): heater held at" in log
+
+
+# The twin's flow-vs-power line lies between two lines the hotend model
+# gives: idle, a held power P (share of the 40 W heater) settles the nozzle
+# where the loss to the room takes it, ambient + 40 W * P / loss, and the
+# twin melts the known line there; fully sagged, the nozzle at its limit
+# flow for good, (loss + filament heat * flow) * (T - ambient) = 40 W * P.
+# A ramp starts idle and sags a few degC, more at the higher flows of the
+# higher powers, so its line lies between (ddPrint's points too sit where
+# the heater sagged). Stated tolerance of POWERS=: the slope between the
+# two lines' (0.150 and 0.269 mm^3/s per PWM; 10 % above the idle one),
+# the flow at the middle power between theirs; each point's temperature
+# between its power's fully sagged temperature and its idle one plus
+# ABOVE_IDLE_C (a level heats to within 2 degC of where its power should
+# hold, from powers read off the heater's own control); the temperature
+# line from the same points within 5 % (SLOPE_TOLERANCE).
+TWIN = HotendParams(max_power_w=40.0)
+POWERS = (0.30, 0.33, 0.36)
+ABOVE_IDLE_C = 3.0
+
+
+def idle_temp_c(pwm):
+    return TWIN.ambient_c + (pwm / measure.PWM_MAX * TWIN.max_power_w
+                             / TWIN.loss_w_per_c)
+
+
+def sagged_temp_c(pwm):
+    """Where the held power keeps the nozzle melting its limit for good."""
+    power_w = pwm / measure.PWM_MAX * TWIN.max_power_w
+    low, high = TWIN.ambient_c, idle_temp_c(pwm)
+    for _ in range(60):    # bisection: the loss rises with the temperature
+        temp = (low + high) / 2
+        melt = max(0.0, FLOW + SLOPE * (temp - TEMP))
+        loss = (TWIN.loss_w_per_c + TWIN.filament_j_per_mm3_c * melt) \
+            * (temp - TWIN.ambient_c)
+        low, high = (temp, high) if loss < power_w else (low, temp)
+    return low
+
+
+def melt_at(temp_c):
+    return FLOW + SLOPE * (temp_c - TEMP)
+
+
+def power_line(temp_of):
+    """(slope per PWM, flow at the middle power) of the twin's line."""
+    pwms = [level * measure.PWM_MAX for level in POWERS]
+    flows = [melt_at(temp_of(pwm)) for pwm in pwms]
+    return (flows[-1] - flows[0]) / (pwms[-1] - pwms[0]), flows[1]
+
+
+def test_a_powers_run_recovers_the_flow_vs_power_line_and_stores_it(printer):
+    runner, watcher, klippy = printer
+    before = len(stored(runner))
+    levels = ",".join(f"{level:g}" for level in POWERS)
+    runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE NAME=powers "
+                f"POWERS={levels} STEP=0.25 MAX_FLOW=14 MIN_GRIP=0.9")
+    calls = stored(runner)[before:]
+    assert len(calls) == 1
+    profile = profile_from_dict(calls[0]["params"]["profile"])
+    points = [p for p in profile.points if p.kind == "into_air"]
+    # each level held the power asked for (PWM on ddPrint's 0..255 scale)
+    assert [p.heater_pwm for p in points] == pytest.approx(
+        [level * 255 for level in POWERS])
+    # ... at the temperature that power holds (sagged by the ramp, not as
+    # far as for good), not where the last level left the nozzle
+    for p in points:
+        assert sagged_temp_c(p.heater_pwm) <= p.temp_c <= idle_temp_c(
+            p.heater_pwm) + ABOVE_IDLE_C, p
+    power = profile.lines.into_air_power
+    assert power is not None
+    sagged, idle = power_line(sagged_temp_c), power_line(idle_temp_c)
+    assert sagged[0] < power.slope_mm3_s_per_pwm < 1.1 * idle[0], (
+        power, sagged, idle)
+    middle = POWERS[1] * 255
+    flow = power.slope_mm3_s_per_pwm * (middle - power.pwm) + power.flow_mm3_s
+    assert sagged[1] < flow < idle[1] + SLOPE * ABOVE_IDLE_C, (flow, sagged,
+                                                                idle)
+    # the temperature line from the same points is the twin's too
+    line = profile.lines.into_air.line()
+    assert line.slope_mm3_s_per_c == pytest.approx(SLOPE, rel=SLOPE_TOLERANCE)
+    assert watcher.status()["state"] == "stored"
+    assert_heater_given_back(watcher)
+    log = (klippy.workdir / "klippy.log").read_text(errors="replace")
+    assert "level 1/3 (power 30%): heating to 210 degC for the power" in log
+    assert "where 33.0% power should hold" in log
 
 
 def test_the_macro_lifts_the_nozzle_and_measures_the_active_profile(printer):

@@ -172,3 +172,33 @@ def test_a_print_watch_ends_on_the_median_of_its_last_windows():
     assert [w.grip for w in watch.recent] == [0.95, 0.8, 0.85]
     with pytest.raises(FlowloopError, match="MIN_GRIP"):
         measure.PrintWatch(1.5)
+
+
+def test_a_power_level_heats_where_its_power_holds_on_the_loss_line():
+    # 32.4 % held 210 degC: the loss is 0.324 / 185 per degC over ambient
+    target = measure.power_level_target(0.30, [(0.324, 210.0)], 185.0, 250.0)
+    assert target == pytest.approx(25.0 + 0.30 * 185.0 / 0.324)
+    # there already (within the band): heat no more
+    assert measure.power_level_target(
+        0.30, [(0.324, 210.0), (0.30, target)], 185.0, 250.0) is None
+
+
+def test_a_power_level_fits_every_heating_so_errors_of_both_signs_cancel():
+    # the true loss is 0.00175 per degC: a heat-up read 10 % high, the
+    # cool-down after it 7 % low; the last one alone would put 30 % at 211
+    holds = [(0.356, 210.0), (0.2636, 186.5)]
+    alone = 25.0 + 0.30 * 161.5 / 0.2636
+    target = measure.power_level_target(0.30, holds, 150.0, 250.0)
+    truth = 25.0 + 0.30 / 0.00175
+    assert abs(target - truth) < abs(alone - truth) / 2
+
+
+def test_a_power_level_beyond_the_bounds_tries_the_bound_then_stops():
+    assert measure.power_level_target(0.25, [(0.324, 210.0)], 185.0,
+                                      250.0) == 185.0
+    with pytest.raises(FlowloopError, match="POWERS: 25.0% power holds about"
+                       " 16[0-9] degC, outside the profile's 185..250 degC"):
+        measure.power_level_target(0.25, [(0.324, 210.0), (0.28, 185.0)],
+                                   185.0, 250.0)
+    with pytest.raises(FlowloopError, match="no power level"):
+        measure.power_level_target(0.25, [(0.0, 210.0)], 185.0, 250.0)
