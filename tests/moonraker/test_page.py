@@ -119,6 +119,12 @@ def page_url(ps, extruder=None):
     return url + (f"?extruder={extruder}" if extruder else "")
 
 
+def open_page(driver, url):
+    """Load url, the browser's logs emptied first: each test judges its own."""
+    driver.get_log("browser"), driver.get_log("performance")
+    driver.get(url)
+
+
 def js(driver, script):
     return driver.execute_script(script)
 
@@ -174,8 +180,7 @@ def test_the_page_shows_the_printer_objects_numbers_live(printer, browser):
     activate_profile(printer)
     printer.gcode("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=205\n"
                   "SET_FLOWRATE_LIMIT MAX_FLOW=7.5")
-    browser.get_log("browser"), browser.get_log("performance")
-    browser.get(page_url(printer))
+    open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
     samples = int(wait_for(
         browser, "+document.getElementById('flow-chart').dataset.samples > 2 && "
@@ -229,7 +234,7 @@ def print_file(ps, name):
 
 def test_the_printed_files_plan_shows_with_the_position_marked(printer, browser):
     activate_profile(printer)
-    browser.get(page_url(printer))
+    open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
     assert "No file is being printed" in message(browser, "plan-chart")
     print_file(printer, "annotated.gcode")
@@ -252,7 +257,7 @@ def test_the_printed_files_plan_shows_with_the_position_marked(printer, browser)
 
 
 def test_the_page_carries_on_after_klippy_restarts(printer, browser):
-    browser.get(page_url(printer))
+    open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
     status, body = printer.moonraker.request("POST", "/printer/restart")
     assert status == 200, body
@@ -270,12 +275,12 @@ def test_the_page_carries_on_after_klippy_restarts(printer, browser):
 
 
 def test_bad_input_is_said_where_the_chart_would_be(printer, browser):
-    browser.get(page_url(printer, "extruder7"))
+    open_page(browser, page_url(printer, "extruder7"))
     wait_for(browser, "document.getElementById('flow-chart').dataset.message")
     for chart in ("flow-chart", "temp-chart", "profile-chart", "plan-chart"):
         assert "This printer has no [extruder7]: its extruders are extruder, " \
                "extruder1." == message(browser, chart)
-    browser.get(page_url(printer, "extruder1"))
+    open_page(browser, page_url(printer, "extruder1"))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
     assert message(browser, "flow-chart").startswith(
         "No [flow_sensor] watches extruder1")
@@ -286,7 +291,7 @@ def test_bad_input_is_said_where_the_chart_would_be(printer, browser):
     assert field(browser, "grip") == ""
     # the active profile deleted while the page shows it
     activate_profile(printer, "short-lived")
-    browser.get(page_url(printer))
+    open_page(browser, page_url(printer))
     wait_for(browser, "!!document.querySelector('#profile-chart canvas')")
     status, body = printer.moonraker.request(
         "DELETE", "/server/flowloop/profile?name=short-lived")
@@ -319,7 +324,7 @@ def test_without_authorization_the_page_shows_nothing(locked, browser):
     for path in ("/server/flowloop/page/", "/server/flowloop/page/lines",
                  "/server/flowloop/page/plan?filename=x.gcode"):
         assert ps.moonraker.request("GET", path)[0] == 401, path
-    browser.get(page_url(ps) + "#api_key=wrong")
+    open_page(browser, page_url(ps) + "#api_key=wrong")
     assert "Unauthorized" in page_state(browser)
     assert js(browser, "return document.getElementById('readout')") is None
 
@@ -331,7 +336,7 @@ def test_an_api_key_opens_the_page_where_moonraker_asks_for_one(locked, browser)
     assert status == 200, body
     # the oneshot token authorises the page's one request; the key in the
     # fragment (never sent to a server) the page's websocket
-    browser.get(page_url(ps) + f"?token={body['result']}#api_key={key}")
+    open_page(browser, page_url(ps) + f"?token={body['result']}#api_key={key}")
     state = wait_for(browser, "document.getElementById('connection').dataset.state"
                               " == 'waiting' && document.body.innerText")
     assert "klippy is" in state  # Moonraker answered: no klippy behind it
@@ -351,7 +356,7 @@ def test_flowloop_info_prints_the_address_that_serves_the_page(printer):
 
 def test_the_page_connects_again_after_moonraker_restarts(moonraker_venv, browser):
     with stack.printer_stack(with_klippy=False) as ps:
-        browser.get(page_url(ps))
+        open_page(browser, page_url(ps))
         connection = "document.getElementById('connection').dataset.state"
         wait_for(browser, f"{connection} == 'waiting'")  # no klippy behind it
         port = ps.moonraker.port
@@ -407,7 +412,7 @@ def live_printer(klipper_build, klippy_venv, moonraker_venv):
 def test_the_page_moves_while_a_print_runs_in_real_time(live_printer, browser):
     ps = live_printer
     activate_profile(ps)
-    browser.get(page_url(ps))
+    open_page(browser, page_url(ps))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
     ps.gcode("SDCARD_PRINT_FILE FILENAME=annotated.gcode")
     wait_for(browser, "!!document.querySelector('#plan-chart canvas')")
@@ -426,4 +431,25 @@ def test_the_page_moves_while_a_print_runs_in_real_time(live_printer, browser):
     assert marks and marks[-1] > marks[0] + 5, marks
     assert ps.query("print_stats")["state"] == "printing"
     screenshot(browser)
+    assert severe_console(browser) == []
+
+
+def test_sensor_faults_are_listed_as_they_happen(printer, browser):
+    open_page(browser, page_url(printer))
+    wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
+    printer.gcode("SET_FLOW_SENSOR_SIMULATION FAULT=magnet\nG28\nM83\n"
+                  "G1 E5 F300\nM400")
+    fault = printer.query("flow_sensor sim")["fault"]
+    assert fault == "magnet"
+    events = "document.getElementById('events').innerText"
+    wait_for(browser, f"{events}.includes('sensor sim: fault (magnet)')")
+    wait_for(browser, f"{events}.includes('more magnet')")
+    # the magnet back: the fault it made ends (a cold twin nozzle may make
+    # the next one, 'stuck' filament): the page lists what the sensor says
+    printer.gcode("SET_FLOW_SENSOR_SIMULATION FAULT=none\nG1 E5 F300\nM400")
+    now = printer.query("flow_sensor sim")["fault"]
+    assert now != "magnet"
+    wait_for(browser, f"{FIELD.format('fault')}.dataset.value == '{now or ''}'")
+    wait_for(browser, f"{events}.includes('sensor sim: "
+                      f"{f'fault ({now})' if now else 'fault cleared'}')")
     assert severe_console(browser) == []

@@ -510,6 +510,9 @@
     status = {};
     profileKey = null;
     planFile = undefined;
+    // a restarted klippy counts its errors from 0 again
+    lastFault = null;
+    lastErrors = null;
     const info = await rpc.call("server.info");
     if (info.klippy_state !== "ready") {
       setConnection("waiting", "klippy " + info.klippy_state);
