@@ -74,8 +74,7 @@ def _browser_missing():
     return None
 
 
-@pytest.fixture(scope="module")
-def browser():
+def _chrome():
     reason = _browser_missing()
     if reason:
         pytest.skip(reason)
@@ -91,8 +90,23 @@ def browser():
         options.add_argument(arg)
     options.set_capability("goog:loggingPrefs",
                            {"browser": "ALL", "performance": "ALL"})
-    driver = webdriver.Chrome(options=options,
-                              service=Service(shutil.which("chromedriver")))
+    return webdriver.Chrome(options=options,
+                            service=Service(shutil.which("chromedriver")))
+
+
+@pytest.fixture(scope="module")
+def browser():
+    driver = _chrome()
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+@pytest.fixture
+def own_browser():
+    """A browser of its own, for a test that changes how its clock runs."""
+    driver = _chrome()
     try:
         yield driver
     finally:
@@ -452,4 +466,20 @@ def test_sensor_faults_are_listed_as_they_happen(printer, browser):
     wait_for(browser, f"{FIELD.format('fault')}.dataset.value == '{now or ''}'")
     wait_for(browser, f"{events}.includes('sensor sim: "
                       f"{f'fault ({now})' if now else 'fault cleared'}')")
+    assert severe_console(browser) == []
+
+
+def test_the_timeline_holds_five_minutes_however_long_it_runs(printer, own_browser):
+    browser = own_browser
+    open_page(browser, page_url(printer))
+    wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
+    samples = "+document.getElementById('flow-chart').dataset.samples"
+    # Twelve minutes of the page's clock (its timers and Date) pass at once.
+    browser.execute_cdp_cmd("Emulation.setVirtualTimePolicy",
+                            {"policy": "advance", "budget": 12 * 60 * 1000})
+    wait_for(browser, f"{samples} >= 1200", timeout=60)
+    browser.execute_cdp_cmd("Emulation.setVirtualTimePolicy",
+                            {"policy": "advance", "budget": 60 * 1000})
+    time.sleep(2)
+    assert js(browser, f"return {samples}") == 1200  # 300 s at 4 a second
     assert severe_console(browser) == []
