@@ -11,7 +11,8 @@ commanded flow, the limiter's cap, autotemp's target, the nozzle temperature. Th
 (/server/flowloop/page/) of that Moonraker shows the same as it happens; the
 stack stays up with the demo's own until Ctrl-C.
 
-FLOWLOOP_DEMO_LIVE_S: how long the lines are printed (default 45 s); the
+FLOWLOOP_DEMO_LIVE_S: how long the lines are printed once the nozzle is hot
+(default 30 s; heating takes about 45 s before); the
 print goes on in the background.
 """
 
@@ -31,7 +32,7 @@ GCODE = stack.PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
 PROFILE = (stack.PROJECT / "tests" / "data" / "ddprint-profiles" / "mat-profiles"
            / "UM2-1" / "herz-pla-red.json")
 SECONDS_ENV = "FLOWLOOP_DEMO_LIVE_S"
-DEFAULT_SECONDS = 45.0
+DEFAULT_SECONDS = 30.0
 EVERY_S = 3.0
 PREHEAT_C = 200.0
 PREHEAT_MAX_S = 90.0
