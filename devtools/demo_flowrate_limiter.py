@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import Any, Dict, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from devtools import stack
 from devtools.klippy_api import KlippyApi
@@ -57,6 +57,26 @@ def warm_up(api, target_c: float, seconds: float = 100.0) -> None:
                           f" TARGET={target_c:g}"] + moves + ["M400"]))
 
 
+def print_in_chunks(api, lines: List[str],
+                    after_chunk: Optional[Callable[[List[str]], None]] = None
+                    ) -> None:
+    """Send G-code lines CHUNK_LINES at a time, each chunk followed by M400
+    and QUERY_FLOW_SENSOR (below), then after_chunk(chunk) if given.
+
+    Batch mode never holds the G-code reader back as a printer does (about
+    1 s of moves ahead), so feedback would arrive only after the whole file:
+    the M400 bounds how far G-code runs ahead of the steps the twin has
+    seen, and QUERY_FLOW_SENSOR after it generates those steps and hands the
+    twin's samples to the sensor there and then (left to klippy's flush
+    timer, how much of it is done before the next lines run depends on how
+    busy the machine is)."""
+    for i in range(0, len(lines), CHUNK_LINES):
+        chunk = lines[i:i + CHUNK_LINES]
+        api.gcode("\n".join(chunk + ["M400", "QUERY_FLOW_SENSOR"]))
+        if after_chunk is not None:
+            after_chunk(chunk)
+
+
 def print_closed_loop(enable: int, build=None, venv=None,
                       profile: Dict[str, Any] = WEAK_PROFILE,
                       config: Path = CONFIG, mode: str = "predictive"
@@ -64,15 +84,7 @@ def print_closed_loop(enable: int, build=None, venv=None,
     """Print the slicer excerpt on the twin with the limiter on (1) or off
     (0) in `mode`, after warming the nozzle up; the limiter's status (with
     the toolhead's final `print_time` added) and the filament the twin really
-    moved while printing the file.
-
-    Batch mode never holds the G-code reader back as a printer does (about
-    1 s of moves ahead), so feedback would arrive only after the whole file:
-    an M400 every CHUNK_LINES lines bounds how far G-code runs ahead of the
-    steps the twin has seen, and QUERY_FLOW_SENSOR after it generates those
-    steps and hands the twin's samples to the sensor there and then (left to
-    klippy's flush timer, how much of it is done before the next lines run
-    depends on how busy the machine is: the figures varied run to run)."""
+    moved while printing the file (sent by print_in_chunks)."""
     workdir = stack.short_tempdir("fl-limiter-")
     klippy = stack.Klippy(build or stack.build_klipper(),
                           venv or stack.klippy_venv(), config, workdir,
@@ -88,10 +100,7 @@ def print_closed_loop(enable: int, build=None, venv=None,
             warm_up(api, WARM_UP_C)
             before = api.query("flow_sensor sim")["filament_position"] or 0.0
             start = api.query("toolhead")["print_time"]
-            lines = GCODE.read_text().splitlines()
-            for i in range(0, len(lines), CHUNK_LINES):
-                api.gcode("\n".join(lines[i:i + CHUNK_LINES]
-                                    + ["M400", "QUERY_FLOW_SENSOR"]))
+            print_in_chunks(api, GCODE.read_text().splitlines())
             moved = api.query("flow_sensor sim")["filament_position"] - before
             status = dict(api.query("flowrate_limiter"),
                           print_time=api.query("toolhead")["print_time"] - start)
