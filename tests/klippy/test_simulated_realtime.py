@@ -81,3 +81,38 @@ def test_a_move_takes_its_time_and_the_sensor_follows_the_clock(
     rate = (samples[-1] - samples[0]) / (w1 - w0)
     assert 150 < rate < 350
     assert final["filament_position"] > 5.5
+
+
+def test_the_printer_klippy_builds_after_a_restart_is_paced_too(
+        klipper_build, klippy_venv, short_tmp):
+    klippy = stack.Klippy(klipper_build, klippy_venv,
+                          HERE / "simulated_realtime.cfg", short_tmp,
+                          {"mcu": "atmega2560"}, realtime=True)
+    try:
+        api = _ready_api(klippy)
+        api.send("gcode/script", script="RESTART")
+        api.close()
+        # the old printer's socket closes; the new one opens the same path
+        time.sleep(2.0)
+        api = stack.wait_until(lambda: _reconnect(klippy), 30)
+        api.gcode("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=210\nG28\nM83")
+        start = time.monotonic()
+        api.gcode("G1 X60 E3 F1200\nM400")   # 3 s
+        took = time.monotonic() - start
+        status = api.query(SENSOR)
+    finally:
+        klippy.stop()
+    assert 2.7 < took < 6.0
+    assert status["simulation"]["realtime"] is True
+    assert status["filament_position"] > 2.5
+
+
+def _reconnect(klippy):
+    try:
+        api = KlippyApi(klippy.api_socket, timeout=5)
+        if api.call("info")["state"] == "ready":
+            return api
+        api.close()
+    except (OSError, RuntimeError, ValueError):
+        pass
+    return None
