@@ -4,13 +4,21 @@
 # at a rising flow until the grip falls below MIN_GRIP, and the lines fitted
 # to those points are handed to Moonraker (flowloop_store_profile).
 #
+# The command starts the run and returns, as SDCARD_PRINT_FILE starts a
+# print: a reactor timer drives the levels and steps and takes the G-code
+# queue for each step (and each temperature reading), so what is typed in
+# the console (CANCEL_MATERIAL_PROFILE, M112) runs in between. A command in
+# between that moves the toolhead, changes the extruder heater's target or
+# control, or PAUSE, ends the run as a cancel does.
+#
 # The fixed power is a heater control object swapped in as PID_CALIBRATE
 # swaps its own, and given back on every way out (success, error,
-# CANCEL_MATERIAL_PROFILE, shutdown). The plan, settling, step judging,
+# CANCEL_MATERIAL_PROFILE, shutdown, restart). The plan, settling, step judging,
 # fits and watchdog rules live in flowloop (material.measure, material.fit,
 # control.watchdog); this module drives the printer.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
+import contextlib
 import dataclasses
 import logging
 
@@ -27,6 +35,7 @@ HEARTBEAT_INTERVAL = 0.5
 READING_INTERVAL = 1.0      # s between temperature readings while waiting
 MAX_MOVE_TIME = 1.0         # s per extrude-only move of a step
 MAX_STEP_RETRIES = 2        # a step without a judged window runs again
+TURN_PAUSE_S = 0.001        # the reactor's moment between two turns
 STORE_METHOD = "flowloop_store_profile"
 NAME = "MEASURE_MATERIAL_PROFILE"
 PRINT_NAME = "MEASURE_MATERIAL_PROFILE_PRINT"
@@ -115,6 +124,8 @@ class MeasureProfile:
         self._set_status('idle')
         printer.register_event_handler('klippy:connect', self._handle_connect)
         printer.register_event_handler('klippy:shutdown', self._handle_shutdown)
+        printer.register_event_handler('klippy:disconnect',
+                                       self._handle_shutdown)
         gcode = printer.lookup_object('gcode')
         gcode.register_command('MEASURE_MATERIAL_PROFILE',
                                self.cmd_MEASURE_MATERIAL_PROFILE,
@@ -128,8 +139,7 @@ class MeasureProfile:
         gcode.register_command('CANCEL_MATERIAL_PROFILE',
                                self.cmd_CANCEL_MATERIAL_PROFILE,
                                desc=self.cmd_CANCEL_MATERIAL_PROFILE_help)
-        # A running measurement holds the G-code queue (as PID_CALIBRATE
-        # does): this endpoint reaches it at once, the G-code only between.
+        # The same as CANCEL_MATERIAL_PROFILE, for clients that do not type
         printer.lookup_object('webhooks').register_endpoint(
             'measure_profile/cancel', self._handle_cancel_request)
 
@@ -179,7 +189,8 @@ class MeasureProfile:
 
     # --- cancel and shutdown ----------------------------------------------------
     cmd_CANCEL_MATERIAL_PROFILE_help = (
-        "Stop a running MEASURE_MATERIAL_PROFILE (nothing is stored)")
+        "Stop a running MEASURE_MATERIAL_PROFILE or _PRINT (nothing is"
+        " stored)")
 
     def cmd_CANCEL_MATERIAL_PROFILE(self, gcmd):
         if self.watch is not None:
@@ -191,6 +202,8 @@ class MeasureProfile:
             gcmd.respond_info("CANCEL_MATERIAL_PROFILE: no measurement running")
             return
         self.cancel_reason = "cancelled (CANCEL_MATERIAL_PROFILE)"
+        gcmd.respond_info(f"CANCEL_MATERIAL_PROFILE: {NAME} stops at its next"
+                          " step")
 
     def _handle_cancel_request(self, web_request):
         running = self.run is not None or self.watch is not None
@@ -215,31 +228,51 @@ class MeasureProfile:
     def cmd_MEASURE_MATERIAL_PROFILE(self, gcmd):
         if self.run is not None or self.watch is not None:
             raise gcmd.error(f"{NAME}: a measurement is running already")
+        sdcard = self.printer.lookup_object('virtual_sdcard', None)
+        if sdcard is not None and sdcard.is_active():
+            raise gcmd.error(f"{NAME}: a print is running; nothing changed")
+        pause_resume = self.printer.lookup_object('pause_resume', None)
+        if pause_resume is not None and pause_resume.is_paused:
+            raise gcmd.error(f"{NAME}: the printer is paused (RESUME or"
+                             " CLEAR_PAUSE first); nothing changed")
         run = self._prepare(gcmd)
         self.run, self.cancel_reason = run, None
         self._set_status('running', name=run.name, level=None,
                          levels=len(run.plan.levels), flow=None, points=[],
                          result=None, message='')
+        gcmd.respond_info(f"{NAME}: started ({len(run.plan.levels)} levels);"
+                          " CANCEL_MATERIAL_PROFILE stops it")
+        # As virtual_sdcard runs a print: the command returns, a timer runs
+        self.reactor.register_callback(lambda e: self._run(run))
+
+    def _run(self, run):
+        gcode = self.printer.lookup_object('gcode')
+        error = None
         try:
             points = run.measure()
             profile, fitted = run.result(points)
         except (MeasurementStopped, FlowloopError) as e:
-            message = f"{NAME}: {e}; nothing stored"
-            self._set_status('aborted', message=message,
-                             heater_control=run.control_name())
-            raise gcmd.error(message) from None
+            error = f"{NAME}: {e}; nothing stored"
         except Exception:
-            self._set_status('aborted', message=f"{NAME}: internal error",
-                             heater_control=run.control_name())
-            raise
+            logging.exception("%s: internal error", NAME)
+            error = f"{NAME}: internal error (see klippy.log); nothing stored"
         finally:
             run.finish()
             self.run = None
+        if error is not None:
+            self._set_status('aborted', message=error,
+                             heater_control=run.control_name())
+            _respond_error(gcode, error)
+            return
         for line in fitted.lines():
-            gcmd.respond_info(f"{NAME}: {line}")
+            gcode.respond_info(f"{NAME}: {line}")
         self._set_status('measured', heater_control=run.control_name(),
                          result=self._result_status(profile))
-        self._store(gcmd, run, profile)
+        try:
+            gcode.respond_info(self._hand_over(NAME, profile, run.extruder_name,
+                                               run.activate))
+        except self.printer.command_error as e:
+            _respond_error(gcode, str(e))
 
     def _result_status(self, profile, kind='into_air'):
         line = getattr(profile.lines, kind)
@@ -247,14 +280,6 @@ class MeasureProfile:
                 'slope_mm3_s_per_c': line.slope_mm3_s_per_c,
                 'temp_c': line.temp_c, 'flow_mm3_s': line.flow_mm3_s,
                 'note': profile.provenance.note}
-
-    def _store(self, gcmd, run, profile):
-        try:
-            message = self._hand_over(NAME, profile, run.extruder_name,
-                                      run.activate)
-        except self.printer.command_error as e:
-            raise gcmd.error(str(e)) from None
-        gcmd.respond_info(message)
 
     def _hand_over(self, command, profile, extruder_name, activate):
         """Send the profile to Moonraker; the message (status follows)."""
@@ -407,7 +432,7 @@ class MeasureProfile:
         if toolhead.get_extruder() is not extruder:
             raise gcmd.error(f"{NAME}: {extruder_name} is not the active"
                              f" extruder (activate it first); nothing changed")
-        return Run(self, gcmd, name, extruder_name, extruder, heater, sensor,
+        return Run(self, name, extruder_name, extruder, heater, sensor,
                    base, bounds, plan, limits,
                    bool(gcmd.get_int('ACTIVATE', 0, minval=0, maxval=1)))
 
@@ -484,15 +509,20 @@ class PrintSession:
 class Run:
     """One MEASURE_MATERIAL_PROFILE: the levels, the heater swap, the ramp."""
 
-    def __init__(self, owner, gcmd, name, extruder_name, extruder, heater,
+    def __init__(self, owner, name, extruder_name, extruder, heater,
                  sensor, base, bounds, plan, limits, activate):
-        self.owner, self.gcmd = owner, gcmd
+        self.owner = owner
         self.printer, self.reactor = owner.printer, owner.reactor
         self.name, self.extruder_name = name, extruder_name
         self.extruder, self.heater, self.sensor = extruder, heater, sensor
         self.base, self.bounds, self.plan = base, bounds, plan
         self.limits, self.activate = limits, activate
         self.toolhead = self.printer.lookup_object('toolhead')
+        self.gcode = self.printer.lookup_object('gcode')
+        self.mutex = self.gcode.get_mutex()
+        self.gcode_move = self.printer.lookup_object('gcode_move')
+        self.pause_resume = self.printer.lookup_object('pause_resume', None)
+        self.left = None    # (position, heater target, control) after a turn
         self.pheaters = self.printer.lookup_object('heaters')
         self.area = extruder.filament_area
         self.old_target = heater.get_status(self.reactor.monotonic())['target']
@@ -541,20 +571,67 @@ class Run:
         self.restore_heater()
         self.reactor.unregister_timer(self.heartbeat_timer)
         if not self.printer.is_shutdown():
-            self.heater.set_temp(self.old_target)
-            self.printer.lookup_object('gcode_move').reset_last_position()
+            with self.mutex:
+                self.heater.set_temp(self.old_target)
+                self.gcode_move.reset_last_position()
+
+    # --- turns: the run and the console share the G-code queue ----------------------
+    @contextlib.contextmanager
+    def _turn(self, check=True):
+        """Hold the G-code queue for one piece of the run (a step, a
+        reading); commands typed meanwhile run before the next one, and
+        what they changed ends the run (check=False: giving back)."""
+        # Let the reactor read the console and the API (they queue on the
+        # mutex, and go first)
+        self.reactor.pause(self.reactor.monotonic() + TURN_PAUSE_S)
+        with self.mutex:
+            if check:
+                self._check_between()
+            yield
+            # G-code moves go on from where the run left the toolhead
+            self.gcode_move.reset_last_position()
+            self.left = self._state()
+
+    def _state(self):
+        target = self.heater.get_temp(self.reactor.monotonic())[1]
+        return (tuple(self.toolhead.get_position()), target,
+                self.heater.control)
+
+    def _check_between(self):
+        """MeasurementStopped when a command since the last turn changed
+        what the run relies on."""
+        if self.owner.cancel_reason:
+            raise MeasurementStopped(self.owner.cancel_reason)
+        if self.printer.is_shutdown():
+            raise MeasurementStopped("Klipper shut down")
+        if self.pause_resume is not None and self.pause_resume.is_paused:
+            raise MeasurementStopped("PAUSE cancels a measurement")
+        if self.left is None:
+            return
+        position, target, control = self.left
+        now_position, now_target, now_control = self._state()
+        if now_position != position:
+            raise MeasurementStopped("the toolhead was moved by another"
+                                     " command: cancelled")
+        if now_target != target:
+            raise MeasurementStopped(
+                f"{self.extruder_name}'s target was changed by another command"
+                f" ({target:g} -> {now_target:g} degC): cancelled")
+        if now_control is not control:
+            raise MeasurementStopped(
+                f"{self.extruder_name}'s heater control was replaced by another"
+                " command: cancelled")
 
     # --- time and readings --------------------------------------------------------
     def _pass_time(self, seconds):
         """Let print time advance (dwell), then read what the sensor saw."""
-        self.toolhead.dwell(seconds)
-        self._wait()
+        with self._turn():
+            self.toolhead.dwell(seconds)
+            self._wait()
 
     def _wait(self):
         self.toolhead.wait_moves()
         self.sensor.sync(self.toolhead.get_last_move_time())
-        # Let the reactor serve endpoints (measure_profile/cancel) and timers
-        self.reactor.pause(self.reactor.monotonic() + 0.001)
 
     def _reading(self):
         temp, power = self.sensor.hotend_reading(self.reactor.monotonic())
@@ -578,7 +655,7 @@ class Run:
         return now, temp, power
 
     def _say(self, text):
-        self.gcmd.respond_info(f"{NAME}: {text}")
+        self.gcode.respond_info(f"{NAME}: {text}")
 
     # --- the procedure --------------------------------------------------------------
     def measure(self):
@@ -590,7 +667,8 @@ class Run:
             try:
                 point = self._level(where, level)
             finally:
-                self.restore_heater()
+                with self._turn(check=False):
+                    self.restore_heater()
             points.append(point)
             self.owner._set_status('running', points=[
                 {'temp_c': p.temp_c, 'flow_mm3_s': p.flow_mm3_s,
@@ -607,7 +685,8 @@ class Run:
             pwm = level * self.heater.get_max_power()
             self._heat_to_power(where, pwm)
         self._say(f"{where}: heater held at {pwm:.1%} power, settling")
-        self.hold_power(pwm)
+        with self._turn():
+            self.hold_power(pwm)
         settled_c = self._settle(fixed=True)[-1][1]
         return self._ramp(where, pwm, settled_c)
 
@@ -635,7 +714,8 @@ class Run:
         """Heat with the heater's own control; the mean power that held
         temp_c, over a settle_time after `waits` more once settled (the
         approach's extra power left out)."""
-        self.pheaters.set_temperature(self.heater, temp_c)
+        with self._turn():
+            self.pheaters.set_temperature(self.heater, temp_c)
         for _ in range(waits + 1):
             readings = self._settle(fixed=False, target_c=temp_c)
         return sum(p for _, _, p in readings) / len(readings)
@@ -701,17 +781,18 @@ class Run:
         duration = fl_measure.step_duration_s(self.owner.step_time, flow,
                                               self.area, window_mm, windows)
         for _ in range(MAX_STEP_RETRIES + 1):
-            start = self.toolhead.get_last_move_time()
-            first = len(self.windows)
-            left = duration
-            while left > 1e-9:
-                chunk = min(MAX_MOVE_TIME, left)
-                pos = self.toolhead.get_position()
-                pos[3] += speed * chunk
-                self.toolhead.move(pos, speed)
-                left -= chunk
-            end = self.toolhead.get_last_move_time()
-            self._wait()
+            with self._turn():
+                start = self.toolhead.get_last_move_time()
+                first = len(self.windows)
+                left = duration
+                while left > 1e-9:
+                    chunk = min(MAX_MOVE_TIME, left)
+                    pos = self.toolhead.get_position()
+                    pos[3] += speed * chunk
+                    self.toolhead.move(pos, speed)
+                    left -= chunk
+                end = self.toolhead.get_last_move_time()
+                self._wait()
             step = fl_measure.judge_step(self.windows[first:], start, end, flow)
             if step is not None:
                 return dataclasses.replace(step, duration_s=duration)
@@ -732,6 +813,12 @@ class Run:
             round(diameter, 3), self.plan.min_grip, NAME)
         logging.info("%s: %s", NAME, "; ".join(fitted.lines()))
         return profile, fitted
+
+
+def _respond_error(gcode, message):
+    # As Klipper answers a failed command: '!! ' marks it red in the console
+    logging.info(message)
+    gcode.respond_raw(f"!! {message}")
 
 
 def load_config(config):

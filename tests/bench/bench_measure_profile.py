@@ -71,7 +71,12 @@ def run_measurement(build, venv, seed=0):
                     profile=KNOWN, working_point=0.5)
         e0 = client.call("objects/query", objects={"toolhead": None}
                          )["status"]["toolhead"]["position"][3]
-        client.call("gcode/script", script=SCRIPT)
+        client.call("gcode/script", script=SCRIPT)   # starts the run
+        status = stack.wait_until(
+            lambda: (s := client.status())["state"] != "running" and s, 600,
+            0.05)
+        assert status and status["state"] == "stored", status
+        client.call("info")   # the store klippy sent meanwhile is read
         e1 = client.call("objects/query", objects={"toolhead": None}
                          )["status"]["toolhead"]["position"][3]
         profile = profile_from_dict(client.remote[-1]["params"]["profile"])

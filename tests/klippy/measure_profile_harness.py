@@ -1,8 +1,8 @@
 """klippy as test_measure_profile.py needs it: run in place of klippy.py (cwd:
 the Klipper tree). Every simulated [flow_sensor NAME] gets an API endpoint
 measure_profile_test/fault/NAME (fault=missing|magnet|parity|none) that makes
-its twin misbehave at once: a running MEASURE_MATERIAL_PROFILE holds the
-G-code queue, so SET_FLOW_SENSOR_SIMULATION could only run after it.
+its twin misbehave at once, between two G-code commands (a running
+MEASURE_MATERIAL_PROFILE takes the G-code queue step by step).
 flowloop itself ships no such endpoint."""
 
 import os

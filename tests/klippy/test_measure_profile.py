@@ -4,14 +4,16 @@ The simulated sensor's hotend (40 W, lag, sag, held at a fixed power while
 measuring) melts what the active profile's line gives. A test client on
 klippy's API socket registers the remote method flowloop_store_profile, as
 Moonraker's [flowloop] component does, and records what klippy sends it.
-The measurement must recover the profile, hand it over once, and give the
-heater its own control back whether it succeeds, fails, is cancelled or
-meets a sensor fault; an aborted run sends nothing."""
+The command starts the run and returns (as SDCARD_PRINT_FILE does), so
+the tests wait for the run's end in its status. The measurement must
+recover the profile, hand it over once, and give the heater its own control
+back whether it succeeds, fails, is cancelled (from the console too) or
+meets a sensor fault or another command; an aborted run sends nothing."""
 
 from __future__ import annotations
 
+import re
 import shutil
-import threading
 from pathlib import Path
 
 import pytest
@@ -91,18 +93,49 @@ def stored(client):
     return [m for m in client.remote if m.get("method") == "store"]
 
 
-def measure_in_thread(runner, script):
-    outcome = {}
+def start(runner, script):
+    """Start a run: the command answers at once."""
+    runner.call("gcode/script", script=script)
 
-    def run():
-        try:
-            outcome["result"] = runner.call("gcode/script", script=script)
-        except Exception as e:  # the command's error, as Moonraker gets it
-            outcome["error"] = str(e)
 
-    thread = threading.Thread(target=run)
-    thread.start()
-    return thread, outcome
+def finished(runner, watcher, timeout=600):
+    """The status once the run has ended (the store, if any, read)."""
+    status = stack.wait_until(
+        lambda: (s := watcher.status())["state"] != "running" and s,
+        timeout, 0.05)
+    assert status, watcher.status()
+    runner.call("info")   # what klippy sent the runner meanwhile is read
+    return status
+
+
+def run_to_end(runner, watcher, script):
+    start(runner, script)
+    return finished(runner, watcher)
+
+
+# A long run: level 1 ramps ~110 steps (to grip 0.3), so a stop sent once the
+# heater is held arrives mid-ramp however fast batch mode runs it
+LONG_RUN = ("MEASURE_MATERIAL_PROFILE NAME=stopped TEMPS=200,220 START_FLOW=2"
+            " STEP=0.125 MAX_FLOW=25 MIN_GRIP=0.3")
+
+
+def holding(watcher):
+    """measure_profile's and the extruder's status, read together, once the
+    heater is held at a fixed power mid-ramp."""
+    def held():
+        status = watcher.call("objects/query", objects={
+            "measure_profile": None, "extruder": None})["status"]
+        run = status["measure_profile"]
+        if run["state"] != "running":
+            return run
+        if run["flow"] is not None and run["heater_control"] == \
+                "FixedPowerControl":
+            return status
+        return None
+    status = stack.wait_until(held, 300, 0.05)
+    assert status and "extruder" in status, (status, watcher.status())
+    assert 0 < status["measure_profile"]["heater_pwm"] < 1
+    return status
 
 
 def assert_heater_given_back(watcher):
@@ -115,11 +148,11 @@ def test_a_level_without_slip_fails_stores_nothing_and_gives_the_heater_back(
         printer):
     runner, watcher, _ = printer
     before = len(stored(runner))
-    with pytest.raises(RuntimeError, match="grip stayed above 0.9 up to MAX_FLOW"
-                       " 4.5 mm.3/s.*nothing stored"):
-        runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE NAME=x "
-                    "TEMPS=200,220 START_FLOW=4 STEP=0.25 MAX_FLOW=4.5")
-    assert watcher.status()["state"] == "aborted"
+    status = run_to_end(runner, watcher, "MEASURE_MATERIAL_PROFILE NAME=x "
+                     "TEMPS=200,220 START_FLOW=4 STEP=0.25 MAX_FLOW=4.5")
+    assert status["state"] == "aborted"
+    assert re.search("grip stayed above 0.9 up to MAX_FLOW 4.5 mm.3/s.*nothing"
+                     " stored", status["message"]), status
     assert_heater_given_back(watcher)
     assert len(stored(runner)) == before
 
@@ -133,46 +166,86 @@ def test_bad_input_changes_nothing(printer):
     assert watcher.status()["heater_control"] == "ControlPID"
 
 
-@pytest.mark.parametrize("stop, why", [
-    ("measure_profile/cancel", "cancelled"),
-    ("measure_profile_test/fault/sim", "flow sensor fault 'missing'"),
-])
+# How a run is stopped mid-ramp: (how, what, why it says it ended)
+STOPS = {
+    "endpoint": ("call", "measure_profile/cancel", "cancelled"),
+    # typed in Mainsail's console: Moonraker sends it as gcode/script
+    "console": ("gcode", "CANCEL_MATERIAL_PROFILE",
+                "cancelled (CANCEL_MATERIAL_PROFILE)"),
+    "fault": ("call", "measure_profile_test/fault/sim",
+              "flow sensor fault 'missing'"),
+    "pause": ("gcode", "PAUSE", "PAUSE cancels a measurement"),
+    "move": ("gcode", "G91\nG1 Z5 F600\nG90",
+             "the toolhead was moved by another command"),
+    "target": ("gcode", "M104 S230",
+               "extruder's target was changed by another command"),
+}
+
+
+@pytest.mark.parametrize("stop", list(STOPS))
 def test_a_run_stopped_mid_ramp_stores_nothing_and_gives_the_heater_back(
-        printer, stop, why):
+        printer, stop):
     runner, watcher, _ = printer
+    how, what, why = STOPS[stop]
+    if stop == "move":
+        runner.call("gcode/script", script="G28")
     before = len(stored(runner))
-    thread, outcome = measure_in_thread(
-        runner, "MEASURE_MATERIAL_PROFILE NAME=stopped TEMPS=200,220 "
-        "START_FLOW=2 STEP=0.25 MAX_FLOW=14")
+    start(runner, LONG_RUN)
+    # the heater answers with the fixed power swapped in (Kalico asks its
+    # control for a profile name in every status)
+    extruder = holding(watcher)["extruder"]
+    assert extruder.get("pid_profile", "fixed_power") == "fixed_power"
+    e_before = watcher.query("toolhead")["position"][3]
     try:
-        held = stack.wait_until(
-            lambda: outcome or ((s := watcher.status())["flow"] is not None
-                                and s["heater_control"] == "FixedPowerControl"
-                                and s), 300, 0.2)
-        assert "heater_pwm" in held, (held, watcher.status())
-        assert 0 < held["heater_pwm"] < 1
-        # the host's heater answers with the fixed power swapped in (Kalico
-        # asks its control for a profile name in every status)
-        extruder = watcher.query("extruder")
-        assert extruder.get("pid_profile", "fixed_power") == "fixed_power"
-        watcher.call(stop, **({"fault": "missing"} if "fault" in stop else {}))
-        thread.join(300)
+        if how == "gcode":
+            # the console is not held by the run: the command answers now
+            watcher.call("gcode/script", script=what)
+        else:
+            watcher.call(what, **({"fault": "missing"} if "fault" in what
+                                  else {}))
+        status = finished(runner, watcher)
     finally:
-        if "fault" in stop:
-            watcher.call(stop, fault="none")
-    assert why in outcome.get("error", ""), outcome
-    assert "nothing stored" in outcome["error"]
-    assert watcher.status()["state"] == "aborted"
+        if stop == "fault":
+            watcher.call(what, fault="none")
+        if stop == "pause":
+            watcher.call("gcode/script", script="CLEAR_PAUSE")
+    assert why in status["message"] and "nothing stored" in status["message"], (
+        status)
+    assert status["state"] == "aborted"
     assert_heater_given_back(watcher)
     assert len(stored(runner)) == before
+    # a G-code move in between goes on from where the run left the filament
+    # (not from where G-code last put it: that would pull it all back)
+    assert watcher.query("toolhead")["position"][3] >= e_before
+
+
+def test_a_second_run_or_one_while_paused_is_refused(printer):
+    runner, watcher, _ = printer
+    start(runner, LONG_RUN)
+    try:
+        with pytest.raises(RuntimeError, match="a measurement is running"
+                           " already"):
+            runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE "
+                        "NAME=second TEMPS=200,220")
+    finally:
+        runner.call("gcode/script", script="CANCEL_MATERIAL_PROFILE")
+        assert finished(runner, watcher)["state"] == "aborted"
+    runner.call("gcode/script", script="PAUSE")
+    try:
+        with pytest.raises(RuntimeError, match="paused.*nothing changed"):
+            runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE "
+                        "NAME=paused TEMPS=200,220")
+    finally:
+        runner.call("gcode/script", script="CLEAR_PAUSE")
+    assert_heater_given_back(watcher)
 
 
 def test_the_measurement_recovers_the_profile_and_hands_it_to_moonraker(printer):
     runner, watcher, klippy = printer
     before = len(stored(runner))
-    runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE NAME=measured "
-                "TEMPS=200,220,240 START_FLOW=4 STEP=0.25 MAX_FLOW=14 "
-                "MIN_GRIP=0.9 ACTIVATE=1")
+    run_to_end(runner, watcher, "MEASURE_MATERIAL_PROFILE NAME=measured "
+            "TEMPS=200,220,240 START_FLOW=4 STEP=0.25 MAX_FLOW=14 "
+            "MIN_GRIP=0.9 ACTIVATE=1")
     calls = stored(runner)[before:]
     assert len(calls) == 1
     params = calls[0]["params"]
@@ -258,8 +331,8 @@ def test_a_powers_run_recovers_the_flow_vs_power_line_and_stores_it(printer):
     runner, watcher, klippy = printer
     before = len(stored(runner))
     levels = ",".join(f"{level:g}" for level in POWERS)
-    runner.call("gcode/script", script="MEASURE_MATERIAL_PROFILE NAME=powers "
-                f"POWERS={levels} STEP=0.25 MAX_FLOW=14 MIN_GRIP=0.9")
+    run_to_end(runner, watcher, "MEASURE_MATERIAL_PROFILE NAME=powers "
+            f"POWERS={levels} STEP=0.25 MAX_FLOW=14 MIN_GRIP=0.9")
     calls = stored(runner)[before:]
     assert len(calls) == 1
     profile = profile_from_dict(calls[0]["params"]["profile"])
@@ -294,8 +367,8 @@ def test_a_powers_run_recovers_the_flow_vs_power_line_and_stores_it(printer):
 def test_the_macro_lifts_the_nozzle_and_measures_the_active_profile(printer):
     runner, watcher, _ = printer
     before = len(stored(runner))
-    runner.call("gcode/script", script="MEASURE_PROFILE_INTO_AIR TEMPS=200,230 "
-                "START_FLOW=4 STEP=0.5 MAX_FLOW=14 Z=20")
+    run_to_end(runner, watcher, "MEASURE_PROFILE_INTO_AIR TEMPS=200,230 "
+            "START_FLOW=4 STEP=0.5 MAX_FLOW=14 Z=20")
     calls = stored(runner)[before:]
     assert len(calls) == 1
     params = calls[0]["params"]
@@ -359,18 +432,11 @@ def test_a_shutdown_mid_ramp_gives_the_heater_back_and_stores_nothing(printer):
     # Last in this file: the printer stays shut down.
     runner, watcher, _ = printer
     before = len(stored(runner))
-    thread, outcome = measure_in_thread(
-        runner, "MEASURE_MATERIAL_PROFILE NAME=shut TEMPS=200,220 "
-        "START_FLOW=2 STEP=0.25 MAX_FLOW=14")
-    held = stack.wait_until(
-        lambda: outcome or ((s := watcher.status())["flow"] is not None
-                            and s["heater_control"] == "FixedPowerControl"
-                            and s), 300, 0.2)
-    assert "heater_pwm" in held, (held, watcher.status())
+    start(runner, LONG_RUN)
+    holding(watcher)
     watcher.call("emergency_stop")
-    thread.join(300)
-    assert "error" in outcome, outcome
-    status = watcher.status()
+    status = finished(runner, watcher)
     assert status["state"] == "aborted"
+    assert "shut down" in status["message"], status
     assert_heater_given_back(watcher)
     assert len(stored(runner)) == before
