@@ -104,8 +104,9 @@ def browser():
 
 
 @pytest.fixture
-def own_browser():
-    """A browser of its own, for a test that changes how its clock runs."""
+def own_browser(browser):
+    """A browser of its own, for a test that changes how its clock runs
+    (after the shared one: a missing chromium skips before any stack starts)."""
     driver = _chrome()
     try:
         yield driver
@@ -190,7 +191,7 @@ def activate_profile(ps, name="page-pla"):
         assert status == 200, answer
 
 
-def test_the_page_shows_the_printer_objects_numbers_live(printer, browser):
+def test_the_page_shows_the_printer_objects_numbers_live(browser, printer):
     activate_profile(printer)
     printer.gcode("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=205\n"
                   "SET_FLOWRATE_LIMIT MAX_FLOW=7.5")
@@ -246,7 +247,7 @@ def print_file(ps, name):
     assert done, ps.query("print_stats")
 
 
-def test_the_printed_files_plan_shows_with_the_position_marked(printer, browser):
+def test_the_printed_files_plan_shows_with_the_position_marked(browser, printer):
     activate_profile(printer)
     open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
@@ -270,7 +271,7 @@ def test_the_printed_files_plan_shows_with_the_position_marked(printer, browser)
     assert severe_console(browser) == []
 
 
-def test_the_page_carries_on_after_klippy_restarts(printer, browser):
+def test_the_page_carries_on_after_klippy_restarts(browser, printer):
     open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
     status, body = printer.moonraker.request("POST", "/printer/restart")
@@ -288,7 +289,7 @@ def test_the_page_carries_on_after_klippy_restarts(printer, browser):
     assert severe_console(browser) == []
 
 
-def test_bad_input_is_said_where_the_chart_would_be(printer, browser):
+def test_bad_input_is_said_where_the_chart_would_be(browser, printer):
     open_page(browser, page_url(printer, "extruder7"))
     wait_for(browser, "document.getElementById('flow-chart').dataset.message")
     for chart in ("flow-chart", "temp-chart", "profile-chart", "plan-chart"):
@@ -333,7 +334,7 @@ def locked(moonraker_venv):
         shutil.rmtree(data_dir, ignore_errors=True)
 
 
-def test_without_authorization_the_page_shows_nothing(locked, browser):
+def test_without_authorization_the_page_shows_nothing(browser, locked):
     ps, _ = locked
     for path in ("/server/flowloop/page/", "/server/flowloop/page/lines",
                  "/server/flowloop/page/plan?filename=x.gcode"):
@@ -343,7 +344,7 @@ def test_without_authorization_the_page_shows_nothing(locked, browser):
     assert js(browser, "return document.getElementById('readout')") is None
 
 
-def test_an_api_key_opens_the_page_where_moonraker_asks_for_one(locked, browser):
+def test_an_api_key_opens_the_page_where_moonraker_asks_for_one(browser, locked):
     ps, key = locked
     status, body = ps.moonraker.request("GET", "/access/oneshot_token",
                                         headers={"X-Api-Key": key})
@@ -368,7 +369,7 @@ def test_flowloop_info_prints_the_address_that_serves_the_page(printer):
     assert status == 200 and "<title>flowloop live</title>" in body
 
 
-def test_the_page_connects_again_after_moonraker_restarts(moonraker_venv, browser):
+def test_the_page_connects_again_after_moonraker_restarts(browser, moonraker_venv):
     with stack.printer_stack(with_klippy=False) as ps:
         open_page(browser, page_url(ps))
         connection = "document.getElementById('connection').dataset.state"
@@ -423,7 +424,7 @@ def live_printer(klipper_build, klippy_venv, moonraker_venv):
         shutil.rmtree(cfg_dir, ignore_errors=True)
 
 
-def test_the_page_moves_while_a_print_runs_in_real_time(live_printer, browser):
+def test_the_page_moves_while_a_print_runs_in_real_time(browser, live_printer):
     ps = live_printer
     activate_profile(ps)
     open_page(browser, page_url(ps))
@@ -448,7 +449,7 @@ def test_the_page_moves_while_a_print_runs_in_real_time(live_printer, browser):
     assert severe_console(browser) == []
 
 
-def test_sensor_faults_are_listed_as_they_happen(printer, browser):
+def test_sensor_faults_are_listed_as_they_happen(browser, printer):
     open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
     printer.gcode("SET_FLOW_SENSOR_SIMULATION FAULT=magnet\nG28\nM83\n"
@@ -469,7 +470,7 @@ def test_sensor_faults_are_listed_as_they_happen(printer, browser):
     assert severe_console(browser) == []
 
 
-def test_the_timeline_holds_five_minutes_however_long_it_runs(printer, own_browser):
+def test_the_timeline_holds_five_minutes_however_long_it_runs(own_browser, printer):
     browser = own_browser
     open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
