@@ -42,7 +42,6 @@ class Page:
     def __init__(self, server: Server, store: ProfileStore) -> None:
         self.server = server
         self.store = store
-        self.eventloop = server.get_event_loop()
         self.file_manager = server.lookup_component("file_manager")
         # Read once: a request hands out the held bytes.
         try:
@@ -51,7 +50,8 @@ class Page:
             logging.error(f"flowloop: the live page cannot be served: {e}")
             self.document = html.escape(one_line(e)).encode()
         # The last plan asked for, by (path, size, mtime, profile, wp): the
-        # page asks again after every reconnect.
+        # page asks again after every reconnect; a profile stored again under
+        # its name is another profile.
         self._plan_key: Optional[Tuple[Any, ...]] = None
         self._plan: Dict[str, Any] = {}
         for path in (PAGE_PATH, PAGE_PATH.rstrip("/")):
@@ -107,7 +107,7 @@ class Page:
         profile, wp = self._active(extruder)
         stat = path.stat()
         key = (str(path), stat.st_size, stat.st_mtime_ns,
-               None if profile is None else profile.identity.name, wp)
+               None if profile is None else fl_profile.encode_profile(profile, 0), wp)
         if key != self._plan_key:
             plan = await self._run_plan(path, profile, wp)
             self._plan_key, self._plan = key, plan

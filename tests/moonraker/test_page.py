@@ -484,3 +484,19 @@ def test_the_timeline_holds_five_minutes_however_long_it_runs(own_browser, print
     time.sleep(2)
     assert js(browser, f"return {samples}") == 1200  # 300 s at 4 a second
     assert severe_console(browser) == []
+
+
+def test_the_page_endpoints_refuse_bad_input_in_one_line(printer):
+    def get(path):
+        return printer.moonraker.request("GET", path)
+
+    status, body = get("/server/flowloop/page/plan?filename=../config/printer.cfg")
+    assert status == 404 and 'no G-code file named "../config/printer.cfg"' in str(body)
+    status, body = get("/server/flowloop/page/plan")
+    assert status == 400 and "argument 'filename'" in str(body)
+    status, body = get("/server/flowloop/page/lines?extruder=nozzle")
+    assert status == 400 and '"nozzle" is not an extruder name' in str(body)
+    status, body = get("/server/flowloop/page/lines?extruder=extruder1")
+    assert status == 200
+    assert body["result"] == {"extruder": "extruder1", "lines": None,
+                              "why": "no active profile for extruder1"}
