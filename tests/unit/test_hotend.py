@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flowloop.control.hotend import (
@@ -105,6 +105,7 @@ def _single_steps(model, until_s, flow):
     return model.temp_c
 
 
+@settings(deadline=None)  # a run of minutes of single steps: no timing here
 @given(st.floats(25, 280), st.lists(st.tuples(
     st.floats(0.0, 60.0), st.sampled_from([0.0, 180.0, 210.0, 260.0, 300.0]),
     st.floats(0.1, 40), st.sampled_from([None, None, 5.0, 30.0])), max_size=12))
