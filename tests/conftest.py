@@ -82,10 +82,6 @@ NOT_ON_HOST = {
         "test_flow_sensor.py::test_time_lost_by_the_mcu_restarts_the_query":
             "the ems22 query restart after time_lost hangs on Kalico's "
             "batch-mode MCU (the run times out); not yet looked into",
-        "test_flow_sensor.py::test_pressure_advance_at_corners_is_not_a_"
-        "retraction":
-            "Kalico's extruder (pressure advance on its trapq) makes the "
-            "simulated sensor judge a corner as a retraction; not yet understood",
         "test_reference_status.py::test_klipper_saw_only_documented_options_"
         "read":
             "Kalico's probe helper reads its own options (bad_probe_strategy, "
