@@ -106,8 +106,7 @@ def _klipper_tree(klipper: Optional[Path]) -> dict:
     if klipper is None or not klipper.expanduser().exists():
         return {}
     klipper = klipper.expanduser()
-    facts = {"klipper_tree_checked": True, "klipper_host": install.host_name(klipper),
-             "klipper_notes": tuple(install.host_notes(klipper))}
+    facts = {"klipper_tree_checked": True, "klipper_host": install.host_name(klipper)}
     try:
         install.check_klipper_tree(klipper)
         if not install.is_kalico(klipper):  # Kalico: its notes say what lacks

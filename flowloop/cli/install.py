@@ -12,7 +12,6 @@ from ..host.install import (
     apply,
     check_all,
     host_name,
-    host_notes,
     is_checkout,
     mcu_sources,
     plan_klipper,
@@ -94,11 +93,8 @@ def run(args) -> int:
                  if host == "Kalico" else "the EMS22 sensor command")
         print(f"MCU: rebuild and flash {host}'s firmware to get {where} "
               f"(cd {args.klipper}; make menuconfig; make flash)")
-    if not args.uninstall:
-        for note in host_notes(args.klipper):
-            print(f"note: {note}")
-        if not args.no_moonraker and not is_checkout(source):
-            print("flowloop runs from a pip install: update it with pip install "
-                  "-U klipper-flowloop, then run flowloop install again")
+    if not args.uninstall and not args.no_moonraker and not is_checkout(source):
+        print("flowloop runs from a pip install: update it with pip install "
+              "-U klipper-flowloop, then run flowloop install again")
     print(f"restart {host.lower()} and moonraker to load the change")
     return 0

@@ -75,7 +75,6 @@ class Facts:
     klipper_tree_problem: Optional[str] = None
     klipper_tree_checked: bool = False
     klipper_host: Optional[str] = None       # "Klipper" or "Kalico", from the tree
-    klipper_notes: Tuple[str, ...] = ()      # what works differently there
     install_pending: Optional[Tuple[str, ...]] = None
     install_error: Optional[str] = None
     moonraker_tree_checked: bool = True      # the plan covered Moonraker's link
@@ -101,8 +100,7 @@ def check_klipper(facts: Facts) -> Check:
                          "update Klipper (cd ~/klipper; git pull; sudo systemctl"
                          " restart klipper), or pass --klipper with the tree"
                          " klippy runs from")
-        return Check("klipper", OK, "; ".join((f"{where}, supported",)
-                                              + facts.klipper_notes))
+        return Check("klipper", OK, f"{where}, supported")
     supported = version_supported(version)
     if supported is None:
         return Check("klipper", SKIP, f"{where}: version not judged from here"

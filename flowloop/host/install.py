@@ -409,16 +409,6 @@ def host_name(klipper: Path) -> str:
     return "Kalico" if is_kalico(Path(klipper).expanduser()) else "Klipper"
 
 
-def host_notes(klipper: Path) -> List[str]:
-    """What works differently on this host, one line each (printed at install)."""
-    klipper = Path(klipper).expanduser()
-    if not is_kalico(klipper):
-        return []
-    # (The simulated [flow_sensor] and [autotemp] follow Kalico's step
-    # generators where it has no motion_queuing: nothing to note today.)
-    return []
-
-
 def _own_file(changes: List[Change], path: Path, text: str, uninstall: bool) -> None:
     """A file flowloop writes whole (its first line says so): written,
     refreshed, or removed; anyone else's file of that name is refused."""
