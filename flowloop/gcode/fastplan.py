@@ -244,11 +244,16 @@ class FastPlanner:
         move = (b0 == 71) & ((b1 == 48) | (b1 == 49)) & (b2 == 32)
         kinds[move] = _MOVE
         kinds[(b0 == 71) & (b1 == 57) & (b2 == 50) & (b3 == 32)] = _G92
-        # firmware retraction: G10 / G11 (Klipper ignores their parameters)
-        bare = (b3 == 10) | (b3 == 13) | (b3 == 32) | (b3 == 59) | (b3 == 0)
-        retraction = (b0 == 71) & (b1 == 49) & bare
-        kinds[retraction & (b2 == 48)] = _G10
-        kinds[retraction & (b2 == 49)] = _G11
+        # firmware retraction: a bare G10 / G11 (with anything after it
+        # Klipper may read another command: those go the slow way)
+        retraction = np.flatnonzero((b0 == 71) & (b1 == 49)
+                                    & ((b2 == 48) | (b2 == 49)))
+        for i in retraction.tolist():
+            code = data[starts[i]:ends[i]].split(b";", 1)[0].strip()
+            if code == b"G10":
+                kinds[i] = _G10
+            elif code == b"G11":
+                kinds[i] = _G11
         m_lines = np.flatnonzero(b0 == 77)
         for i in m_lines.tolist():      # few: M-commands are not moves
             head = data[starts[i]:ends[i]].split(b";", 1)[0].split()
@@ -323,6 +328,8 @@ class FastPlanner:
         bad = np.concatenate(bad_lines)
         kinds[bad] = _OTHER
         values[bad] = np.nan
+        # a G92 without an axis sets them all: the reference does that
+        kinds[(kinds == _G92) & np.isnan(values[:, :4]).all(axis=1)] = _OTHER
         return values
 
     def _scalar_line(self, data, starts, ends, i, offset, first_line) -> None:

@@ -82,7 +82,11 @@ def test_the_lines_it_reads_in_bulk_and_the_ones_it_hands_over():
             "G1 X120 Y50 E1\nG4 P100\nG1 X125\nM400\nG1 X130 E0.4\nM109 S200\n"
             "G1 X10 Y10 E1 F3000\r\nG1 X15 Y10 E0.2\r\n"
             "SET_VELOCITY_LIMIT ACCEL=1000\nG1 X20 Y20 E1\nG92 X0 Y0\n"
-            "G1 X5 Y5 E0.5\nG28\nG1 X1 Y1 E1\n")
+            "G1 X5 Y5 E0.5\nG28\nG1 X1 Y1 E1\n"
+            # found by fuzzing: a G92 without axes sets them all; Klipper
+            # reads "G10 0" as a command of its own (ignored)
+            "G1 X7 Y7 E3\nG92 \nG1 X9 E1\nG92 ; all\nG1 X2 E2\n"
+            "G10 0\nG1 X3\nG10 ; retract\nG1 X4\nG11\r\nG1 X5 E3\n")
     assert_same(text.encode())
     assert_same(text.encode(), chunk_bytes=13)
 
