@@ -120,10 +120,10 @@ def test_klippy_host_time_with_the_limiter(klipper_build, klippy_venv, bench,
     with_limiter.write_text(base + "\n[flowrate_limiter]\nmax_flow: 1000\n")
     empty = tmp_path / "empty.gcode"
     empty.write_text("")
-    # The excerpt (it homes and resets E itself) eight times: enough motion
+    # The excerpt (it homes and resets E itself) sixteen times: enough motion
     # that the start-up's scatter does not swamp the difference
     gcode = tmp_path / "long.gcode"
-    gcode.write_text(GCODE.read_text() * 8)
+    gcode.write_text(GCODE.read_text() * 16)
     # The best of RUNS each, the four kinds of run taken in turn so that a
     # busy spell on the machine hits all of them; start-up (importing
     # flowloop's numpy and msgspec included) taken off
