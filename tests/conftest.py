@@ -78,7 +78,9 @@ NOT_ON_HOST = {
         "test_flow_sensor.py::test_on_fault_pause_leaves_an_idle_printer_"
         "alone":
             "on Kalico's batch-mode klippy the idle printer counts as printing "
-            "after G4, so the ems22 fault pauses; not yet looked into",
+            "after G4, so the ems22 fault pauses; flowloop asks idle_timeout "
+            "exactly as Kalico's own filament_switch_sensor does, so that "
+            "sensor would pause there too",
         "test_flow_sensor.py::test_time_lost_by_the_mcu_restarts_the_query":
             "the ems22 query restart after time_lost hangs on Kalico's "
             "batch-mode MCU (the run times out); not yet looked into",
@@ -94,11 +96,6 @@ NOT_ON_HOST = {
         "flowloop_says":
             "Kalico retracts homing_retract_dist again after the second homing "
             "touch, so G28 leaves delta carriages 5 mm below the endstops",
-        "test_flowrate_limiter.py::test_e_totals_and_positions_are_unchanged":
-            "on Kalico the extruder's decoded steps once came 9 steps (0.02 mm)"
-            " short of the file's E in a full run and matched when run alone;"
-            " not yet understood, so not judged there (the cap test on the"
-            " same runs still is)",
         "test_diff_ab_calibrate.py::test_pylon_template_renders_the_same_"
         "under_klippers_jinja2":
             "Kalico pins Jinja2 3.1.6, not Klipper's 2.11.3; the test is about "
