@@ -6,8 +6,9 @@
 #
 # The command starts the run and returns, as SDCARD_PRINT_FILE starts a
 # print: a reactor timer drives the levels and steps and takes the G-code
-# queue for each step (and each temperature reading), so what is typed in
-# the console (CANCEL_MATERIAL_PROFILE, M112) runs in between. A command in
+# queue to queue each step (and each temperature reading) and to read what
+# the sensor saw, not while the printer runs it, so what is typed in the
+# console (CANCEL_MATERIAL_PROFILE, M112) runs in between. A command in
 # between that moves the toolhead, changes the extruder heater's target or
 # control, or PAUSE, ends the run as a cancel does.
 #
@@ -36,6 +37,7 @@ READING_INTERVAL = 1.0      # s between temperature readings while waiting
 MAX_MOVE_TIME = 1.0         # s per extrude-only move of a step
 MAX_STEP_RETRIES = 2        # a step without a judged window runs again
 TURN_PAUSE_S = 0.001        # the reactor's moment between two turns
+SLEEP_S = 0.1               # longest pause while the printer runs a step
 STORE_METHOD = "flowloop_store_profile"
 NAME = "MEASURE_MATERIAL_PROFILE"
 PRINT_NAME = "MEASURE_MATERIAL_PROFILE_PRINT"
@@ -627,7 +629,23 @@ class Run:
         """Let print time advance (dwell), then read what the sensor saw."""
         with self._turn():
             self.toolhead.dwell(seconds)
+            end = self.toolhead.get_last_move_time()
+        self._sleep_until(end)
+        with self._turn():
             self._wait()
+
+    def _sleep_until(self, print_time):
+        """Wait, the G-code queue free, until the printer has run what the
+        run queued (console commands meanwhile need not wait a step)."""
+        if not getattr(self.toolhead, 'can_pause', True):
+            return   # batch mode: print time runs ahead of any clock
+        mcu = self.printer.lookup_object('mcu')
+        while not (self.printer.is_shutdown() or self.owner.cancel_reason):
+            now = self.reactor.monotonic()
+            left = print_time - mcu.estimated_print_time(now)
+            if left <= 0.:
+                return
+            self.reactor.pause(now + min(left, SLEEP_S))
 
     def _wait(self):
         self.toolhead.wait_moves()
@@ -784,14 +802,20 @@ class Run:
             with self._turn():
                 start = self.toolhead.get_last_move_time()
                 first = len(self.windows)
-                left = duration
-                while left > 1e-9:
+            left = duration
+            while left > 1e-9:
+                # One move a turn: the toolhead holds the queue while it is
+                # more than its read-ahead in front of the printer
+                with self._turn():
                     chunk = min(MAX_MOVE_TIME, left)
                     pos = self.toolhead.get_position()
                     pos[3] += speed * chunk
                     self.toolhead.move(pos, speed)
                     left -= chunk
+            with self._turn():
                 end = self.toolhead.get_last_move_time()
+            self._sleep_until(end)
+            with self._turn():
                 self._wait()
             step = fl_measure.judge_step(self.windows[first:], start, end, flow)
             if step is not None:
