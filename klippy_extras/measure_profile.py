@@ -627,17 +627,44 @@ class Run:
     # --- time and readings --------------------------------------------------------
     def _pass_time(self, seconds):
         """Let print time advance (dwell), then read what the sensor saw."""
+        self._on_printer([lambda: self.toolhead.dwell(seconds)])
+
+    def _on_printer(self, actions):
+        """Run toolhead actions, then read what the sensor saw; the print
+        times before and after. On a printer each action is a turn of its
+        own (the toolhead holds its caller while it is more than its
+        read-ahead in front) and the wait for them is outside the G-code
+        queue. In batch mode all is one turn, as one G-code command: print
+        time there is not the clock's, and the reactor could flush the
+        lookahead between two turns (a stop mid-step)."""
+        if not self._paced():
+            with self._turn():
+                start = self.toolhead.get_last_move_time()
+                for action in actions:
+                    action()
+                end = self.toolhead.get_last_move_time()
+                self._wait()
+            return start, end
         with self._turn():
-            self.toolhead.dwell(seconds)
+            start = self.toolhead.get_last_move_time()
+        for action in actions:
+            with self._turn():
+                action()
+        with self._turn():
             end = self.toolhead.get_last_move_time()
         self._sleep_until(end)
         with self._turn():
             self._wait()
+        return start, end
+
+    def _paced(self):
+        """Print time follows the clock (a printer; not batch mode)."""
+        return getattr(self.toolhead, 'can_pause', True)
 
     def _sleep_until(self, print_time):
         """Wait, the G-code queue free, until the printer has run what the
         run queued (console commands meanwhile need not wait a step)."""
-        if not getattr(self.toolhead, 'can_pause', True):
+        if not self._paced():
             return   # batch mode: print time runs ahead of any clock
         mcu = self.printer.lookup_object('mcu')
         while not (self.printer.is_shutdown() or self.owner.cancel_reason):
@@ -798,25 +825,20 @@ class Run:
                         or [flow_grip.DEFAULT_WINDOW_MM])
         duration = fl_measure.step_duration_s(self.owner.step_time, flow,
                                               self.area, window_mm, windows)
+        chunks = []
+        left = duration
+        while left > 1e-9:
+            chunks.append(min(MAX_MOVE_TIME, left))
+            left -= chunks[-1]
+
+        def extrude(seconds):
+            pos = self.toolhead.get_position()
+            pos[3] += speed * seconds
+            self.toolhead.move(pos, speed)
         for _ in range(MAX_STEP_RETRIES + 1):
-            with self._turn():
-                start = self.toolhead.get_last_move_time()
-                first = len(self.windows)
-            left = duration
-            while left > 1e-9:
-                # One move a turn: the toolhead holds the queue while it is
-                # more than its read-ahead in front of the printer
-                with self._turn():
-                    chunk = min(MAX_MOVE_TIME, left)
-                    pos = self.toolhead.get_position()
-                    pos[3] += speed * chunk
-                    self.toolhead.move(pos, speed)
-                    left -= chunk
-            with self._turn():
-                end = self.toolhead.get_last_move_time()
-            self._sleep_until(end)
-            with self._turn():
-                self._wait()
+            first = len(self.windows)
+            start, end = self._on_printer(
+                [lambda c=chunk: extrude(c) for chunk in chunks])
             step = fl_measure.judge_step(self.windows[first:], start, end, flow)
             if step is not None:
                 return dataclasses.replace(step, duration_s=duration)
