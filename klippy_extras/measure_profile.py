@@ -204,8 +204,8 @@ class MeasureProfile:
             gcmd.respond_info("CANCEL_MATERIAL_PROFILE: no measurement running")
             return
         self.cancel_reason = "cancelled (CANCEL_MATERIAL_PROFILE)"
-        gcmd.respond_info(f"CANCEL_MATERIAL_PROFILE: {NAME} stops at its next"
-                          " step")
+        gcmd.respond_info(f"CANCEL_MATERIAL_PROFILE: {NAME} stops (the"
+                          " extrusion queued runs out); nothing is stored")
 
     def _handle_cancel_request(self, web_request):
         running = self.run is not None or self.watch is not None
