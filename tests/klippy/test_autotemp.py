@@ -20,10 +20,6 @@ LINE = profile_line(profile_from_dict(PROFILE), 0.5)
 
 @pytest.fixture(scope="module")
 def runs(host, klipper_build, klippy_venv):
-    # A module fixture is set up before conftest's per-test NOT_ON_HOST skip
-    if host == "kalico":
-        pytest.skip("not on kalico: the simulated hotend needs motion_queuing"
-                    " (tests/conftest.py NOT_ON_HOST)")
     text = annotated(GCODE)
     return (print_with_autotemp(1, klipper_build, klippy_venv, text=text),
             print_with_autotemp(0, klipper_build, klippy_venv, text=text))
