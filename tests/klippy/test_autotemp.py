@@ -8,11 +8,10 @@ import pytest
 
 from devtools import stack
 from devtools.demo_autotemp import PROFILE, annotated, print_with_autotemp
-from devtools.klippy_test import run_file
 from flowloop.control.autotemp import TemperaturePlan, TempLimits
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.klippy.test_flowrate_limiter import GCODE, gcode_extrusion
-from tests.klippy.test_harness import HOST_FACTS
+from tests.klippy.test_harness import check_host_status
 
 LIMITS = TempLimits.of(profile_from_dict(PROFILE), 260.0)   # heater max_temp
 LINE = profile_line(profile_from_dict(PROFILE), 0.5)
@@ -96,16 +95,7 @@ def test_the_status_says_which_host_it_runs_on(host, klipper_build, klippy_venv,
     """[autotemp] status 'host': the facts its timing rests on (Klipper or
     Kalico, how far ahead the toolhead reads G-code, the heater's control),
     the same record the flowrate limiter reports."""
-    name, buffer_time = HOST_FACTS[host]
-    cfg = short_tmp / "printer.cfg"
-    cfg.write_text(
-        f"[include {stack.PROJECT / 'tests' / 'klippy' / 'autotemp_plain.cfg'}]\n"
-        "[gcode_macro CHECK_HOST]\ngcode:\n"
-        "  {% set h = printer.autotemp.host %}\n"
-        f"  {{% if h != {{'name': '{name}', 'buffer_time_s': {buffer_time},"
-        " 'heater_control': 'pid'} %}\n"
-        "    {action_raise_error('host is %s' % (h,))}\n"
-        "  {% endif %}\n")
-    test = short_tmp / "host.test"
-    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nCHECK_HOST\n")
-    run_file(test, klipper_build, klippy_venv, short_tmp)
+    check_host_status(
+        host, klipper_build, klippy_venv, short_tmp,
+        f"[include {stack.PROJECT / 'tests' / 'klippy' / 'autotemp_plain.cfg'}]\n",
+        "autotemp")

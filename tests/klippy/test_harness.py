@@ -172,22 +172,29 @@ def test_flowloop_sees_the_sensor_command_in_either_hosts_firmware(
 HOST_FACTS = {"klipper": ("Klipper", 1.0), "kalico": ("Kalico", 2.0)}
 
 
+def check_host_status(host, build, venv, tmp, config: str, section: str) -> None:
+    """Run klippy on `config` (printer.cfg text) and raise unless
+    printer[section].host is HOST_FACTS[host] with a PID heater control."""
+    name, buffer_time = HOST_FACTS[host]
+    cfg = tmp / "printer.cfg"
+    cfg.write_text(
+        config + "[gcode_macro CHECK_HOST]\ngcode:\n"
+        f"  {{% set h = printer.{section}.host %}}\n"
+        f"  {{% if h != {{'name': '{name}', 'buffer_time_s': {buffer_time},"
+        " 'heater_control': 'pid'} %}\n"
+        "    {action_raise_error('host is %s' % (h,))}\n"
+        "  {% endif %}\n")
+    test = tmp / "host.test"
+    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nCHECK_HOST\n")
+    run_file(test, build, venv, tmp)
+
+
 def test_the_limiter_says_which_host_it_runs_on(host, klipper_build, klippy_venv,
                                                  short_tmp):
     """[flowrate_limiter] status 'host': the host's name, the motion it queues
     ahead (toolhead BUFFER_TIME_HIGH: a cap acts that much later) and the
     heater control, read from the host itself."""
-    name, buffer_time = HOST_FACTS[host]
-    cfg = short_tmp / "printer.cfg"
-    cfg.write_text(
+    check_host_status(
+        host, klipper_build, klippy_venv, short_tmp,
         f"[include {stack.PROJECT / 'tests' / 'klippy' / 'flow_sensor_printer.cfg'}]\n"
-        "[flowrate_limiter]\nmax_flow: 8\n"
-        "[gcode_macro CHECK_HOST]\ngcode:\n"
-        "  {% set h = printer.flowrate_limiter.host %}\n"
-        f"  {{% if h != {{'name': '{name}', 'buffer_time_s': {buffer_time},"
-        " 'heater_control': 'pid'} %}\n"
-        "    {action_raise_error('host is %s' % (h,))}\n"
-        "  {% endif %}\n")
-    test = short_tmp / "host.test"
-    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nCHECK_HOST\n")
-    run_file(test, klipper_build, klippy_venv, short_tmp)
+        "[flowrate_limiter]\nmax_flow: 8\n", "flowrate_limiter")

@@ -5,7 +5,6 @@ refuses stays as it was, printable."""
 from __future__ import annotations
 
 import urllib.request
-import uuid
 from pathlib import Path
 from urllib.parse import quote
 
@@ -25,18 +24,6 @@ def printer(moonraker_venv):
         yield p
 
 
-def upload(moonraker, name: str, data: bytes) -> int:
-    boundary = uuid.uuid4().hex
-    body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\";"
-            f" filename=\"{name}\"\r\nContent-Type: application/octet-stream"
-            f"\r\n\r\n").encode() + data + f"\r\n--{boundary}--\r\n".encode()
-    req = urllib.request.Request(
-        moonraker.url + "/server/files/upload", data=body, method="POST",
-        headers={"Content-Type": f"multipart/form-data; boundary={boundary}"})
-    with urllib.request.urlopen(req, timeout=120) as resp:
-        return resp.status
-
-
 def metadata(moonraker, name: str):
     status, body = moonraker.request(
         "GET", "/server/files/metadata?filename=" + quote(name))
@@ -51,7 +38,7 @@ def download(moonraker, name: str) -> bytes:
 
 def test_an_upload_comes_back_annotated_once_with_its_metadata(printer):
     m = printer.moonraker
-    assert upload(m, "block.gcode", GCODE.read_bytes()) == 201
+    assert m.upload("block.gcode", GCODE.read_bytes())["item"]["path"] == "block.gcode"
     assert stack.wait_until(lambda: (metadata(m, "block.gcode") or {}).get(
         "file_processors"), 120)
     meta = metadata(m, "block.gcode")
@@ -77,7 +64,7 @@ def test_a_file_the_annotator_refuses_stays_printable_and_says_so(printer):
     m = printer.moonraker
     data = GCODE.read_bytes().replace(b"G1 Z5 F5000", b"G1 Z5.5.5 F5000", 1)
     assert data != GCODE.read_bytes()
-    assert upload(m, "bad.gcode", data) == 201
+    assert m.upload("bad.gcode", data)["item"]["path"] == "bad.gcode"
     assert stack.wait_until(lambda: metadata(m, "bad.gcode") is not None, 120)
     assert download(m, "bad.gcode") == data            # untouched
     meta = metadata(m, "bad.gcode")

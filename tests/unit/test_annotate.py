@@ -324,16 +324,21 @@ steps = st.lists(st.tuples(st.floats(min_value=0.5, max_value=60),      # mm
                  min_size=1, max_size=60)
 
 
-@settings(max_examples=80, deadline=None)
-@given(steps, st.sampled_from([(4.0, 0.5), (15.0, 1.0), (8.0, 3.0)]))
-def test_announcements_cover_the_flow_of_any_file(moves, lead_window):
+def zigzag_file(moves) -> bytes:
+    """A relative-E file of the `steps` strategy's moves, back and forth."""
     lines, x = ["M83"], 0.0
     for i, (length, e_per_mm, feed, extra) in enumerate(moves):
         x = x + length if i % 2 else x - length
         lines.append(f"G1 X{x:.3f} Y{i * 0.5:.1f} E{length * e_per_mm:.4f} F{feed}")
         if extra:
             lines.append(extra)
-    data = "\n".join(lines).encode() + b"\n"
+    return "\n".join(lines).encode() + b"\n"
+
+
+@settings(max_examples=80, deadline=None)
+@given(steps, st.sampled_from([(4.0, 0.5), (15.0, 1.0), (8.0, 3.0)]))
+def test_announcements_cover_the_flow_of_any_file(moves, lead_window):
+    data = zigzag_file(moves)
     settings_ = AnnotateSettings(*lead_window)
     result = annotated(data, settings_)
     assert_announcements_cover_the_flow(data, result, settings_)
@@ -352,13 +357,7 @@ def annotated_by(events, data: bytes, settings_: AnnotateSettings) -> bytes:
        st.integers(20, 2000))
 def test_windows_taken_in_bulk_are_the_ones_taken_one_move_at_a_time(
         moves, lead_window, chunk_bytes):
-    lines, x = ["M83"], 0.0
-    for i, (length, e_per_mm, feed, extra) in enumerate(moves):
-        x = x + length if i % 2 else x - length
-        lines.append(f"G1 X{x:.3f} Y{i * 0.5:.1f} E{length * e_per_mm:.4f} F{feed}")
-        if extra:
-            lines.append(extra)
-    data = "\n".join(lines).encode() + b"\n"
+    data = zigzag_file(moves)
     settings_ = AnnotateSettings(*lead_window)
     one_by_one = annotated_by(plan_file(io.BytesIO(data)), data, settings_)
     in_bulk = annotated_by(plan_batches(io.BytesIO(data), chunk_bytes=chunk_bytes),
