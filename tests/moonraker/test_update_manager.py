@@ -27,6 +27,7 @@ from flowloop.cli import main
 from flowloop.host import install
 
 SUPERVISOR = "supervisor==4.3.0"
+RELEASED = "0.1.0"   # the tag the published checkout carries
 NEW_VERSION = "0.1.0+update-test"
 
 SUPERVISORD_CONF = """\
@@ -216,6 +217,10 @@ def printer(klipper_build, klippy_venv, moonraker_venv):
                    check=True)
     git(bare, "update-ref", "refs/heads/main", git(stack.PROJECT, "rev-parse", "HEAD"))
     git(bare, "symbolic-ref", "HEAD", "refs/heads/main")
+    # A release tag, as a published checkout has: untagged, Moonraker reads
+    # `git describe`'s bare hash as a version when it looks like one
+    # (27b73999 is "27 beta 73999"), without the hash the checks look for
+    git(bare, "tag", f"v{RELEASED}", "refs/heads/main")
     for path in (clone, pusher):
         subprocess.run(["git", "clone", "-q", str(bare), str(path)], check=True)
         git(path, "config", "user.email", "test@flowloop.invalid")
@@ -254,7 +259,7 @@ def test_an_update_through_moonraker_pulls_and_restarts_klippy_on_the_new_code(
     assert status["configured_type"] == "git_repo"
     assert status["current_hash"] == old_head
     assert status["is_valid"] and not status["is_dirty"]
-    # Moonraker's version is git describe's: untagged, v0.0.0-N with the hash
+    # Moonraker's version is git describe's: the tag, commits since, the hash
     assert status["version"] not in ("", "?")
     assert f"g{old_head[:8]}" in status["full_version_string"]
     klippy_pid = printer.get("/printer/info")["process_id"]
@@ -263,11 +268,8 @@ def test_an_update_through_moonraker_pulls_and_restarts_klippy_on_the_new_code(
     status = printer.flowloop_status()
     assert status["remote_hash"] == new_head
     assert [c["sha"] for c in status["commits_behind"]] == [new_head]
-    # untagged: Moonraker infers the version from the remote's describe,
-    # which is a bare hash (v0.0.0-N-g<hash>, or nonsense such as 78363.a25
-    # when the new hash happens to start like a version): judge the hash
     updates = doctor_updates(printer, capsys)
-    assert updates.startswith("ok   updates: ") and f"g{old_head[:8]}" in updates
+    assert updates.startswith(f"ok   updates: v{RELEASED}-0-g{old_head[:8]}")
     assert "1 commits to update" in doctor_updates(printer, capsys)
 
     try:  # Moonraker restarts itself too: the answer may not come
