@@ -722,11 +722,13 @@ class SimulatedSource:
                                          PLANNED_NEVER):
             return done_time
         m = data[0]
-        end_mm = m.start_x + m.x_r * (m.start_v + .5 * m.accel * m.move_t) \
-            * m.move_t
+        end = m.print_time + m.move_t
+        end_mm = float(flow_grip.trapq_positions(
+            [(m.print_time, m.move_t, m.start_v, m.accel, m.start_x, m.x_r)],
+            [end])[0])
         if abs(end_mm - extruder.last_position) < 1e-6:
             return done_time    # nothing planned beyond what can be read
-        return min(done_time, m.print_time + m.move_t)
+        return min(done_time, end)
 
     def sync(self, until=None):
         # In batch mode steps are generated only when the reactor gets to
