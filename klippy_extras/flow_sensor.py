@@ -193,9 +193,14 @@ class FlowSensor:
     def _nominal_positions(self, times):
         """The extruder's planned E position (its trapq, as motion_report
         reads it: no pressure advance) at each time, or None."""
+        return flow_grip.trapq_positions(
+            self._planned_moves(float(times[0]), float(times[-1])), times)
+
+    def _planned_moves(self, start, end):
+        """The extruder's trapq moves from start to end print time."""
         ffi_main, ffi_lib = chelper.get_ffi()
         trapq = self.extruder.get_trapq()
-        moves, start, end = [], float(times[0]), float(times[-1]) + 1e-9
+        moves, end = [], end + 1e-9
         while trapq is not None:
             data = ffi_main.new('struct pull_move[64]')
             count = ffi_lib.trapq_extract_old(trapq, data, len(data), start, end)
@@ -204,11 +209,19 @@ class FlowSensor:
             if count < len(data):
                 break
             end = data[count - 1].print_time
-        return flow_grip.trapq_positions(moves, times)
+        return moves
 
     def _deliver(self, window):
         if self.faults.fault is not None:
             window = dataclasses.replace(window, grip=None, reason='fault')
+        elif window.grip is not None:
+            # What the window asked for over time (a grip model learns the
+            # capacity from it): read while the trapq still holds the moves
+            window = dataclasses.replace(
+                window, commanded_flows=flow_grip.window_flows(
+                    self._planned_moves(window.start_time, window.end_time),
+                    window.start_time, window.end_time,
+                    self.grip.filament_area_mm2))
         for callback in self.window_callbacks:
             callback(window)
 

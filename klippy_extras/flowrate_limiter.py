@@ -115,7 +115,8 @@ class FlowrateLimiter:
         # In the reactor, possibly inside a flush: no pauses here.
         self.limiter.set_sensor_fault(self.sensor.get_status()['fault'])
         self.limiter.on_window(window.end_time - window.start_time,
-                               window.commanded_mm, window.grip, window.temp_c)
+                               window.commanded_mm, window.grip, window.temp_c,
+                               window.commanded_flows)
 
     # --- the move transform --------------------------------------------------
     def get_position(self):

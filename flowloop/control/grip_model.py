@@ -8,8 +8,12 @@ at the working point is where grip fell to the profile's min_grip, so
 C = that line * min_grip (one melt line, flowloop.material's).
 
 It is updated online from the sensor's grip windows: a window that slipped
-measured C directly (the measured flow); a window that did not slip at a
-flow above C shows C is at least that flow. The fit is least squares over
+measured C (`melted_capacity`: the C at which min(F(t), C) over the
+window's commanded flow F(t) averages to the flow the sensor measured); a
+window that did not slip while its commanded flow peaked above C shows C is
+at least that peak. A window mixes fast and slow moves (and pauses): its
+mean flow, grip times the mean commanded flow, would read well below the
+capacity the fast moves met. The fit is least squares over
 the most recent windows, pulled toward the seed (a prior worth
 `prior_windows` windows on the capacity and a temperature span of
 `PRIOR_SPAN_C` on the slope), so a few windows at one temperature move the
@@ -25,7 +29,9 @@ from __future__ import annotations
 
 import collections
 from dataclasses import dataclass
-from typing import Any, Deque, Dict, Optional, Tuple
+from typing import Any, Deque, Dict, Optional, Sequence, Tuple
+
+import numpy as np
 
 from ..errors import FlowloopError
 from ..material.profile import Line
@@ -67,6 +73,50 @@ def predicted_grip(capacity: CapacityLine, flow_mm3_s: float,
     return min(1.0, capacity.at(temp_c) / flow_mm3_s)
 
 
+def melted_capacity(flows_mm3_s: Sequence[float], melted_mm3_s: float) -> float:
+    """The melt capacity C at which a hotend passing min(F, C) of each
+    piece's commanded flow F (pieces of equal duration) passes melted_mm3_s
+    on average; the highest piece's flow if it passed them all."""
+    f = np.sort(np.asarray(flows_mm3_s, dtype=np.float64))
+    n = len(f)
+    if not n or melted_mm3_s >= f.mean():
+        return float(f[-1]) if n else float(melted_mm3_s)
+    if melted_mm3_s <= 0.0:
+        return 0.0
+    # mean(min(f, C)) = (sum of the pieces below C + C * the rest) / n: for
+    # C in [f[k-1], f[k]], C = (n * melted - sum(f[:k])) / (n - k)
+    below = np.concatenate(([0.0], np.cumsum(f)[:-1]))
+    k = np.arange(n)
+    c = (n * melted_mm3_s - below) / (n - k)
+    low = np.concatenate(([0.0], f[:-1]))
+    fits = (c >= low - 1e-12) & (c <= f + 1e-12)
+    return float(c[np.argmax(fits)])
+
+
+@dataclass(frozen=True)
+class WindowFlow:
+    """What one judged grip window says about the melt capacity."""
+    commanded_mm3_s: float  # mean commanded flow
+    grip: float
+    melted_mm3_s: float     # melted_capacity: what the hotend melted when asked more
+    peak_mm3_s: float       # the highest commanded flow in it
+
+    @classmethod
+    def of(cls, commanded_mm3_s: float, grip: float,
+           flows_mm3_s: Sequence[float] = ()) -> WindowFlow:
+        """From the window's mean commanded flow, its grip, and its commanded
+        flow over time (equal pieces, scaled to the mean: the planned motion
+        leaves out pressure advance); without them, a window at one flow."""
+        flows = np.asarray(flows_mm3_s, dtype=np.float64)
+        mean = flows.mean() if len(flows) else 0.0
+        if mean <= 0.0:
+            flows, mean = np.array([commanded_mm3_s]), commanded_mm3_s
+        flows = flows * (commanded_mm3_s / mean)
+        return cls(float(commanded_mm3_s), float(grip),
+                   melted_capacity(flows, grip * commanded_mm3_s),
+                   float(flows.max()))
+
+
 class GripModel:
     def __init__(self, seed: CapacityLine,
                  prior_windows: float = DEFAULT_PRIOR_WINDOWS):
@@ -80,14 +130,23 @@ class GripModel:
             maxlen=MAX_OBSERVATIONS)
 
     def add_window(self, commanded_flow_mm3_s: float, grip: Optional[float],
-                   temp_c: Optional[float]) -> bool:
-        """Learn from one closed window; True if it changed the fit."""
-        if grip is None or temp_c is None or commanded_flow_mm3_s <= 0.0:
+                   temp_c: Optional[float],
+                   flows_mm3_s: Sequence[float] = ()) -> bool:
+        """Learn from one closed window (flows_mm3_s: its commanded flow over
+        time, as WindowFlow.of takes it); True if it changed the fit."""
+        if grip is None or commanded_flow_mm3_s <= 0.0:
             return False
-        if grip < 1.0 - SLIP_TOLERANCE:
-            seen = grip * commanded_flow_mm3_s
-        elif commanded_flow_mm3_s > self.fitted.at(temp_c):
-            seen = commanded_flow_mm3_s  # a lower bound: it kept up
+        return self.learn(WindowFlow.of(commanded_flow_mm3_s, grip, flows_mm3_s),
+                          temp_c)
+
+    def learn(self, flow: WindowFlow, temp_c: Optional[float]) -> bool:
+        """Learn from one judged window's flow; True if it changed the fit."""
+        if temp_c is None or flow.commanded_mm3_s <= 0.0:
+            return False
+        if flow.grip < 1.0 - SLIP_TOLERANCE:
+            seen = flow.melted_mm3_s
+        elif flow.peak_mm3_s > self.fitted.at(temp_c):
+            seen = flow.peak_mm3_s  # a lower bound: it kept up
         else:
             return False
         self.observations.append((float(temp_c), float(seen)))

@@ -13,7 +13,7 @@ answers one question per G-code move: at what speed may it run. The caps:
 The mode says which caps may act; each mode adds one to the one before:
 static (max_flow), temperature, reactive, predictive. The lowest cap wins.
 max_flow and temperature are hard caps; the grip caps never slow a move
-below min_speed_factor of the speed its G-code asked for. A cap that lacks
+below min_speed_factor of the speed the hard caps leave it. A cap that lacks
 its input (no profile, no temperature) is off, and the status says why; a
 sensor fault freezes the grip caps (never raising one).
 
@@ -28,12 +28,12 @@ next one with it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Sequence
 
 from ..errors import FlowloopError
 from ..material.profile import Profile, profile_line
 from . import caps as fl_caps
-from .grip_model import CapacityLine, GripModel
+from .grip_model import CapacityLine, GripModel, WindowFlow
 from .reactive import (
     DEFAULT_HYSTERESIS,
     DEFAULT_MIN_GRIP,
@@ -181,25 +181,28 @@ class FlowLimiter:
         self._update()
 
     def on_window(self, duration_s: float, commanded_mm: float,
-                  grip: Optional[float], temp_c: Optional[float]) -> None:
-        """One closed grip window of the sensor."""
+                  grip: Optional[float], temp_c: Optional[float],
+                  flows_mm3_s: Sequence[float] = ()) -> None:
+        """One closed grip window of the sensor (flows_mm3_s: its commanded
+        flow over time, Window.commanded_flows)."""
         if self.sensor_fault is not None or duration_s <= 0.0:
             return
         # Plain floats: windows may carry numpy numbers, the status is JSON
         duration_s, commanded_mm = float(duration_s), float(commanded_mm)
-        grip = None if grip is None else float(grip)
         temp_c = None if temp_c is None else float(temp_c)
-        if grip is not None:
-            self.windows_judged += 1
-            if grip < self.min_grip:
-                self.windows_below_min_grip += 1
-            self._status = {**self._status, "grip_windows": self._grip_windows()}
         flow = self.filament_area_mm2 * commanded_mm / duration_s
+        if grip is None or flow <= 0.0:
+            return
+        window = WindowFlow.of(flow, float(grip), flows_mm3_s)
+        self.windows_judged += 1
+        if window.grip < self.min_grip:
+            self.windows_below_min_grip += 1
+        self._status = {**self._status, "grip_windows": self._grip_windows()}
         before = self.reactive.cap_mm3_s
-        self.reactive.on_window(grip, flow, duration_s)
+        self.reactive.on_window(window.grip, flow, duration_s, window)
         learned = False
         if self.model is not None:
-            learned = self.model.add_window(flow, grip, temp_c)
+            learned = self.model.learn(window, temp_c)
         if learned or self.reactive.cap_mm3_s != before:
             self._update()
 
@@ -245,9 +248,10 @@ class FlowLimiter:
         speed = fl_caps.capped_speed(shape, speed_mm_s, self._hard_cap_mm3_s,
                                      self.filament_area_mm2)
         if self._grip_capped:
-            floor = self.settings.min_speed_factor * speed_mm_s
-            speed = fl_caps.capped_speed(shape, speed, cap, self.filament_area_mm2,
-                                         floor_mm_s=min(floor, speed))
+            # The floor is a share of the speed the hard caps leave
+            speed = fl_caps.capped_speed(
+                shape, speed, cap, self.filament_area_mm2,
+                floor_mm_s=self.settings.min_speed_factor * speed)
         if speed < speed_mm_s:
             self.slowed_moves += 1
             self.slowed_time_s += shape.duration_s(speed) - shape.duration_s(

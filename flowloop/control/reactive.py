@@ -2,22 +2,24 @@
 
 The rule is stated in speed. When a judged grip window reads grip g below
 `min_grip`, the feeder moved only g of the filament it was told to; the
-hotend melted the measured flow g * F. The cap drops to that measured flow,
-so the next moves ask for what the hotend just proved it can melt: their
-speed is scaled by at most g (never below `min_speed_factor` of the speed
-the G-code asked for; that floor is applied per move by the limiter). A
-lower cap is never raised by a slip.
+hotend melted what it could while asked for more: g * F for a window at
+one flow F, and for a window that mixed flows the capacity its commanded
+flow over time gives (grip_model.WindowFlow). The cap drops to that flow,
+so the next moves ask for what the hotend just proved it can melt (never
+below `min_speed_factor` of the speed they would run at without the grip
+caps; that floor is applied per move by the limiter). A lower cap is
+never raised by a slip.
 
 Between `min_grip` and `min_grip + hysteresis` the cap holds. At or above it,
 after a hold of good grip (RECOVERY_HOLD_S, doubled by every slip that comes
 while the cap is still on, up to MAX_RECOVERY_HOLD_S), the cap rises by
-`recovery_per_s` of the flow that slipped per second of good window: the
-speed of the moves that slipped climbs back by at most that share of their
-G-code speed per second (0.2: from 0.5 to full speed in 2.5 s), and the cap
-is released once it is back at the flow that slipped. ddPrint's rule follows
-grip with no memory and no hysteresis, so it oscillates around the slip
-point; this one reacts at once, returns slowly, and backs off when the
-hotend stays weak.
+`recovery_per_s` of the flow that slipped (the window's peak) per second
+of good window: the speed of the moves that slipped climbs back by at most
+that share of their G-code speed per second (0.2: from 0.5 to full speed
+in 2.5 s), and the cap is released once it is back at the flow that
+slipped. ddPrint's rule follows grip with no memory and no hysteresis, so
+it oscillates around the slip point; this one reacts at once, returns
+slowly, and backs off when the hotend stays weak.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from ..errors import FlowloopError
+from .grip_model import WindowFlow
 
 DEFAULT_MIN_GRIP = 0.9
 DEFAULT_MIN_SPEED_FACTOR = 0.3
@@ -75,16 +78,22 @@ class ReactiveRule:
         self.good_s = 0.0
 
     def on_window(self, grip: Optional[float], commanded_flow_mm3_s: float,
-                  duration_s: float) -> Optional[float]:
+                  duration_s: float, flow: Optional[WindowFlow] = None
+                  ) -> Optional[float]:
         """Update from one closed window (grip None: not judged, no change);
-        returns the cap (mm^3/s) or None when the rule does not limit."""
+        returns the cap (mm^3/s) or None when the rule does not limit.
+        flow (grip_model.WindowFlow), from the window's commanded flow over
+        time, says what the hotend melted while asked for more, and the flow
+        that slipped (its peak); without it the window ran at one flow."""
         if grip is None or commanded_flow_mm3_s <= 0.0:
             return self.cap_mm3_s
         s = self.settings
         if grip < s.min_grip:
-            measured = grip * commanded_flow_mm3_s
+            if flow is None:
+                flow = WindowFlow.of(commanded_flow_mm3_s, grip)
+            measured = flow.melted_mm3_s
             if self.cap_mm3_s is None:
-                self.slip_flow_mm3_s = commanded_flow_mm3_s
+                self.slip_flow_mm3_s = flow.peak_mm3_s
                 self.cap_mm3_s = measured
             else:
                 self.cap_mm3_s = min(self.cap_mm3_s, measured)

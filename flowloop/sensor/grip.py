@@ -55,6 +55,8 @@ class Window:
     reason: str  # "judged", "retraction", "too_little_motion", "stuck", "fault"
     flow_mm3_s: Optional[float] = None   # measured volumetric flow over it
     temp_c: Optional[float] = None       # hotend temperature at end_time
+    # the planned (commanded) flow over it, in equal pieces (window_flows)
+    commanded_flows: Tuple[float, ...] = ()
 
 
 class GripEstimator:
@@ -231,6 +233,30 @@ def trapq_positions(moves: Sequence[Tuple[float, float, float, float, float,
     i = np.clip(np.searchsorted(start, times, side="right") - 1, 0, len(m) - 1)
     dt = np.clip(times - start[i], 0.0, move_t[i])
     return position[i] + axis_r[i] * (start_v[i] + 0.5 * accel[i] * dt) * dt
+
+
+# A window's commanded flow is taken in pieces this long: about how long a
+# hotend takes to melt what it is fed (a shorter peak above its capacity
+# does not slip the feeder on its own).
+FLOW_PIECE_S = 0.05
+
+
+def window_flows(moves, start_time: float, end_time: float,
+                 filament_area_mm2: float,
+                 piece_s: float = FLOW_PIECE_S) -> Tuple[float, ...]:
+    """The planned volumetric flow (mm^3/s) from start_time to end_time in
+    equal pieces of about piece_s, from trapq moves (as trapq_positions
+    takes them); () without moves."""
+    if end_time <= start_time:
+        return ()
+    count = max(1, int(round((end_time - start_time) / piece_s)))
+    edges = np.linspace(start_time, end_time, count + 1)
+    position = trapq_positions(moves, edges)
+    if position is None:
+        return ()
+    flows = np.maximum(np.diff(position), 0.0) * (
+        filament_area_mm2 * count / (end_time - start_time))
+    return tuple(flows.tolist())
 
 
 class SampleRate:

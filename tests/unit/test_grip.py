@@ -17,6 +17,7 @@ from flowloop.sensor.grip import (
     positions_at,
     rotation_distance_correction,
     trapq_positions,
+    window_flows,
 )
 
 
@@ -232,6 +233,18 @@ def test_trapq_positions_follow_the_moves_as_klipper_plans_them(segments, e0):
             assert p == pytest.approx(m[4] + m[5] * (m[2] + 0.5 * m[3] * dt) * dt,
                                       abs=1e-6)
     assert trapq_positions([], times) is None
+
+
+def test_window_flows_are_the_planned_flow_in_pieces():
+    # 0.2 s at 2 mm/s of filament, a 0.1 s stop, 0.2 s at 1 mm/s (trapq rows)
+    moves = [(1.0, 0.2, 2.0, 0.0, 0.0, 1.0), (1.3, 0.2, 1.0, 0.0, 0.4, 1.0)]
+    flows = window_flows(moves, 1.0, 1.5, 2.0)
+    assert len(flows) == 10                    # 0.05 s pieces
+    assert flows == pytest.approx([4.0] * 4 + [0.0] * 2 + [2.0] * 4)
+    # the pieces average to the planned volume over the window
+    assert sum(flows) / len(flows) * 0.5 == pytest.approx(2.0 * (0.4 + 0.2))
+    assert window_flows([], 1.0, 1.5, 2.0) == ()
+    assert window_flows(moves, 1.5, 1.5, 2.0) == ()
 
 
 def test_a_break_drops_the_open_window_and_starts_a_new_one():

@@ -82,6 +82,22 @@ def test_a_slip_caps_at_the_measured_flow_down_to_the_floor():
     assert lim.status()["grip_windows"] == {"judged": 2, "below_min_grip": 1}
 
 
+def test_the_grip_floor_is_a_share_of_what_the_hard_caps_leave():
+    # an unretract (extrude only) asked at 40 mm/s: max_flow leaves it
+    # 6 mm^3/s, a slip measured 3; the floor (half) is of those 6, not of 40
+    lim = FlowLimiter(LimiterSettings(mode="reactive", max_flow_mm3_s=6.0,
+                                      min_speed_factor=0.5), AREA)
+    lim.on_window(0.5, 1.25, 0.5, None)          # 6.01 mm^3/s, grip 0.5
+    melted = 0.5 * AREA * 1.25 / 0.5
+    unretract = move_shape([0, 0, 0, 0], [0, 0, 0, 2.0])
+    assert lim.status()["caps"]["grip"] == pytest.approx(melted, abs=1e-3)
+    assert unretract.flow_mm3_s(lim.limit(unretract, 40.0), AREA) == \
+        pytest.approx(melted, abs=1e-3)
+    lim.on_window(0.5, 1.25, 0.1, None)          # a slip to 0.6: the floor
+    assert unretract.flow_mm3_s(lim.limit(unretract, 40.0), AREA) == \
+        pytest.approx(3.0, abs=1e-3)
+
+
 def test_predictive_mode_caps_before_any_slip():
     lim = FlowLimiter(LimiterSettings(mode="predictive", min_grip=0.9), AREA)
     lim.set_profile(PROFILE, 0.5)

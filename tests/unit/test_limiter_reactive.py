@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from flowloop.control.grip_model import WindowFlow
 from flowloop.control.reactive import (
     MAX_RECOVERY_HOLD_S,
     RECOVERY_HOLD_S,
@@ -23,6 +24,16 @@ def test_a_slip_caps_at_the_measured_flow():
     rule = ReactiveRule(SETTINGS)
     assert rule.on_window(0.95, 20.0, 0.5) is None
     assert rule.on_window(0.7, 20.0, 0.5) == pytest.approx(14.0)
+
+
+def test_a_mixed_window_caps_at_what_melted_while_it_slipped():
+    # half the window at 20 mm^3/s melting 12, half at 4: grip 0.67 of a
+    # mean 12; grip times the mean (8) would slow far below what melted
+    window = WindowFlow.of(12.0, 16.0 / 24.0, [20.0] * 4 + [4.0] * 4)
+    rule = ReactiveRule(SETTINGS)
+    assert rule.on_window(window.grip, 12.0, 0.5, window) == pytest.approx(12.0)
+    # and it recovers toward the flow that slipped, the window's peak
+    assert rule.slip_flow_mm3_s == pytest.approx(20.0)
 
 
 def test_a_later_slip_lowers_but_never_raises_the_cap():
