@@ -334,7 +334,8 @@ class MeasureProfile:
                          message=f"{PRINT_NAME}: watching the grip")
         gcmd.respond_info(
             f"{PRINT_NAME}: watching {extruder_name}'s grip (median of"
-            f" {watch.size} windows below {watch.min_grip:g} ends it): print"
+            f" the last {watch.filament_mm:g} mm of filament below"
+            f" {watch.min_grip:g} ends it): print"
             " the measurement part now")
 
     cmd_MEASURE_MATERIAL_PROFILE_LAYER_help = (

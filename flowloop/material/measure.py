@@ -281,21 +281,24 @@ def limit_point(step: StepResult, power: Optional[float],
 
 
 # --- the real-print measurement (MEASURE_MATERIAL_PROFILE_PRINT) -----------
-PRINT_WINDOWS = 8   # judged windows whose median grip decides
+# The judged windows over this much commanded filament decide (8 windows at
+# the default grip_window; a slip closes windows sooner, so count filament)
+PRINT_FILAMENT_MM = 10.0
 
 
 class PrintWatch:
     """Watches a print of the measurement part: the grip windows as they
-    close; `add` returns the point once the median grip of the last
-    PRINT_WINDOWS judged windows falls below min_grip (what the hotend
-    melted then, at its temperature), else None."""
+    close; `add` returns the point once the median grip (per mm of
+    filament) of the judged windows over the last PRINT_FILAMENT_MM falls
+    below min_grip (what the hotend melted then, at its temperature), else
+    None."""
 
-    def __init__(self, min_grip: float, windows: int = PRINT_WINDOWS):
+    def __init__(self, min_grip: float, filament_mm: float = PRINT_FILAMENT_MM):
         if not 0.0 < min_grip < 1.0:
             raise FlowloopError(f"MIN_GRIP: must be in 0..1 (exclusive), got "
                                 f"{min_grip:g}")
         self.min_grip = min_grip
-        self.size = windows
+        self.filament_mm = filament_mm
         self.recent: list = []
         self.judged = 0
 
@@ -303,18 +306,34 @@ class PrintWatch:
         if window.grip is None or window.flow_mm3_s is None:
             return None
         self.judged += 1
-        self.recent = (self.recent + [window])[-self.size:]
-        if len(self.recent) < self.size:
+        self.recent.append(window)
+        # the fewest newest windows that make up filament_mm
+        while sum(w.commanded_mm for w in self.recent[1:]) >= self.filament_mm:
+            del self.recent[0]
+        if sum(w.commanded_mm for w in self.recent) < self.filament_mm:
             return None
-        grip = float(statistics.median(float(w.grip) for w in self.recent))
+        grip = _filament_median(self.recent)
         if grip >= self.min_grip:
             return None
         temps = [float(w.temp_c) for w in self.recent if w.temp_c is not None]
-        flows = [float(w.flow_mm3_s) for w in self.recent]
-        return StepResult(statistics.fmean(flows) / grip, grip,
-                          statistics.fmean(flows),
+        flow = _per_mm([(float(w.flow_mm3_s), w.commanded_mm)
+                        for w in self.recent])
+        return StepResult(flow / grip, grip, flow,
                           statistics.fmean(temps) if temps else None,
                           len(self.recent))
+
+
+def _filament_median(windows: Sequence[Window]) -> float:
+    """The grip at half the windows' filament, in order of grip (the median
+    of windows of equal length)."""
+    ordered = sorted(windows, key=lambda w: float(w.grip))
+    half = sum(w.commanded_mm for w in ordered) / 2.0
+    below = 0.0
+    for w in ordered:
+        below += w.commanded_mm
+        if below >= half:
+            return float(w.grip)
+    return float(ordered[-1].grip)
 
 
 def melted_flow(windows: Sequence[Window],
@@ -322,13 +341,20 @@ def melted_flow(windows: Sequence[Window],
     """What the hotend melted while extruding, over judged windows: each
     window's grip times the planned flow of the layer it began in
     (layers: (print time the layer starts, planned flow), in order). The
-    windows' own flow spans travel and corners and reads low. None: no
-    window began in a known layer."""
-    values = []
+    windows' own flow spans travel and corners and reads low), per mm of
+    filament. None: no window began in a known layer."""
+    values, weights = [], []
     for w in windows:
         if w.grip is None:
             continue
         planned = [flow for start, flow in layers if start <= w.start_time]
         if planned:
             values.append(planned[-1] * float(w.grip))
-    return statistics.fmean(values) if values else None
+            weights.append(float(w.commanded_mm))
+    return _per_mm(list(zip(values, weights))) if values else None
+
+
+def _per_mm(values_and_mm: Sequence[Tuple[float, float]]) -> float:
+    """The mean of values, each weighted by its window's filament."""
+    return (sum(v * mm for v, mm in values_and_mm)
+            / sum(mm for _, mm in values_and_mm))

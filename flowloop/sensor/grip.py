@@ -7,6 +7,14 @@ advanced `window_mm`. grip = measured / commanded over that window, divided
 by the sensor calibration (sensor mm per extruder mm measured where the
 feeder cannot slip), so a feeder that keeps up reads 1.0.
 
+A slip does not wait for the window to fill: every SLIP_STEP_MM of
+commanded filament the grip over the last SLIP_CHECK_MM is checked, and when
+it reads below SLIP_GRIP the window ends there, as two judged windows: the
+part before that stretch (if any) and the stretch that slipped. A window
+closes early only on a slip, so one that keeps up is window_mm long. No
+slip is looked for while the filament goes back in after a retraction (up
+to where it was before it): that melts nothing new.
+
 A window is not judged (grip None) when it contains a retraction (the
 nominal E position, the planned motion without pressure advance, went back
 by more than `retract_tolerance_mm`), or when
@@ -20,6 +28,7 @@ from __future__ import annotations
 
 import collections
 import itertools
+import math
 from dataclasses import dataclass
 from typing import Deque, List, Optional, Sequence, Tuple
 
@@ -29,6 +38,14 @@ from ..errors import FlowloopError
 from ..numbers import parse_numbers
 
 FLOW_PERIOD_S = 0.25
+# A slip is looked for over this much commanded filament (0.17 s at
+# 7 mm^3/s), every SLIP_STEP_MM of it: with ~100 counts per mm the sensor's
+# noise reads about 0.01 of grip there, and a feeder's transient lag
+# (filament squeezed a few tens of micrometres at a change of speed) under
+# 0.1, so only a real slip reads below SLIP_GRIP.
+SLIP_CHECK_MM = 0.5
+SLIP_STEP_MM = 0.125
+SLIP_GRIP = 0.85
 # [flow_sensor] options and their limits: the adapter reads them from here
 DEFAULT_WINDOW_MM = 1.25
 WINDOW_MM_RANGE = (0.1, 50.0)
@@ -64,7 +81,8 @@ class GripEstimator:
                  calibration: float = 1.0,
                  filament_area_mm2: float = 2.405, max_window_s: float = 2.0,
                  retract_tolerance_mm: float = 0.02,
-                 stuck_tolerance_mm: float = 0.02):
+                 stuck_tolerance_mm: float = 0.02,
+                 slip_grip: Optional[float] = SLIP_GRIP):
         if window_mm <= 0:
             raise FlowloopError(f"grip_window must be above 0, not {window_mm}")
         if calibration <= 0:
@@ -75,15 +93,23 @@ class GripEstimator:
         self.max_window_s = max_window_s
         self.retract_tolerance_mm = retract_tolerance_mm
         self.stuck_tolerance_mm = stuck_tolerance_mm
+        self.slip_grip = slip_grip   # None: windows never close early
+        # the open window's start, then a point every SLIP_STEP_MM since
+        self._steps: List[Tuple[float, float, float]] = []
         self.grip: Optional[float] = None
         self._temp_c: Optional[float] = None
         self.last_window: Optional[Window] = None
         self._start: Optional[Tuple[float, float, float]] = None
         self._high = 0.0
+        # after a retraction, where the filament was before it: going back
+        # in melts nothing new, so no slip is looked for below it
+        self._refill = -math.inf
         self._recent: Deque[Tuple[float, float, float]] = collections.deque()
 
     def reset(self) -> None:
         self._start = None
+        self._steps.clear()
+        self._refill = -math.inf
         self.grip = None
         self._recent.clear()
 
@@ -117,31 +143,58 @@ class GripEstimator:
         cal = self.calibration
         measured_mm = [v / cal for v in sensor_mm]
         window_mm, max_window_s = self.window_mm, self.max_window_s
-        retract_mm, stuck_mm = self.retract_tolerance_mm, self.stuck_tolerance_mm
-        closed, high, kept_from = [], self._high, None
+        retract_mm = self.retract_tolerance_mm
+        slip_grip = self.slip_grip
+        back = int(round(SLIP_CHECK_MM / SLIP_STEP_MM))
+        min_slip_mm = SLIP_CHECK_MM / 2.0
+        closed, high, refill, kept_from = [], self._high, self._refill, None
+        steps = self._steps
+        next_step = steps[-1][2] + SLIP_STEP_MM if steps else 0.0
         for i, (t, m, c, n, b) in enumerate(zip(times, measured_mm, commanded_mm,
                                                 nominal_mm, breaks)):
             if b:
                 self._start, kept_from = None, i
             if self._start is None:
                 self._start, high = (t, m, c), n
+                steps[:], next_step = [(t, m, c)], c + SLIP_STEP_MM
                 continue
             t0, m0, c0 = self._start
             if n < high - retract_mm:
                 closed.append(self._close(t, m, c, None, "retraction"))
-                high = n
+                refill, high = max(refill, high), n
+                steps[:], next_step = [(t, m, c)], c + SLIP_STEP_MM
                 continue
             if n > high:
                 high = n
+            if c >= next_step and slip_grip is not None:
+                # the grip over the last SLIP_CHECK_MM (across the start of
+                # this window if it kept up), from where the filament is
+                # back to where it was before a retraction
+                if n < refill:
+                    steps.clear()
+                steps.append((t, m, c))
+                next_step += SLIP_STEP_MM
+                if next_step <= c:
+                    next_step = c + SLIP_STEP_MM
+                if len(steps) > back:
+                    ts, ms, cs = steps[-1 - back]
+                    del steps[:-1 - back]
+                    if m - ms < slip_grip * (c - cs) and c - c0 >= min_slip_mm:
+                        if cs - c0 >= min_slip_mm:
+                            # the part before the stretch that slipped
+                            closed.append(self._judge(ts, ms, cs))
+                        # (too little before it, or the stretch began in the
+                        # window before, which kept up: this window whole)
+                        closed.append(self._judge(t, m, c))
+                        # the next slip is judged over a whole stretch again
+                        steps[:] = [(t, m, c)]
+                        continue
             if c - c0 >= window_mm:
-                measured = m - m0
-                if abs(measured) <= stuck_mm:
-                    closed.append(self._close(t, m, c, None, "stuck"))
-                else:
-                    closed.append(self._close(t, m, c, measured / (c - c0), "judged"))
+                closed.append(self._judge(t, m, c))
             elif t - t0 > max_window_s:
                 closed.append(self._close(t, m, c, None, "too_little_motion"))
-        self._high = high
+                steps[:], next_step = [(t, m, c)], c + SLIP_STEP_MM
+        self._high, self._refill = high, refill
         if kept_from is not None:
             self._recent.clear()
         else:
@@ -149,6 +202,13 @@ class GripEstimator:
         self._note_recent(times[kept_from:], measured_mm[kept_from:],
                           commanded_mm[kept_from:])
         return closed
+
+    def _judge(self, t, m, c) -> Window:
+        """Close the open window at a sample as judged (or stuck)."""
+        measured, commanded = m - self._start[1], c - self._start[2]
+        if abs(measured) <= self.stuck_tolerance_mm:
+            return self._close(t, m, c, None, "stuck")
+        return self._close(t, m, c, measured / commanded, "judged")
 
     def _close(self, t, m, c, grip, reason) -> Window:
         t0, m0, c0 = self._start

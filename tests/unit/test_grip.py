@@ -9,6 +9,9 @@ from hypothesis import strategies as st
 
 from flowloop.errors import FlowloopError
 from flowloop.sensor.grip import (
+    SLIP_CHECK_MM,
+    SLIP_GRIP,
+    SLIP_STEP_MM,
     GripEstimator,
     ReversedSensor,
     SampleRate,
@@ -46,7 +49,74 @@ def test_grip_is_the_measured_share_of_commanded_filament(grip, speed, cal):
     assert judged
     for w in judged:
         assert w.grip == pytest.approx(grip, rel=1e-6)
-        assert w.commanded_mm >= 1.0
+        if grip > SLIP_GRIP + 1e-3:
+            assert w.commanded_mm >= 1.0
+        elif grip < SLIP_GRIP - 1e-3:   # closes once SLIP_CHECK_MM shows it
+            assert w.commanded_mm <= SLIP_CHECK_MM + 2 * speed * 0.002
+
+
+@given(st.floats(0.5, 3.0), st.floats(0.3, 0.8))
+def test_a_slip_closes_the_window_as_soon_as_it_shows(step_at_s, grip):
+    # 3 mm/s of filament (7.2 mm^3/s), the feeder slipping from step_at_s on
+    t = np.arange(0, 4.0, 0.004)
+    commanded = 3.0 * t
+    measured = np.where(t < step_at_s, commanded,
+                        3.0 * step_at_s + grip * 3.0 * (t - step_at_s))
+    windows = _run(GripEstimator(window_mm=1.25), t, measured, commanded)
+    # the first window the limiter counts as a slip (below its default
+    # min_grip, 0.9): one closed whole holds at most half a stretch of good
+    # grip before the stretch that read below SLIP_GRIP
+    first = next(w for w in windows if w.grip <= 0.9)
+    # as soon as the checked stretch reads below SLIP_GRIP, give or take a
+    # step of filament, and half a stretch if a window closed in between (a
+    # whole window took up to two windows, 1.25 mm each)
+    shows_mm = SLIP_CHECK_MM * min(1.0, (1.0 - SLIP_GRIP) / (1.0 - grip))
+    assert all(w.reason == "judged" for w in windows)
+    assert first.end_time - step_at_s <= (
+        shows_mm + SLIP_CHECK_MM / 2 + SLIP_STEP_MM) / 3.0 + 0.01
+    # the windows before it did not show the slip; they tile the path
+    assert all(w.grip > 0.9 for w in windows[:windows.index(first)])
+    assert all(a.end_time == b.start_time for a, b in zip(windows, windows[1:]))
+    assert sum(w.commanded_mm for w in windows) == pytest.approx(
+        commanded[-1] - commanded[0], abs=SLIP_CHECK_MM + 1.25)
+
+
+def test_no_slip_is_looked_for_while_the_filament_goes_back_in():
+    # 3 mm/s, a 2 mm retraction at 1 s, an unretract at 30 mm/s that the
+    # sensor sees slip (half of it), then printing at 3 mm/s that slips too
+    t = np.arange(0, 3.0, 0.002)
+    back = np.clip((t - 1.0) * 30.0, 0.0, 2.0)          # retraction
+    refill = np.clip((t - 1.2) * 30.0, 0.0, 2.0)        # the unretract
+    commanded = 3.0 * np.minimum(t, 1.0) - back + refill \
+        + 3.0 * np.clip(t - 1.5, 0.0, None)
+    measured = commanded - 0.5 * refill - 0.5 * 3.0 * np.clip(t - 1.5, 0.0, None)
+    # (windows long enough to hold the unretract whole: a window that fills
+    # judges it, as before)
+    windows = GripEstimator(window_mm=2.5).add(t, measured, commanded)
+    judged = [w for w in windows if w.grip is not None]
+    # no stretch of the unretract alone closes a window: the one that holds
+    # it ends where the filament is back (at 1.267 s)
+    assert judged[1].start_time == pytest.approx(1.067, abs=0.005)
+    assert judged[2].start_time == pytest.approx(1.267, abs=0.01)
+    # printing again, the slip shows as soon as a stretch reads it (the
+    # commanded filament grows 3 mm/s)
+    slipped = judged[2]
+    assert slipped.grip == pytest.approx(0.5)
+    assert slipped.end_time < 1.5 + (SLIP_CHECK_MM + SLIP_STEP_MM) / 3.0 + 0.01
+
+
+def test_a_feeder_that_keeps_up_never_closes_a_window_early():
+    # noise, and pressure advance's few tens of micrometres of lag at speed
+    # changes, do not read as a slip over SLIP_CHECK_MM
+    t = np.arange(0, 6.0, 0.004)
+    commanded = 3.0 * t + 0.04 * (np.sin(3 * t) > 0)
+    rng = np.random.default_rng(1)
+    measured = 3.0 * t + rng.normal(0.0, 0.34 / 103.0, len(t))
+    windows = GripEstimator(window_mm=1.25).add(t, measured, commanded,
+                                                nominal_mm=3.0 * t)
+    assert len(windows) == 14
+    assert all(w.reason == "judged" and w.commanded_mm >= 1.25 for w in windows)
+    assert min(w.grip for w in windows) > 0.95
 
 
 def test_grip_is_not_judged_across_a_retraction():

@@ -3,6 +3,8 @@ the fixed-power hotend the twin simulates it with."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from flowloop.control.hotend import HotendModel, HotendParams
@@ -164,12 +166,24 @@ def test_the_melted_flow_of_a_print_uses_each_window_s_own_layer():
 
 
 def test_a_print_watch_ends_on_the_median_of_its_last_windows():
-    watch = measure.PrintWatch(0.9, windows=3)
+    watch = measure.PrintWatch(0.9, filament_mm=3.0)
     assert watch.add(window(0.0, 1.0, 0.95)) is None
     assert watch.add(window(1.0, 2.0, 0.8)) is None     # 2 of 3 windows
     assert watch.add(window(2.0, 3.0, None)) is None    # unjudged: ignored
     assert watch.add(window(3.0, 4.0, 0.85)) is not None
     assert [w.grip for w in watch.recent] == [0.95, 0.8, 0.85]
+    # windows count by their filament: a slip closes them sooner
+    short = measure.PrintWatch(0.9, filament_mm=3.0)
+    assert short.add(window(0.0, 1.0, 0.95)) is None
+    assert short.add(window(1.0, 2.0, 0.95)) is None
+    for start in (2.0, 2.5, 2.75):      # 0.5 mm windows that slipped
+        # (at most 1.5 mm of 0.8 in 3.5 mm: more than half kept up)
+        assert short.add(dataclasses.replace(
+            window(start, start + 0.25, 0.8), commanded_mm=0.5)) is None
+    # the last 3 mm: 2 mm at 0.8, 1 mm at 0.95; the median per mm is 0.8
+    assert short.add(dataclasses.replace(
+        window(3.0, 3.25, 0.8), commanded_mm=0.5)).grip == pytest.approx(0.8)
+    assert len(short.recent) == 5
     with pytest.raises(FlowloopError, match="MIN_GRIP"):
         measure.PrintWatch(1.5)
 
