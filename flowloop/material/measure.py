@@ -261,12 +261,24 @@ def judge_step(windows: Sequence[Window], start_time: float, end_time: float,
               and w.end_time <= end_time + STEP_END_SLACK_S]
     if not judged:
         return None
-    flows = [float(w.flow_mm3_s) for w in judged if w.flow_mm3_s is not None]
     temps = [float(w.temp_c) for w in judged if w.temp_c is not None]
-    grip = float(statistics.median(float(w.grip) for w in judged))
-    measured = statistics.fmean(flows) if flows else commanded_mm3_s * grip
+    grip = _filament_median(judged)
+    measured = _mean_flow(judged)
+    if measured is None:
+        measured = commanded_mm3_s * grip
     return StepResult(float(commanded_mm3_s), grip, float(measured),
                       statistics.fmean(temps) if temps else None, len(judged))
+
+
+def _mean_flow(windows: Sequence[Window]) -> Optional[float]:
+    """The windows' measured flow over their time (the volume they measured
+    over the time they took: a short window's noisy ends count for little);
+    None if none has a flow."""
+    timed = [(float(w.flow_mm3_s), w.end_time - w.start_time) for w in windows
+             if w.flow_mm3_s is not None and w.end_time > w.start_time]
+    if not timed:
+        return None
+    return sum(f * d for f, d in timed) / sum(d for _, d in timed)
 
 
 def limit_point(step: StepResult, power: Optional[float],
@@ -316,21 +328,22 @@ class PrintWatch:
         if grip >= self.min_grip:
             return None
         temps = [float(w.temp_c) for w in self.recent if w.temp_c is not None]
-        flow = _per_mm([(float(w.flow_mm3_s), w.commanded_mm)
-                        for w in self.recent])
+        flow = _mean_flow(self.recent)
         return StepResult(flow / grip, grip, flow,
                           statistics.fmean(temps) if temps else None,
                           len(self.recent))
 
 
 def _filament_median(windows: Sequence[Window]) -> float:
-    """The grip at half the windows' filament, in order of grip (the median
-    of windows of equal length)."""
+    """The grip at half the windows' filament, in order of grip (for windows
+    of equal length, statistics.median: between the two middle ones)."""
     ordered = sorted(windows, key=lambda w: float(w.grip))
     half = sum(w.commanded_mm for w in ordered) / 2.0
     below = 0.0
-    for w in ordered:
+    for i, w in enumerate(ordered):
         below += w.commanded_mm
+        if abs(below - half) <= 1e-9 * half and i + 1 < len(ordered):
+            return (float(w.grip) + float(ordered[i + 1].grip)) / 2.0
         if below >= half:
             return float(w.grip)
     return float(ordered[-1].grip)
@@ -351,10 +364,6 @@ def melted_flow(windows: Sequence[Window],
         if planned:
             values.append(planned[-1] * float(w.grip))
             weights.append(float(w.commanded_mm))
-    return _per_mm(list(zip(values, weights))) if values else None
-
-
-def _per_mm(values_and_mm: Sequence[Tuple[float, float]]) -> float:
-    """The mean of values, each weighted by its window's filament."""
-    return (sum(v * mm for v, mm in values_and_mm)
-            / sum(mm for _, mm in values_and_mm))
+    if not values:
+        return None
+    return sum(v * mm for v, mm in zip(values, weights)) / sum(weights)

@@ -153,6 +153,17 @@ def test_without_start_flow_a_level_starts_near_its_expected_limit():
     assert given.start_given and given.ramp_start(9.6) == 3.0
 
 
+def test_a_step_counts_its_windows_by_filament_and_time():
+    # a slip closes windows sooner: a short window's noisy ends count for
+    # its short time, and the median grip is per mm of filament
+    windows = [dataclasses.replace(window(11.0, 11.9, 0.8, 10.0), commanded_mm=2.0),
+               dataclasses.replace(window(11.9, 12.0, 0.7, 12.0), commanded_mm=0.2),
+               dataclasses.replace(window(12.0, 12.1, 0.7, 12.0), commanded_mm=0.2)]
+    step = measure.judge_step(windows, 10.0, 12.5, 12.0)
+    assert step.measured_mm3_s == pytest.approx((0.9 * 10.0 + 0.2 * 12.0) / 1.1)
+    assert step.grip == pytest.approx(0.8)     # 2 mm at 0.8, 0.4 mm at 0.7
+
+
 def test_the_melted_flow_of_a_print_uses_each_window_s_own_layer():
     layers = [(0.0, 5.0), (10.0, 6.0), (20.0, 7.0)]
     windows = [window(9.0, 10.5, 1.0),     # began in layer 1: 5.0
