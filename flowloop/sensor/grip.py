@@ -96,6 +96,7 @@ class GripEstimator:
         self.slip_grip = slip_grip   # None: windows never close early
         # the open window's start, then a point every SLIP_STEP_MM since
         self._steps: List[Tuple[float, float, float]] = []
+        self._next_step = 0.0   # commanded filament of the next point
         self.grip: Optional[float] = None
         self._temp_c: Optional[float] = None
         self.last_window: Optional[Window] = None
@@ -149,7 +150,7 @@ class GripEstimator:
         min_slip_mm = SLIP_CHECK_MM / 2.0
         closed, high, refill, kept_from = [], self._high, self._refill, None
         steps = self._steps
-        next_step = steps[-1][2] + SLIP_STEP_MM if steps else 0.0
+        next_step = self._next_step
         for i, (t, m, c, n, b) in enumerate(zip(times, measured_mm, commanded_mm,
                                                 nominal_mm, breaks)):
             if b:
@@ -194,7 +195,7 @@ class GripEstimator:
             elif t - t0 > max_window_s:
                 closed.append(self._close(t, m, c, None, "too_little_motion"))
                 steps[:], next_step = [(t, m, c)], c + SLIP_STEP_MM
-        self._high, self._refill = high, refill
+        self._high, self._refill, self._next_step = high, refill, next_step
         if kept_from is not None:
             self._recent.clear()
         else:
