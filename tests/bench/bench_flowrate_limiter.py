@@ -49,14 +49,31 @@ from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps
 from tests.klippy.test_flowrate_limiter import AREA, CLOCK_HZ, HERE, gcode_extrusion
 
 
+def _scaled_profile(profile, scale):
+    """The profile of a hotend melting `scale` of what `profile` says."""
+    lines = {name: {**line, "flow_mm3_s": scale * line["flow_mm3_s"],
+                    "slope_mm3_s_per_c": scale * line["slope_mm3_s_per_c"]}
+             for name, line in profile["lines"].items()}
+    return {**profile, "identity": {**profile["identity"], "name": "truthful"},
+            "lines": lines}
+
+
 def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench):
     commanded = gcode_extrusion(GCODE)
     config = HERE / "flowrate_limiter_bench.cfg"
+    # The slip-free bound: the same twin (melt_scale 1 on a profile that says
+    # exactly what the bench's twin melts) under the temperature cap alone,
+    # a limiter that knows the hotend's capacity at every temperature
+    truthful = (_scaled_profile(OPTIMISTIC_PROFILE, 0.7),
+                HERE / "flowrate_limiter_loop.cfg", "temperature")
     results = {}
-    for name, enable, mode in (("off", 0, "predictive"), ("reactive", 1, "reactive"),
-                               ("predictive", 1, "predictive")):
+    for name, enable, (profile, cfg, mode) in (
+            ("off", 0, (OPTIMISTIC_PROFILE, config, "predictive")),
+            ("reactive", 1, (OPTIMISTIC_PROFILE, config, "reactive")),
+            ("predictive", 1, (OPTIMISTIC_PROFILE, config, "predictive")),
+            ("knowing the capacity", 1, truthful)):
         status, moved = print_closed_loop(enable, klipper_build, klippy_venv,
-                                          OPTIMISTIC_PROFILE, config, mode)
+                                          profile, cfg, mode)
         results[name] = (commanded - moved, status["print_time"])
         bench.figure(f"limiter {name}: under-extruded", commanded - moved, " mm")
         bench.figure(f"limiter {name}: print time", status["print_time"], " s")
@@ -68,6 +85,12 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench):
         bench.ratio(f"{name}: print time", took, time_off)
     bench.ratio("predictive vs reactive: print time", results["predictive"][1],
                 results["reactive"][1], goal="< 1.0x")
+    # What no slip costs at the least: predictive learns the capacity that
+    # the bound is told
+    bench.ratio("predictive vs the slip-free bound: print time",
+                results["predictive"][1], results["knowing the capacity"][1])
+    bench.ratio("reactive vs the slip-free bound: print time",
+                results["reactive"][1], results["knowing the capacity"][1])
     # Reactive lets the feeder slip, and a slipping print runs at full speed:
     # the time each adds per mm of under-extrusion it prevents
     cost = {name: (results[name][1] - time_off) / (lost_off - results[name][0])
