@@ -11,7 +11,8 @@ It is updated online from the sensor's grip windows: a window that slipped
 measured C (`melted_capacity`: the C at which min(F(t), C) over the
 window's commanded flow F(t) averages to the flow the sensor measured); a
 window that did not slip while its commanded flow peaked above C shows C is
-at least that peak. A window mixes fast and slow moves (and pauses): its
+at least that peak (one that slipped within SLIP_TOLERANCE: the C its slip
+gives). A window mixes fast and slow moves (and pauses): its
 mean flow, grip times the mean commanded flow, would read well below the
 capacity the fast moves met. The fit is least squares over
 the most recent windows, pulled toward the seed (a prior worth
@@ -146,7 +147,9 @@ class GripModel:
         if flow.grip < 1.0 - SLIP_TOLERANCE:
             seen = flow.melted_mm3_s
         elif flow.peak_mm3_s > self.fitted.at(temp_c):
-            seen = flow.peak_mm3_s  # a lower bound: it kept up
+            # it (nearly) kept up above the fit: its peak if it kept up
+            # whole, else the capacity its few per cent of slip say
+            seen = flow.melted_mm3_s
         else:
             return False
         self.observations.append((float(temp_c), float(seen)))
