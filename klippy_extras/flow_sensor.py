@@ -214,7 +214,7 @@ class FlowSensor:
     def _deliver(self, window):
         if self.faults.fault is not None:
             window = dataclasses.replace(window, grip=None, reason='fault')
-        elif window.grip is not None:
+        elif window.grip is not None and self.window_callbacks:
             # What the window asked for over time (a grip model learns the
             # capacity from it): read while the trapq still holds the moves
             window = dataclasses.replace(

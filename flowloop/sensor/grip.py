@@ -81,8 +81,7 @@ class GripEstimator:
                  calibration: float = 1.0,
                  filament_area_mm2: float = 2.405, max_window_s: float = 2.0,
                  retract_tolerance_mm: float = 0.02,
-                 stuck_tolerance_mm: float = 0.02,
-                 slip_grip: Optional[float] = SLIP_GRIP):
+                 stuck_tolerance_mm: float = 0.02):
         if window_mm <= 0:
             raise FlowloopError(f"grip_window must be above 0, not {window_mm}")
         if calibration <= 0:
@@ -93,7 +92,6 @@ class GripEstimator:
         self.max_window_s = max_window_s
         self.retract_tolerance_mm = retract_tolerance_mm
         self.stuck_tolerance_mm = stuck_tolerance_mm
-        self.slip_grip = slip_grip   # None: windows never close early
         # the open window's start, then a point every SLIP_STEP_MM since
         self._steps: List[Tuple[float, float, float]] = []
         self._next_step = 0.0   # commanded filament of the next point
@@ -145,7 +143,6 @@ class GripEstimator:
         measured_mm = [v / cal for v in sensor_mm]
         window_mm, max_window_s = self.window_mm, self.max_window_s
         retract_mm = self.retract_tolerance_mm
-        slip_grip = self.slip_grip
         back = int(round(SLIP_CHECK_MM / SLIP_STEP_MM))
         min_slip_mm = SLIP_CHECK_MM / 2.0
         closed, high, refill, kept_from = [], self._high, self._refill, None
@@ -167,7 +164,7 @@ class GripEstimator:
                 continue
             if n > high:
                 high = n
-            if c >= next_step and slip_grip is not None:
+            if c >= next_step:
                 # the grip over the last SLIP_CHECK_MM (across the start of
                 # this window if it kept up), from where the filament is
                 # back to where it was before a retraction
@@ -180,7 +177,7 @@ class GripEstimator:
                 if len(steps) > back:
                     ts, ms, cs = steps[-1 - back]
                     del steps[:-1 - back]
-                    if m - ms < slip_grip * (c - cs) and c - c0 >= min_slip_mm:
+                    if m - ms < SLIP_GRIP * (c - cs) and c - c0 >= min_slip_mm:
                         if cs - c0 >= min_slip_mm:
                             # the part before the stretch that slipped
                             closed.append(self._judge(ts, ms, cs))
