@@ -12,6 +12,7 @@ import pytest
 
 from devtools.klippy_test import run_file
 from flowloop.sensor import ems22
+from flowloop.sensor.grip import FLOW_PIECE_S
 
 HERE = Path(__file__).resolve().parent
 
@@ -226,7 +227,7 @@ def test_subscribers_get_every_window_with_flow_and_temperature(
         assert w["grip"] == pytest.approx(1.0, abs=0.03)
         assert w["flow_mm3_s"] == pytest.approx(5.0, rel=0.03)
         assert len(w["commanded_flows"]) == round(
-            (w["end_time"] - w["start_time"]) / 0.05)
+            (w["end_time"] - w["start_time"]) / FLOW_PIECE_S)
         assert w["commanded_flows"] == pytest.approx(
             [5.0] * len(w["commanded_flows"]), rel=0.01)
         assert w["temp_c"] == 200.0
