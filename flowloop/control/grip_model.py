@@ -7,15 +7,14 @@ C is a straight line in temperature, C(T) = capacity_mm3_s + slope *
 at the working point is where grip fell to the profile's min_grip, so
 C = that line * min_grip (one melt line, flowloop.material's).
 
-It is updated online from the sensor's grip windows: a window that slipped
-measured C (`melted_capacity`: the C at which min(F(t), C) over the
-window's commanded flow F(t) averages to the flow the sensor measured); a
-window that did not slip while its commanded flow peaked above C shows C is
-at least that peak (one that slipped within SLIP_TOLERANCE: the C its slip
-gives). A window mixes fast and slow moves (and pauses): its
-mean flow, grip times the mean commanded flow, would read well below the
-capacity the fast moves met. The fit is least squares over
-the most recent windows, pulled toward the seed (a prior worth
+It is updated online from the sensor's grip windows. A window mixes fast
+and slow moves (and pauses), so grip times its mean commanded flow reads
+well below the capacity its fast moves met: a window that slipped measured
+C as `melted_capacity`, the C at which min(F(t), C) over its commanded flow
+F(t) averages to the flow the sensor measured. A window that kept up while
+its commanded flow peaked above C shows C is at least that peak (one that
+slipped within SLIP_TOLERANCE: the C its slip gives). The fit is least
+squares over the most recent windows, pulled toward the seed (a prior worth
 `prior_windows` windows on the capacity and a temperature span of
 `PRIOR_SPAN_C` on the slope), so a few windows at one temperature move the
 capacity but not the slope.
@@ -144,15 +143,11 @@ class GripModel:
         """Learn from one judged window's flow; True if it changed the fit."""
         if temp_c is None or flow.commanded_mm3_s <= 0.0:
             return False
-        if flow.grip < 1.0 - SLIP_TOLERANCE:
-            seen = flow.melted_mm3_s
-        elif flow.peak_mm3_s > self.fitted.at(temp_c):
-            # it (nearly) kept up above the fit: its peak if it kept up
-            # whole, else the capacity its few per cent of slip say
-            seen = flow.melted_mm3_s
-        else:
-            return False
-        self.observations.append((float(temp_c), float(seen)))
+        if flow.grip >= 1.0 - SLIP_TOLERANCE \
+                and flow.peak_mm3_s <= self.fitted.at(temp_c):
+            return False  # kept up where the fit said it would: nothing new
+        # what it melted when asked for more (its peak if it kept up whole)
+        self.observations.append((float(temp_c), float(flow.melted_mm3_s)))
         self.fitted = fit_capacity(self.seed, self.observations, self.prior_windows)
         return True
 
