@@ -274,11 +274,16 @@ def _mean_flow(windows: Sequence[Window]) -> Optional[float]:
     """The windows' measured flow over their time (the volume they measured
     over the time they took: a short window's noisy ends count for little);
     None if none has a flow."""
-    timed = [(float(w.flow_mm3_s), w.end_time - w.start_time) for w in windows
-             if w.flow_mm3_s is not None and w.end_time > w.start_time]
-    if not timed:
+    return _weighted_mean([(float(w.flow_mm3_s), w.end_time - w.start_time)
+                           for w in windows if w.flow_mm3_s is not None
+                           and w.end_time > w.start_time])
+
+
+def _weighted_mean(pairs: Sequence[Tuple[float, float]]) -> Optional[float]:
+    """The mean of (value, weight) pairs by weight; None without pairs."""
+    if not pairs:
         return None
-    return sum(f * d for f, d in timed) / sum(d for _, d in timed)
+    return sum(v * w for v, w in pairs) / sum(w for _, w in pairs)
 
 
 def limit_point(step: StepResult, power: Optional[float],
@@ -356,14 +361,11 @@ def melted_flow(windows: Sequence[Window],
     (layers: (print time the layer starts, planned flow), in order). The
     windows' own flow spans travel and corners and reads low), per mm of
     filament. None: no window began in a known layer."""
-    values, weights = [], []
+    per_mm = []
     for w in windows:
         if w.grip is None:
             continue
         planned = [flow for start, flow in layers if start <= w.start_time]
         if planned:
-            values.append(planned[-1] * float(w.grip))
-            weights.append(float(w.commanded_mm))
-    if not values:
-        return None
-    return sum(v * mm for v, mm in zip(values, weights)) / sum(weights)
+            per_mm.append((planned[-1] * float(w.grip), float(w.commanded_mm)))
+    return _weighted_mean(per_mm)
