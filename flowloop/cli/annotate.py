@@ -121,6 +121,8 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
           f" point {wp:g}, {lo} to {hi} C, peak flow"
           f" {result.peak_flow_mm3_s:.1f} mm^3/s; {result.overridden} slicer M104"
           f" commented out")
+    if result.start is not None:
+        print(f"  {result.start.message}")
     if result.capped_windows:
         print(f"  {result.capped_windows} windows need more than the profile's"
               f" max_temp_c {profile.bounds.max_temp_c:g} C: clamped there")

@@ -14,7 +14,12 @@ sampled as a printer would (every GRID_S). Instead of the announcements,
   span, rounded up to a whole degree, so the heater is never set lower than
   [autotemp] would set it;
 - the slicer's own M104 after the first baked one is commented out
-  (`M104 S0`, heater off, is kept); M109 stays and waits.
+  (`M104 S0`, heater off, is kept); M109 stays and waits;
+- the print starts where the plan does (flowloop.gcode.start): the start
+  G-code's last heat-and-wait before the first extrusion is raised to the
+  planned nozzle temperature there, kept if it is hotter, or an M109 added
+  (after a start macro, whose temperature the file does not show); no baked
+  M104 goes before that wait, which would override it.
 
 The timeline (demanded flow, targets, the modelled nozzle and the melt
 capacity there) is kept for `--plot` (timeline_svg).
@@ -45,6 +50,7 @@ from .annotate import (
 )
 from .fastplan import plan_file
 from .planner import Barrier, PrinterLimits
+from .start import StartFix, find_start_heat, start_fix
 
 BAKE_STEP_S = 0.5
 _ANNOUNCEMENT = re.compile(
@@ -73,6 +79,7 @@ class BakeResult:
     peak_flow_mm3_s: float
     print_time_s: float
     under_capacity_s: float  # extruding time the modelled nozzle melts too little
+    start: Optional[StartFix] = None  # what was done so the print starts on plan
 
 
 class _Recorder(_Annotator):
@@ -83,6 +90,7 @@ class _Recorder(_Annotator):
         self.commands: List[Tuple[int, float, str]] = []
         self.moves: List[Tuple[float, int]] = []       # (print time, offset)
         self.demand: List[float] = []                   # peak per GRID_S
+        self.first_extrusion: Optional[Tuple[float, int]] = None  # (time, offset)
 
     def emit(self, offset: int, time_s: float, line: str) -> None:
         self.commands.append((offset, time_s, line))
@@ -91,6 +99,8 @@ class _Recorder(_Annotator):
         if not self.moves or self.moves[-1][1] != seg.offset:
             self.moves.append((seg.start_s, seg.offset))
         if seg.flow_mm3_s > 0.0:
+            if self.first_extrusion is None:
+                self.first_extrusion = (seg.start_s, seg.offset)
             first = math.floor(seg.start_s / GRID_S)
             last = math.floor(seg.end_s / GRID_S)
             if len(self.demand) <= last:
@@ -131,11 +141,14 @@ def replay(commands: List[Tuple[int, float, str]], end_s: float,
     return targets
 
 
-def _placements(moves: List[Tuple[float, int]], targets: List[Optional[float]]
-                ) -> List[Tuple[int, int]]:
-    """(byte offset, whole-degree target) of each M104 to write."""
+def _placements(moves: List[Tuple[float, int]], targets: List[Optional[float]],
+                from_offset: int = 0) -> List[Tuple[int, int]]:
+    """(byte offset, whole-degree target) of each M104 to write, at move
+    lines from byte from_offset on."""
     emit_at: List[Tuple[float, int]] = []
     for time_s, offset in moves:
+        if offset < from_offset:
+            continue
         if not emit_at or time_s >= emit_at[-1][0] + BAKE_STEP_S:
             emit_at.append((time_s, offset))
     out: List[Tuple[int, int]] = []
@@ -155,15 +168,16 @@ def _placements(moves: List[Tuple[float, int]], targets: List[Optional[float]]
 
 
 def _simulate(timeline: Timeline, targets: List[Optional[float]],
-              controller: Autotemp, start_c: float) -> float:
-    """The modelled nozzle under the targets; returns the extruding time
-    during which it melts less than is demanded."""
+              controller: Autotemp, start_c: float, from_s: float = 0.0) -> float:
+    """The modelled nozzle under the targets, held at start_c (the start
+    G-code's wait) until from_s; returns the extruding time during which it
+    melts less than is demanded."""
     plan = controller.plan
     model = HotendModel(controller.params, temp_c=start_c, target_c=start_c)
     held = start_c
     short_s = 0.0
     for k, target in enumerate(targets):
-        if target is not None:
+        if target is not None and k * GRID_S >= from_s - 1e-9:
             held = target
         model.set_target(k * GRID_S, held)
         demand = timeline.demand_mm3_s[k] if k < len(timeline.demand_mm3_s) else 0.0
@@ -225,15 +239,19 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
     timeline = Timeline(demand_mm3_s=rec.demand + [0.0] * max(
         0, len(targets) - len(rec.demand)), target_c=targets)
     known = [x for x in targets if x is not None]
-    start_c = known[0] if known else controller.plan.limits.min_temp_c
-    short_s = _simulate(timeline, targets, controller, start_c)
-    placements = _placements(rec.moves, targets)
+    fix, from_s = _start(src, rec, params, heater_max_temp_c, profile,
+                         working_point, newline)
+    start_c = fix.start_c if fix is not None else (
+        known[0] if known else controller.plan.limits.min_temp_c)
+    short_s = _simulate(timeline, targets, controller, start_c, from_s)
+    placements = _placements(rec.moves, targets,
+                             fix.end if fix is not None else 0)
     overridden = 0
 
     def write(out: BinaryIO) -> None:
         nonlocal overridden
         overridden = _write(src, out, placements, newline, profile,
-                            working_point, params)
+                            working_point, params, fix)
     _replace_atomically(dst, write, src)
     result = BakeResult(
         commands=len(placements), overridden=overridden,
@@ -241,8 +259,30 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
         max_target_c=max(known) if known else None,
         capped_windows=controller.plan.capped_windows,
         peak_flow_mm3_s=max(rec.demand, default=0.0),
-        print_time_s=rec.end_s, under_capacity_s=short_s)
+        print_time_s=rec.end_s, under_capacity_s=short_s, start=fix)
     return result, timeline
+
+
+def _start(src: Path, rec: _Recorder, params: HotendParams,
+           heater_max_temp_c: Optional[float], profile: Profile,
+           working_point: float, newline: bytes
+           ) -> Tuple[Optional[StartFix], float]:
+    """What the start G-code is made to do (None: nothing is extruded), and
+    the print time from which the baked targets hold."""
+    if rec.first_extrusion is None:
+        return None, 0.0
+    first_s, first_offset = rec.first_extrusion
+    # The plan's nozzle when the first extrusion starts, as the printer knows
+    # it then: the announcements up to that time, replayed afresh.
+    probe = Autotemp(params, heater_max_temp_c)
+    probe.set_profile(profile, working_point)
+    replay(rec.commands, first_s, probe)
+    plan_start_c = math.ceil(probe.plan.nozzle_c(first_s) - 1e-6)
+    with open(src, "rb") as f:
+        heat = find_start_heat(f, first_offset)
+    fix = start_fix(heat, plan_start_c, newline.decode())
+    from_s = next((t for t, offset in rec.moves if offset >= fix.end), first_s)
+    return fix, from_s
 
 
 def marker_line(profile: Profile, working_point: float,
@@ -256,7 +296,7 @@ def marker_line(profile: Profile, working_point: float,
 
 def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
            newline: bytes, profile: Profile, working_point: float,
-           params: HotendParams) -> int:
+           params: HotendParams, fix: Optional[StartFix] = None) -> int:
     out.write(marker_line(profile, working_point, params).encode() + newline)
     overridden = 0
     i = 0
@@ -264,6 +304,12 @@ def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
     offset = 0
     with open(src, "rb") as f:
         for line in f:
+            if fix is not None and fix.line is not None and fix.offset == offset:
+                # the start's wait, before any baked M104 at the same line
+                out.write(fix.line.encode())
+                if fix.action == "raise":
+                    offset += len(line)
+                    continue
             while i < len(placements) and placements[i][0] <= offset:
                 out.write(f"M104 S{placements[i][1]}".encode() + newline)
                 i += 1

@@ -48,14 +48,17 @@ def test_the_baked_file_has_m104_within_the_limits_and_no_announcements(baked):
     assert all(190 <= t <= 240 for t in targets)
     # the infill's 6.6 mm^3/s needs 226 C: reached
     assert max(targets) >= math.ceil(PROFILE_NEED_66())
-    # the slicer's mid-print M104 S215 is commented out; M109 stays
+    # the slicer's mid-print M104 S215 is commented out; its M109 S200 is
+    # raised to where the plan starts (tests/unit/test_bake_start.py)
     assert "; M104 S215 ; set temperature ; overridden by flowloop bake" in lines
-    assert "M109 S200 ; set temperature and wait for it to be reached" in lines
+    assert "M109 S226 ; flowloop bake: was M109 S200" in lines
     # everything else is the slicer's file, line for line
     original = BLOCK.read_text().splitlines()
     kept = [x for x in lines[1:] if not re.match(r"^M104 S\d+$", x)
-            and "overridden by flowloop bake" not in x]
-    assert kept == [x for x in original if not x.startswith("M104 S215")]
+            and "overridden by flowloop bake" not in x
+            and "flowloop bake: was" not in x]
+    assert kept == [x for x in original if not x.startswith("M104 S215")
+                    and not x.startswith("M109 S200")]
 
 
 def PROFILE_NEED_66():
