@@ -1,14 +1,18 @@
-"""`flowloop profile show|plot|validate|import|export`: material profiles at a desk."""
+"""`flowloop profile show|plot|validate|import|export`: material profiles at a
+desk; `flowloop profile list|store|activate|remove`: the profiles a printer's
+Moonraker keeps (flowloop.host.moonraker_api)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 from pathlib import Path
 
 from ..errors import FlowloopError
+from ..host.moonraker_api import DEFAULT_URL, MoonrakerApi
 from ..material import ddprint, plot
 from ..material.active import working_point_arg
 from ..material.profile import (
@@ -158,9 +162,68 @@ def cmd_export(args) -> int:
     return 0
 
 
+# --- on a printer, through its Moonraker -------------------------------------
+
+def _printer(args) -> MoonrakerApi:
+    return MoonrakerApi(args.moonraker, args.api_key)
+
+
+def cmd_list(args) -> int:
+    answer = _printer(args).profiles()
+    active = answer.get("active", {})
+    if not answer.get("profiles"):
+        print(f"{args.moonraker}: no profiles stored (flowloop profile store FILE)")
+    for summary in answer.get("profiles", []):
+        name = summary.get("name")
+        on = [f"{ext} at working point {entry.get('working_point'):g}"
+              for ext, entry in sorted(active.items()) if entry.get("name") == name]
+        print(f"{json.dumps(name)}" + (f": active on {', '.join(on)}" if on else ""))
+    return 0
+
+
+def cmd_store(args) -> int:
+    profile = load(args.file)
+    api = _printer(args)
+    api.store(json.loads(encode_profile(profile)))
+    print(f"stored {json.dumps(profile.name)} on {api.url}")
+    if args.activate is not None:
+        _activate(api, profile.name, args.activate, args.wp)
+    return 0
+
+
+def cmd_activate(args) -> int:
+    _activate(_printer(args), args.name, args.extruder, args.wp)
+    return 0
+
+
+def _activate(api: MoonrakerApi, name: str, extruder: str, wp) -> None:
+    answer = api.activate(name, extruder, wp)
+    wp = answer.get("working_point", wp)
+    print(f"{json.dumps(name)} active on {extruder}"
+          + (f" at working point {wp:g}" if isinstance(wp, (int, float)) else "")
+          + ("" if answer.get("sent_to_klippy", True)
+             else " (klippy is not connected: it gets it when it is)"))
+
+
+def cmd_remove(args) -> int:
+    api = _printer(args)
+    api.remove(args.name)
+    print(f"removed {json.dumps(args.name)} from {api.url}")
+    return 0
+
+
+def _printer_options(p) -> None:
+    p.add_argument("--moonraker", default=DEFAULT_URL, metavar="URL",
+                   help=f"the printer's Moonraker: a URL or HOST[:PORT] "
+                        f"(default {DEFAULT_URL})")
+    p.add_argument("--api-key", default=os.environ.get("MOONRAKER_API_KEY"),
+                   help="Moonraker API key (default: $MOONRAKER_API_KEY)")
+
+
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "profile", help="material profiles: show, plot, validate, import, export",
+        "profile", help="material profiles: show, plot, validate, import, export;"
+                        " list, store, activate, remove on a printer",
         description="Material profiles (flow the hotend melts at each temperature).")
     sub = parser.add_subparsers(dest="profile_command", metavar="ACTION",
                                 required=True)
@@ -200,4 +263,35 @@ def register(subparsers) -> None:
     p.add_argument("file", type=Path)
     p.add_argument("-o", "--output", type=Path, help="output file (default: stdout)")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("list", help="the profiles a printer keeps, and where active")
+    _printer_options(p)
+    p.set_defaults(func=cmd_list)
+
+    p = sub.add_parser("store", help="store a profile file on a printer")
+    p.add_argument("file", type=Path)
+    p.add_argument("--activate", nargs="?", const="extruder", default=None,
+                   metavar="EXTRUDER",
+                   help="and make it active on EXTRUDER (default extruder)")
+    p.add_argument("--wp", type=_wp, default=None,
+                   help="with --activate: working point 0..1 (default: the "
+                        "printer's [flowloop] working_point)")
+    _printer_options(p)
+    p.set_defaults(func=cmd_store)
+
+    p = sub.add_parser("activate",
+                       help="make a stored profile the one an extruder prints with")
+    p.add_argument("name", help="the profile's name (flowloop profile list)")
+    p.add_argument("--extruder", default="extruder",
+                   help="extruder, extruder1, ... (default extruder)")
+    p.add_argument("--wp", type=_wp, default=None,
+                   help="working point 0..1 (default: the extruder's current, "
+                        "else the printer's [flowloop] working_point)")
+    _printer_options(p)
+    p.set_defaults(func=cmd_activate)
+
+    p = sub.add_parser("remove", help="delete a stored profile from a printer")
+    p.add_argument("name")
+    _printer_options(p)
+    p.set_defaults(func=cmd_remove)
 
