@@ -60,11 +60,53 @@ def parse_text(text: str, source: str = "<text>") -> Dict[str, Any]:
 
 
 def read_file(path: Path) -> Dict[str, Any]:
+    return parse_text(_read_text(path), str(path))
+
+
+def _read_text(path: Path) -> str:
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        return Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
         raise FlowloopError(f"{path}: cannot read: {e}") from None
-    return parse_text(text, str(path))
+
+
+# Who a profile belongs to, in a comment ddPrint skips: `flowloop profile
+# export` writes it and import reads it back, so an exported profile imports
+# as the same profile (name, printer, filament) and not as its file's name.
+IDENTITY_COMMENT = "# flowloop identity: "
+_IDENTITY_STRINGS = ("name", "printer", "filament_name", "filament_vendor",
+                     "filament_type")
+
+
+def identity_comment(ident: Identity) -> str:
+    fields: Dict[str, Any] = {k: getattr(ident, k) for k in _IDENTITY_STRINGS}
+    if ident.spoolman_filament_id is not None:
+        fields["spoolman_filament_id"] = ident.spoolman_filament_id
+    return IDENTITY_COMMENT + json.dumps(fields, ensure_ascii=True)
+
+
+def read_identity(text: str, source: str) -> Dict[str, Any]:
+    """The identity fields an exported file carries ({} for ddPrint's own)."""
+    for n, line in enumerate(text.splitlines(), 1):
+        if not line.startswith(IDENTITY_COMMENT):
+            continue
+        try:
+            fields = json.loads(line[len(IDENTITY_COMMENT):])
+        except json.JSONDecodeError as e:
+            raise FlowloopError(f"{source}: line {n}: the flowloop identity is not"
+                                f" JSON: {e.msg}") from None
+        if not isinstance(fields, dict):
+            raise FlowloopError(f"{source}: line {n}: the flowloop identity is not"
+                                f" an object")
+        for key, value in fields.items():
+            ok = (isinstance(value, str) if key in _IDENTITY_STRINGS else
+                  key == "spoolman_filament_id" and isinstance(value, int)
+                  and not isinstance(value, bool))
+            if not ok:
+                raise FlowloopError(f"{source}: line {n}: flowloop identity field"
+                                    f" {key!r} is not valid")
+        return fields
+    return {}
 
 
 def _is_number(value: Any) -> bool:
@@ -124,7 +166,8 @@ def _extras(obj: Dict[str, Any], used) -> Dict[str, Any]:
 
 def to_profile(data: Dict[str, Any], nozzle_mm: float, *, name: str,
                printer: str = "", filament_name: str = "", filament_type: str = "",
-               source: str = "") -> Profile:
+               source: str = "", filament_vendor: str = "",
+               spoolman_filament_id: Optional[int] = None) -> Profile:
     """The profile for one nozzle of a merged (generic + specific) ddPrint dict."""
     key = properties_key(nozzle_mm)
     where = f"{source} {key}".strip()
@@ -157,6 +200,8 @@ def to_profile(data: Dict[str, Any], nozzle_mm: float, *, name: str,
             identity=Identity(
                 name=name, printer=printer, nozzle_diameter_mm=nozzle_mm,
                 filament_name=filament_name, filament_type=filament_type,
+                filament_vendor=filament_vendor,
+                spoolman_filament_id=spoolman_filament_id,
                 filament_diameter_mm=_need(data, "material_diameter", top_where)),
             lines=Lines(
                 into_air=FlowLine(slope_mm3_s_per_c=slope,
@@ -190,7 +235,9 @@ def import_file(path: Path, nozzle_mm: Optional[float] = None,
     cannot be imported is listed in problems and the others still are.
     """
     path = Path(path)
-    data = read_file(path)
+    text = _read_text(path)
+    data = parse_text(text, str(path))
+    identity = read_identity(text, str(path))
     source = path.name
     generic_type = path.stem
     if base is None and is_specific(data):
@@ -220,11 +267,12 @@ def import_file(path: Path, nozzle_mm: Optional[float] = None,
                                 f"(has {have})")
     profiles, problems = [], []
     for n in wanted:
+        # an exported profile's own identity; a ddPrint file's from its names
+        own = {"name": f"{path.stem}_{round(n * 100)}", "filament_name": path.stem,
+               "filament_type": generic_type.upper(), **identity}
+        own["printer"] = printer if printer is not None else own.get("printer", "")
         try:
-            profiles.append(to_profile(
-                data, n, name=f"{path.stem}_{round(n * 100)}", printer=printer or "",
-                filament_name=path.stem, filament_type=generic_type.upper(),
-                source=source))
+            profiles.append(to_profile(data, n, source=source, **own))
         except FlowloopError as e:
             problems.append(str(e))
     return ImportResult(profiles, problems)
@@ -267,6 +315,7 @@ def export_text(profile: Profile) -> str:
         f"# name: {json.dumps(ident.name)}",
         f"# printer: {json.dumps(ident.printer)}, nozzle {ident.nozzle_diameter_mm:g}"
         f" mm, filament {json.dumps(ident.filament_name)}",
+        identity_comment(ident),
     ]
     lines = profile.lines
     if lines.real_print.slope_mm3_s_per_c != lines.into_air.slope_mm3_s_per_c:

@@ -243,3 +243,44 @@ def test_export_then_import_keeps_every_number(ktemp, p0temp, fr0, gap, extras):
     p = ddprint.to_profile(data, 0.4, name="h")
     again = ddprint.parse_text(ddprint.export_text(p))
     assert flatten_numbers(again) == flatten_numbers(data)
+
+
+@pytest.mark.parametrize("path", UM2, ids=lambda p: p.stem)
+def test_export_then_import_is_the_same_profile_and_owner(path, tmp_path):
+    # docs/material_profiles.md: an exported profile imports back to itself
+    profile = ddprint.import_file(path).profiles[0]
+    assert profile.identity.printer == "UM2-1"
+    assert profile.identity.filament_type in ("PLA", "PETG")
+    exported = tmp_path / "exported-under-another-name.json"
+    exported.write_text(ddprint.export_text(profile))
+    (again,) = ddprint.import_file(exported).profiles
+    assert again.identity == profile.identity
+    assert again.lines == profile.lines and again.bounds == profile.bounds
+    # --printer still decides when given
+    (other,) = ddprint.import_file(exported, printer="farm-7").profiles
+    assert other.identity.printer == "farm-7"
+
+
+def test_a_spoolman_link_and_vendor_survive_export(tmp_path):
+    profile = ddprint.import_file(UM2[0]).profiles[0]
+    ident = P.Identity(name="linked", printer="voron-2", nozzle_diameter_mm=0.4,
+                       filament_vendor="Prusament", filament_type="PLA",
+                       spoolman_filament_id=12)
+    exported = tmp_path / "x.json"
+    exported.write_text(ddprint.export_text(
+        P.Profile(**{**{f: getattr(profile, f) for f in profile.__struct_fields__},
+                     "identity": ident})))
+    (again,) = ddprint.import_file(exported).profiles
+    assert again.identity == ident
+
+
+@pytest.mark.parametrize("line, why", [
+    ("# flowloop identity: {bad", "is not JSON"),
+    ("# flowloop identity: [1]", "is not an object"),
+    ('# flowloop identity: {"printer": 7}', "'printer' is not valid"),
+    ('# flowloop identity: {"spoolman_filament_id": true}',
+     "'spoolman_filament_id' is not valid"),
+])
+def test_a_broken_identity_comment_is_one_line(line, why):
+    with pytest.raises(FlowloopError, match=why):
+        ddprint.read_identity("# x\n" + line + "\n{}", "f.json")
