@@ -14,7 +14,7 @@ from __future__ import annotations
 import collections
 from typing import Deque, Dict, List, Tuple
 
-from ..material.plot import WIDTH, _Panel
+from ..material.plot import COLORS, WIDTH, _Panel, svg_open
 from .reactive import DEFAULT_MIN_SPEED_FACTOR, ReactiveRule, ReactiveSettings
 
 WINDOW_S = 0.25
@@ -67,8 +67,9 @@ def svg() -> str:
     panel = _Panel(0, (0.0, 20.0), (0.0, 1.5))  # room for the legend
     panel.frame("Reactive rule: demand 20 mm³/s, the hotend melts 12 from 2 s "
                 "to 12 s", "time (s)", "speed factor, grip")
-    styles = {("flowloop", 1): ("#2ca02c", ""), ("flowloop", 2): ("#2ca02c", "5,4"),
-              ("ddprint", 1): ("#d62728", ""), ("ddprint", 2): ("#d62728", "5,4")}
+    ours, theirs = COLORS["working"], COLORS["real_print"]
+    styles = {("flowloop", 1): (ours, ""), ("flowloop", 2): (ours, "5,4"),
+              ("ddprint", 1): (theirs, ""), ("ddprint", 2): (theirs, "5,4")}
     legend = []
     for rule, run in runs.items():
         for column, what in ((1, "speed factor"), (2, "grip")):
@@ -80,11 +81,6 @@ def svg() -> str:
                            + (f" (lost {lost:.0f} mm³)" if column == 2 else ""),
                            color, dash))
     panel.legend(legend)
-    out = ['<?xml version="1.0" encoding="UTF-8"?>',
-           f'<svg xmlns="http://www.w3.org/2000/svg" width="{WIDTH}" '
-           f'height="{height}" viewBox="0 0 {WIDTH} {height}" '
-           f'font-family="sans-serif" font-size="12">',
-           f'<rect width="{WIDTH}" height="{height}" fill="white"/>']
-    out += panel.parts
+    out = svg_open(WIDTH, height) + panel.parts
     out.append("</svg>")
     return "\n".join(out) + "\n"

@@ -255,8 +255,9 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
     _replace_atomically(dst, write, src)
     result = BakeResult(
         commands=len(placements), overridden=overridden,
-        min_target_c=min(known) if known else None,
-        max_target_c=max(known) if known else None,
+        # what the file sets, not what the plan held before the start's wait
+        min_target_c=min((t for _, t in placements), default=None),
+        max_target_c=max((t for _, t in placements), default=None),
         capped_windows=controller.plan.capped_windows,
         peak_flow_mm3_s=max(rec.demand, default=0.0),
         print_time_s=rec.end_s, under_capacity_s=short_s, start=fix)
@@ -326,6 +327,22 @@ def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
 
 # --- the timeline as SVG (flowloop.material.plot's primitives) -----------------
 
+def time_axis(end_s: float) -> Tuple[str, List[Tuple[float, str]]]:
+    """The print-time axis' label and (seconds, text) ticks: seconds up to
+    10 minutes, minutes up to 2 hours, h:mm beyond (20000 s reads 5:33)."""
+    from ..material import plot
+    if end_s <= 600:
+        return "print time (s)", [(t, f"{t:g}") for t in plot.nice_ticks(0.0, end_s)]
+    if end_s <= 7200:
+        return "print time (min)", [(m * 60, f"{m:g}")
+                                    for m in plot.nice_ticks(0.0, end_s / 60)]
+    step_min = next((m for m in (15, 30, 60, 120, 180, 360, 720)
+                     if end_s / 60 / m <= 8), 1440 * math.ceil(end_s / 86400 / 8))
+    ticks = [k * step_min * 60 for k in range(int(end_s // (step_min * 60)) + 1)]
+    return "print time (h:mm)", [(t, f"{int(t // 3600)}:{int(t % 3600 // 60):02d}")
+                                 for t in ticks]
+
+
 def timeline_svg(timeline: Timeline, title: str) -> str:
     """Two panels over print time: temperatures (target, modelled nozzle)
     and flows (demanded, melt capacity at the modelled nozzle)."""
@@ -343,29 +360,27 @@ def timeline_svg(timeline: Timeline, title: str) -> str:
     lo, hi = (min(temps), max(temps)) if temps else (0.0, 1.0)
     flows = timeline.demand_mm3_s + timeline.capacity_mm3_s
     height = 40 + 2 * plot.PANEL_HEIGHT
-    out = ['<?xml version="1.0" encoding="UTF-8"?>',
-           f'<svg xmlns="http://www.w3.org/2000/svg" width="{plot.WIDTH}" '
-           f'height="{height}" viewBox="0 0 {plot.WIDTH} {height}" '
-           'font-family="sans-serif" font-size="12">',
-           f'<rect width="{plot.WIDTH}" height="{height}" fill="white"/>',
-           f'<text x="{plot.WIDTH / 2}" y="24" text-anchor="middle" '
-           f'font-size="15" font-weight="bold">{_escape(title)}</text>']
-    temp = plot._Panel(40, (0.0, end), (lo - 5.0, hi + 5.0))
-    temp.frame("Hotend", "print time (s)", "temperature (°C)")
-    temp.polyline(points(timeline.target_c), plot.COLORS["real_print"], "target")
-    temp.polyline(points(timeline.nozzle_c), plot.COLORS["into_air"], "nozzle",
+    time_label, time_ticks = time_axis(end)
+    out = plot.svg_open(plot.WIDTH, height)
+    out.append(f'<text x="{plot.WIDTH / 2}" y="24" text-anchor="middle" '
+               f'font-size="15" font-weight="bold">{_escape(title)}</text>')
+    # headroom above the lines for the legend
+    temp = plot._Panel(40, (0.0, end), (lo - 5.0, hi + 0.25 * (hi - lo) + 8.0))
+    temp.frame("Hotend", time_label, "temperature (°C)", time_ticks)
+    temp.polyline(points(timeline.target_c), plot.COLORS["target"], "target")
+    temp.polyline(points(timeline.nozzle_c), plot.COLORS["nozzle"], "nozzle",
                   dash="6,3")
-    temp.legend([("target (M104 / [autotemp])", plot.COLORS["real_print"], ""),
-                 ("modelled nozzle", plot.COLORS["into_air"], "6,3")])
+    temp.legend([("target (M104 / [autotemp])", plot.COLORS["target"], ""),
+                 ("modelled nozzle", plot.COLORS["nozzle"], "6,3")])
     flow = plot._Panel(40 + plot.PANEL_HEIGHT, (0.0, end),
-                       (0.0, max(flows, default=1.0) * 1.1 or 1.0))
-    flow.frame("Flow", "print time (s)", "flow (mm³/s)")
-    flow.polyline(points(timeline.demand_mm3_s), plot.COLORS["band"], "demand",
+                       (0.0, max(flows, default=1.0) * 1.3 or 1.0))
+    flow.frame("Flow", time_label, "flow (mm³/s)", time_ticks)
+    flow.polyline(points(timeline.demand_mm3_s), plot.COLORS["demand"], "demand",
                   width=1)
-    flow.polyline(points(timeline.capacity_mm3_s), plot.COLORS["working"],
+    flow.polyline(points(timeline.capacity_mm3_s), plot.COLORS["capacity"],
                   "capacity")
-    flow.legend([("demanded (peak per 0.1 s)", plot.COLORS["band"], ""),
-                 ("melt capacity at the modelled nozzle", plot.COLORS["working"],
+    flow.legend([("demanded (peak per 0.1 s)", plot.COLORS["demand"], ""),
+                 ("melt capacity at the modelled nozzle", plot.COLORS["capacity"],
                   "")])
     out += temp.parts + flow.parts
     out.append("</svg>")

@@ -148,3 +148,31 @@ def test_cli_bad_bake_input_is_one_line_and_writes_nothing(tmp_path, capsys,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and word in err[0]
     assert not out.exists() and copy.read_bytes() == BLOCK.read_bytes()
+
+
+def _time_ticks(seconds):
+    import xml.etree.ElementTree as ET
+
+    from flowloop.gcode.bake import Timeline, timeline_svg
+    n = int(seconds / GRID_S) + 1
+    svg = timeline_svg(Timeline(demand_mm3_s=[5.0] * n, target_c=[210.0] * n,
+                                nozzle_c=[205.0] * n, capacity_mm3_s=[6.0] * n),
+                       "a print")
+    texts = list(ET.fromstring(svg).iter("{http://www.w3.org/2000/svg}text"))
+    (label, _) = [e.text for e in texts if e.text.startswith("print time")]
+    ticks = [e.text for e in texts if e.get("class") == "x-tick"]
+    assert len(ticks) % 2 == 0  # the same ticks under both panels
+    return label, ticks[:len(ticks) // 2]
+
+
+def test_a_long_print_s_timeline_reads_in_hours_and_minutes():
+    label, ticks = _time_ticks(20000.0)
+    assert label == "print time (h:mm)"
+    assert ticks == ["0:00", "1:00", "2:00", "3:00", "4:00", "5:00"]
+
+
+def test_a_timeline_reads_in_seconds_when_short_and_minutes_when_medium():
+    assert _time_ticks(180.0) == ("print time (s)", ["0", "50", "100", "150"])
+    label, ticks = _time_ticks(3000.0)
+    assert label == "print time (min)"
+    assert ticks == ["0", "10", "20", "30", "40", "50"]

@@ -125,7 +125,7 @@ def test_png_draws_the_same_panels_as_the_svg(measured, tmp_path):
     image = mpl_image.imread(str(out))
     panels = plot.panels(measured, 0.25)
     assert len(panels) == 2  # temperature and heater PWM, as in the SVG
-    assert image.shape[:2] == (40 + plot.PANEL_HEIGHT * 2, plot.WIDTH)
+    assert image.shape[:2] == (40 + plot.PANEL_HEIGHT * 2, plot.PROFILE_WIDTH)
     for color in (plot.COLORS["into_air"], plot.COLORS["real_print"],
                   plot.COLORS["working"]):
         assert pixels_of(image, color) > 200, color
@@ -135,7 +135,8 @@ def test_png_of_a_profile_without_power_lines_has_one_panel(tmp_path):
     from matplotlib import image as mpl_image
     out = tmp_path / "x.png"
     plot.png(P.profile_from_dict(make(name="$x$ and 100%")), out)
-    assert mpl_image.imread(str(out)).shape[:2] == (40 + plot.PANEL_HEIGHT, plot.WIDTH)
+    assert mpl_image.imread(str(out)).shape[:2] == (40 + plot.PANEL_HEIGHT,
+                                                    plot.PROFILE_WIDTH)
 
 
 def test_the_working_line_is_drawn_with_its_knee_at_the_into_air_line():
@@ -153,3 +154,146 @@ def test_the_working_line_is_drawn_with_its_knee_at_the_into_air_line():
 def test_nice_ticks_cover_the_range():
     assert plot.nice_ticks(185.0, 265.0) == [200, 220, 240, 260]
     assert plot.nice_ticks(0.0, 20.9) == [0, 5, 10, 15, 20]
+
+
+# --- what the pictures show, and that they show it everywhere ----------------
+
+
+@pytest.fixture
+def warned():
+    """An imported profile whose real-print line lies above its into-air line."""
+    p = P.profile_from_dict(make(real=(0.146, 160.0, 8.0)))
+    assert P.line_warnings(p)
+    return p
+
+
+def test_the_legend_names_everything_the_profile_plot_draws(measured):
+    root = parse(plot.svg(measured))
+    legends = [e for e in root.iter(SVG + "g") if e.get("class") == "legend"]
+    assert len(legends) == 2  # one per panel
+    keys = {e.get("data-for"): e.find(SVG + "text").text
+            for legend in legends for e in legend}
+    drawn = {e.get("id") for e in root.iter() if e.get("id")} - {"points"}
+    named = {name for names in keys for name in names.split()}
+    assert drawn - named == set()
+    assert {"points", "anchor"} <= named
+    assert keys["band"] == "between the two lines"
+    assert keys["min_temp max_temp"] == "min / max temperature"
+    assert keys["recommended_temp"] == "recommended temperature"
+    labels = [e.find(SVG + "text").text for e in legends[0]]
+    assert "measured into air" in labels and "measured real print" in labels
+
+
+def test_a_warned_profile_prints_its_warning_and_keeps_its_into_air_line_visible(
+        warned):
+    root = parse(plot.svg(warned))
+    shown = " ".join(e.text for e in root.iter(SVG + "text")
+                     if e.get("class") == "warning")
+    assert shown == "warning: " + P.line_warnings(warned)[0]
+    drawn = [e for e in root.iter(SVG + "polyline")]
+    order = [e.get("id") for e in drawn]
+    width = {e.get("id"): float(e.get("stroke-width")) for e in drawn}
+    # the working line (here on the into-air line) lies under it and wider
+    assert order.index("working_line") < order.index("into_air")
+    assert width["working_line"] > width["into_air"]
+    # the panel moves down to make room for the warning; a plain one does not
+    assert float(root.get("height")) > 40 + plot.PANEL_HEIGHT
+
+
+def test_a_plain_profile_prints_no_warning(measured):
+    root = parse(plot.svg(measured))
+    assert not [e for e in root.iter() if e.get("class") == "warning"]
+
+
+def _svgs(measured, warned):
+    from flowloop.control import rule_plot
+    from flowloop.gcode.bake import Timeline, timeline_svg
+    timeline = Timeline(demand_mm3_s=[5.0] * 100, target_c=[210.0] * 100,
+                        nozzle_c=[205.0] * 100, capacity_mm3_s=[6.0] * 100)
+    return {"profile": plot.svg(measured), "warned": plot.svg(warned),
+            "timeline": timeline_svg(timeline, "t"), "rule": rule_plot.svg()}
+
+
+def test_the_svgs_use_only_what_every_renderer_draws(measured, warned):
+    # ImageMagick's own renderer (`convert`, many viewers) strokes text in
+    # black unless told not to, fills a line's dash gaps, drops a shape that
+    # holds a <title>, ignores opacity and rotate(angle, cx, cy)
+    for name, text in _svgs(measured, warned).items():
+        root = parse(text)
+        assert root.get("stroke") == "none", name
+        parents = {child: parent for parent in root.iter() for child in parent}
+        for e in root.iter():
+            tag = e.tag.replace(SVG, "")
+            assert tag != "style" and e.get("style") is None, (name, tag)
+            assert not {"opacity", "fill-opacity", "stroke-opacity",
+                        "dominant-baseline"} & set(e.keys()), (name, tag)
+            assert "rotate" not in e.get("transform", "") \
+                or e.get("transform").endswith("rotate(-90)"), (name, tag)
+            if tag == "line":
+                assert e.get("fill") == "none", (name, e.attrib)
+            if tag == "rect":
+                assert e.get("stroke") is not None, (name, e.attrib)
+            if tag == "title":
+                assert parents[e].tag in (SVG + "g", SVG + "svg"), name
+
+
+def _renderers():
+    import shutil
+    magick = shutil.which("magick") or shutil.which("convert")
+    return [
+        pytest.param(["rsvg-convert", "{svg}", "-o", "{png}"]
+                     if shutil.which("rsvg-convert") else None, id="rsvg-convert"),
+        # msvg: ImageMagick's own renderer, what Debian's convert uses
+        pytest.param([magick, "msvg:{svg}", "png:{png}"] if magick else None,
+                     id="imagemagick"),
+    ]
+
+
+@pytest.mark.parametrize("command", _renderers())
+def test_the_profile_plot_renders_its_labels_and_marks_outside_a_browser(
+        command, measured, tmp_path):
+    import subprocess
+
+    from matplotlib import image as mpl_image
+    if command is None:
+        pytest.skip("renderer not installed (apt-get install librsvg2-bin "
+                    "imagemagick; .ci/run does it)")
+    svg_path, png_path = tmp_path / "p.svg", tmp_path / "p.png"
+    svg_path.write_text(plot.svg(measured))
+    subprocess.run([a.format(svg=svg_path, png=png_path) for a in command],
+                   check=True, capture_output=True)
+    image = mpl_image.imread(str(png_path))[:, :, :3]
+    assert image.shape[:2] == (40 + 2 * plot.PANEL_HEIGHT, plot.PROFILE_WIDTH)
+    (panel, _) = plot.panels(measured)
+    axes = plot._Panel(40, panel.x_range, panel.y_range,
+                       plot.PROFILE_WIDTH - plot.LEGEND_WIDTH)
+    assert image[0, 0].min() > 0.95 and image[-1, -1].min() > 0.95  # no border
+    # the y label, left of the tick numbers
+    strip = image[int(axes.top) + 100:int(axes.bottom) - 100, 5:28]
+    assert (strip.max(axis=2) < 0.5).sum() > 30
+    # the dotted bound lines, grey and red, over the whole panel's height
+    for mark, color in (("min_temp", "bound"), ("recommended_temp", "recommended")):
+        x = axes.x({m.element_id: m.temp_c for m in panel.bounds}[mark])
+        column = image[int(axes.top) + 5:int(axes.bottom) - 5,
+                       int(x) - 1:int(x) + 2][None]
+        assert pixels_like(column, plot.COLORS[color]) > 40, mark
+    # the measured points: rings around white
+    for p in measured.points:
+        x, y = int(round(axes.x(p.temp_c))), int(round(axes.y(p.flow_mm3_s)))
+        assert image[y, x].min() > 0.9, p
+        ring = image[y - 6:y + 7, x - 6:x + 7][None]
+        assert pixels_like(ring, plot.COLORS[p.kind]) > 8, p
+    # the band, as pale as in a browser
+    x = axes.x(250.0)
+    air, real = (measured.lines.into_air.line().flow_mm3_s(250.0),
+                 measured.lines.real_print.line().flow_mm3_s(250.0))
+    inside = image[int(axes.y((air + real) / 2)) - 3:int(axes.y((air + real) / 2)) + 3,
+                   int(x) - 3:int(x) + 3][None]
+    assert pixels_like(inside, plot.COLORS["band"]) > 20
+
+
+def pixels_like(image, color: str, tolerance: float = 40 / 255) -> int:
+    """Pixels within tolerance of #rrggbb (antialiased dots are paler)."""
+    want = np.array([int(color[i:i + 2], 16) for i in (1, 3, 5)]) / 255.0
+    return int((np.abs(image[..., :3] - want).max(axis=-1) < tolerance).sum())
+
