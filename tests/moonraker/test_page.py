@@ -230,6 +230,53 @@ def test_the_page_shows_the_printer_objects_numbers_live(browser, printer):
     assert outside == []
 
 
+def legend(driver, chart):
+    """{label: (shown value, marker colour)} of a chart's legend."""
+    return js(driver, f"""
+        const out = {{}};
+        for (const row of document.querySelectorAll('#{chart} .u-legend .u-series')) {{
+          const marker = row.querySelector('.u-marker');
+          out[row.querySelector('.u-label').textContent] = [
+            row.querySelector('.u-value').textContent,
+            marker ? getComputedStyle(marker).borderTopColor : null];
+        }}
+        return out;""")
+
+
+def rgb(color):
+    return "rgb({}, {}, {})".format(*(int(color[i:i + 2], 16) for i in (1, 3, 5)))
+
+
+def test_the_charts_show_now_in_the_plots_colours_on_a_readable_scale(browser,
+                                                                      printer):
+    from flowloop.material.plot import COLORS
+    activate_profile(printer)
+    printer.gcode("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=205")
+    open_page(browser, page_url(printer))
+    wait_for(browser, "+document.getElementById('temp-chart').dataset.samples > 4 && "
+                      "!!document.querySelector('#profile-chart canvas')")
+    # no hover: every legend shows the value now, not uPlot's "--"
+    wait_for(browser, "document.querySelector('#temp-chart .u-legend')"
+                      ".innerText.includes('205.0')")
+    temp = legend(browser, "temp-chart")
+    assert temp["target"][0] == "205.0"
+    assert temp["temperature"][0] == f"{float(field(browser, 'temperature')):.1f}"
+    profile = legend(browser, "profile-chart")
+    flow = legend(browser, "flow-chart")
+    for shown in (temp, profile, flow):
+        assert all(value != "--" for value, _ in shown.values()), shown
+    # a steady hotend: the axis spans 10 C around it, not its 0.1 C of noise
+    low, high = map(float, js(browser, "return document.getElementById("
+                                       "'temp-chart').dataset.yRange").split(","))
+    assert high - low >= 10 - 1e-9
+    # the page's colours are the CLI plots' colours
+    assert profile["into air"][1] == rgb(COLORS["into_air"])
+    assert profile["real print"][1] == rgb(COLORS["real_print"])
+    assert profile["working point 0.5"][1] == rgb(COLORS["working"])
+    assert temp["target"][1] == rgb(COLORS["target"])
+    assert severe_console(browser) == []
+
+
 def screenshot(driver):
     """Saved where FLOWLOOP_PAGE_SCREENSHOT says (docs/page.png for the docs)."""
     shot = os.environ.get("FLOWLOOP_PAGE_SCREENSHOT")

@@ -15,6 +15,19 @@
   const EVENTS = 50;
   const REDRAW_MS = 500;
   const RECONNECT_MS = 2000;
+  // A steady hotend wanders by a tenth of a degree: the temperature axes
+  // span at least this much, so noise does not read as steps.
+  const TEMP_MIN_SPAN_C = 10;
+
+  // The colours of flowloop's plots (flowloop.material.plot.COLORS; a unit
+  // test, tests/unit/test_profile_plot.py, keeps this copy the same).
+  const COLORS = {
+    "into_air": "#1f77b4", "real_print": "#d62728", "working": "#2ca02c",
+    "band": "#e5e5e5", "grid": "#dddddd", "bound": "#7f7f7f",
+    "recommended": "#d62728", "target": "#d62728", "nozzle": "#1f77b4",
+    "demand": "#7f7f7f", "measured": "#9467bd", "capacity": "#2ca02c",
+    "cap": "#d62728", "planned": "#ff7f0e", "grip": "#17becf", "now": "#9467bd"
+  };
 
   const query = new URLSearchParams(location.search);
   const extruder = query.get("extruder") || "extruder";
@@ -212,31 +225,94 @@
     const el = document.getElementById(id);
     if (charts[id]) charts[id].destroy();
     charts[id] = new uPlot(Object.assign({width: width(el), height: 220}, opts), data, el);
+    showNow(charts[id]);
     return charts[id];
+  }
+
+  // Centred on the data, at least TEMP_MIN_SPAN_C wide.
+  function tempRange(u, lo, hi) {
+    if (typeof lo !== "number" || typeof hi !== "number") return [0, TEMP_MIN_SPAN_C];
+    const half = Math.max(TEMP_MIN_SPAN_C, (hi - lo) * 1.1) / 2;
+    return [(lo + hi) / 2 - half, (lo + hi) / 2 + half];
+  }
+
+  // The y range a chart shows, for whoever reads the page's state.
+  const publishRange = (scale) => (u, key) => {
+    if (key === scale) {
+      u.root.parentElement.dataset.yRange = u.scales[key].min + "," + u.scales[key].max;
+    }
+  };
+
+  // uPlot's legend shows the hovered values, and "--" off the chart. Off the
+  // chart ours shows the values now: nowIdx(u, series) is the data index of
+  // "now" (the latest sample, the hotend's temperature, the print's position).
+  function legendValue(nowIdx, format) {
+    return (u, v, si, di) => {
+      if (di === null || di === undefined) {
+        const k = nowIdx(u, si);
+        v = k === null ? null : u.data[si][k];
+      }
+      return v === null || v === undefined ? "–" : format(v);
+    };
+  }
+
+  const digits = (n) => (v) => v.toFixed(n);
+  const clock = (t) => new Date(t * 1000).toLocaleTimeString();
+
+  function latestIdx(u, si) {
+    const d = u.data[si] || [];
+    for (let k = d.length - 1; k >= 0; k--) if (d[k] !== null) return k;
+    return null;
+  }
+
+  function idxOf(value) {
+    return (u) => {
+      const v = value();
+      const xs = u.data[0] || [];
+      if (typeof v !== "number" || !xs.length || v < xs[0] || v > xs[xs.length - 1]) {
+        return null;
+      }
+      return u.valToIdx(v);
+    };
+  }
+
+  // After new data: the legend shows now, unless the cursor is on the chart.
+  function showNow(chart) {
+    if (chart.cursor.idx === null || chart.cursor.idx === undefined) {
+      chart.setLegend({idx: null});
+    }
   }
 
   function timelineCharts() {
     const data = ring.data();
     const flowData = [data[0], data[1], data[2], data[3], data[4], data[5]];
     const tempData = [data[0], data[6], data[7]];
+    const latest = (n) => legendValue(latestIdx, digits(n));
+    const time = {value: legendValue(latestIdx, clock)};
     const flow = {
       scales: {x: {time: true}, flow: {range: (u, lo, hi) => [0, Math.max(1, hi * 1.1)]},
                grip: {range: [0, 1.2]}},
       axes: [{}, {scale: "flow", label: "mm³/s"},
              {scale: "grip", side: 1, label: "grip", grid: {show: false}}],
-      series: [{},
-        {label: "commanded", scale: "flow", stroke: "#7a869a", width: 1.5},
-        {label: "measured", scale: "flow", stroke: "#1570ef", width: 1.5},
-        {label: "limiter cap", scale: "flow", stroke: "#d92d20", width: 1.5, dash: [6, 4]},
-        {label: "autotemp flow", scale: "flow", stroke: "#dc6803", width: 1.5, dash: [2, 3]},
-        {label: "grip", scale: "grip", stroke: "#12b76a", width: 1.5}],
+      series: [time,
+        {label: "commanded", scale: "flow", stroke: COLORS.demand, width: 1.5,
+         value: latest(2)},
+        {label: "measured", scale: "flow", stroke: COLORS.measured, width: 1.5,
+         value: latest(2)},
+        {label: "limiter cap", scale: "flow", stroke: COLORS.cap, width: 1.5, dash: [6, 4],
+         value: latest(2)},
+        {label: "autotemp flow", scale: "flow", stroke: COLORS.planned, width: 1.5,
+         dash: [2, 3], value: latest(2)},
+        {label: "grip", scale: "grip", stroke: COLORS.grip, width: 1.5, value: latest(3)}],
     };
     const temp = {
-      scales: {x: {time: true}},
+      scales: {x: {time: true}, y: {range: tempRange}},
       axes: [{}, {label: "°C"}],
-      series: [{},
-        {label: "temperature", stroke: "#d92d20", width: 1.5},
-        {label: "target", stroke: "#f79009", width: 1.5, dash: [6, 4]}],
+      series: [time,
+        {label: "temperature", stroke: COLORS.nozzle, width: 1.5, value: latest(1)},
+        {label: "target", stroke: COLORS.target, width: 1.5, dash: [6, 4],
+         value: latest(1)}],
+      hooks: {setScale: [publishRange("y")]},
     };
     if (!charts["flow-chart"]) makeChart("flow-chart", flow, flowData);
     if (!charts["temp-chart"]) makeChart("temp-chart", temp, tempData);
@@ -251,6 +327,7 @@
         chart.setData(d, false);
         chart.setScale("x", {min: from, max: now});
       });
+      showNow(chart);
       chart.root.parentElement.dataset.samples = String(ring.count);
     }
   }
@@ -264,6 +341,8 @@
     return {temp: heater.temperature, flow};
   }
 
+  const atTemp = idxOf(() => livePoint().temp);
+
   function profileChart() {
     if (!lines) return;
     const point = {
@@ -276,7 +355,7 @@
         ctx.save();
         ctx.beginPath();
         ctx.arc(x, y, 6 * devicePixelRatio, 0, 2 * Math.PI);
-        ctx.fillStyle = "#1570ef";
+        ctx.fillStyle = COLORS.now;
         ctx.fill();
         ctx.restore();
       }]},
@@ -284,11 +363,14 @@
     const opts = Object.assign({
       scales: {x: {time: false}, y: {range: (u, lo, hi) => [0, Math.max(1, hi * 1.1)]}},
       axes: [{label: "hotend °C"}, {label: "mm³/s"}],
-      series: [{label: "°C"},
-        {label: "into air", stroke: "#7a869a", width: 1.5, points: {show: false}},
-        {label: "real print", stroke: "#d92d20", width: 1.5, points: {show: false}},
-        {label: "working point " + lines.working_point, stroke: "#1570ef", width: 2,
-         points: {show: false}}],
+      // off the chart: the lines at the hotend's temperature now
+      series: [{label: "°C", value: legendValue(atTemp, digits(1))},
+        {label: "into air", stroke: COLORS.into_air, width: 1.5, points: {show: false},
+         value: legendValue(atTemp, digits(2))},
+        {label: "real print", stroke: COLORS.real_print, width: 1.5,
+         points: {show: false}, value: legendValue(atTemp, digits(2))},
+        {label: "working point " + lines.working_point, stroke: COLORS.working, width: 2,
+         dash: [8, 4], points: {show: false}, value: legendValue(atTemp, digits(2))}],
     }, point);
     makeChart("profile-chart", opts,
               [lines.temp_c, lines.into_air, lines.real_print, lines.working]);
@@ -314,6 +396,8 @@
     return t0 + (t1 - t0) * (sd.file_position - o0) / Math.max(1, o1 - o0);
   }
 
+  const atPosition = idxOf(planPosition);
+
   function planChart() {
     const marker = {
       hooks: {draw: [(u) => {
@@ -323,7 +407,7 @@
         const x = u.valToPos(t, "x", true);
         const ctx = u.ctx;
         ctx.save();
-        ctx.strokeStyle = "#1570ef";
+        ctx.strokeStyle = COLORS.now;
         ctx.lineWidth = 2 * devicePixelRatio;
         ctx.beginPath();
         ctx.moveTo(x, u.bbox.top);
@@ -334,12 +418,15 @@
     };
     const opts = Object.assign({
       scales: {x: {time: false}, flow: {range: (u, lo, hi) => [0, Math.max(1, hi * 1.1)]},
-               temp: {}},
+               temp: {range: tempRange}},
       axes: [{label: "print time, s"}, {scale: "flow", label: "mm³/s"},
              {scale: "temp", side: 1, label: "°C", grid: {show: false}}],
-      series: [{label: "s"},
-        {label: "announced flow", scale: "flow", stroke: "#dc6803", width: 1.5},
-        {label: "autotemp target", scale: "temp", stroke: "#d92d20", width: 1.5}],
+      // off the chart: the plan where the print is now
+      series: [{label: "s", value: legendValue(atPosition, digits(0))},
+        {label: "announced flow", scale: "flow", stroke: COLORS.planned, width: 1.5,
+         value: legendValue(atPosition, digits(2))},
+        {label: "autotemp target", scale: "temp", stroke: COLORS.target, width: 1.5,
+         value: legendValue(atPosition, digits(0))}],
     }, marker);
     makeChart("plan-chart", opts, [plan.time_s, plan.flow_mm3_s, plan.target_c]);
     $("#plan-name").textContent = plan.file + ", " + Math.round(plan.print_time_s) +
@@ -425,8 +512,11 @@
       redrawTimer = null;
       if (names.ready) {
         timelineCharts();
-        if (charts["profile-chart"]) charts["profile-chart"].redraw(false, false);
-        if (charts["plan-chart"]) charts["plan-chart"].redraw(false, false);
+        for (const id of ["profile-chart", "plan-chart"]) {
+          if (!charts[id]) continue;
+          charts[id].redraw(false, false);
+          showNow(charts[id]);
+        }
       }
     }, REDRAW_MS);
   }
