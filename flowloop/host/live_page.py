@@ -68,14 +68,17 @@ def profile_lines(profile: Profile, working_point: float,
                   heater_max_temp_c: Optional[float] = None) -> Dict[str, Any]:
     """Into-air, real-print and working-point lines (flow in mm^3/s) over the
     profile's temperature range, on LINE_POINTS temperatures: the page draws
-    what the one melt line says instead of evaluating lines itself."""
+    what the one melt line says instead of evaluating lines itself.
+
+    `max_temp_c` is the bound the printer runs to: the profile's, capped at
+    the heater's max_temp where it is known. The temperatures drawn reach 10 %
+    past either bound, a drawing matter only (the live point shows even a
+    little outside)."""
     bounds = profile.bounds
-    top = bounds.max_temp_c if heater_max_temp_c is None \
+    max_temp_c = bounds.max_temp_c if heater_max_temp_c is None \
         else min(bounds.max_temp_c, heater_max_temp_c)
-    low = bounds.min_temp_c
-    # a margin either side, so the live point shows even a little outside
-    span = max(top - low, 1.0)
-    low, top = low - 0.1 * span, top + 0.1 * span
+    margin = 0.1 * max(max_temp_c - bounds.min_temp_c, 1.0)
+    low, top = bounds.min_temp_c - margin, max_temp_c + margin
     temps = [low + (top - low) * k / (LINE_POINTS - 1) for k in range(LINE_POINTS)]
     lines = {
         "into_air": profile.lines.into_air.line(),
@@ -86,8 +89,7 @@ def profile_lines(profile: Profile, working_point: float,
         "name": profile.identity.name,
         "working_point": working_point,
         "min_temp_c": bounds.min_temp_c,
-        "max_temp_c": top if heater_max_temp_c is None else min(
-            bounds.max_temp_c, heater_max_temp_c),
+        "max_temp_c": max_temp_c,
         "temp_c": [round(t, 2) for t in temps],
         **{key: [round(line.flow_mm3_s(t), 3) for t in temps]
            for key, line in lines.items()},

@@ -85,6 +85,19 @@ def test_the_heater_max_temp_bounds_the_profile_lines():
     assert lines["temp_c"][-1] < 260.0
 
 
+@pytest.mark.parametrize("heater_max_temp_c, bound", [(None, 260.0), (300.0, 260.0),
+                                                      (250.0, 250.0)])
+def test_max_temp_is_the_bound_the_printer_runs_to_not_the_plot_margin(
+        heater_max_temp_c, bound):
+    # the profile allows 260 degC: the plot reaches past it, the bound does not
+    lines = live_page.profile_lines(PROFILE, 0.5, heater_max_temp_c)
+    assert lines["max_temp_c"] == bound
+    assert lines["min_temp_c"] == 190.0
+    span = bound - 190.0
+    assert lines["temp_c"][0] == pytest.approx(190.0 - 0.1 * span, abs=0.01)
+    assert lines["temp_c"][-1] == pytest.approx(bound + 0.1 * span, abs=0.01)
+
+
 def test_the_plan_times_each_announcement_where_the_planner_placed_it(annotated):
     rec = plan_announcements(EXCERPT, PrinterLimits(), AnnotateSettings())
     plan = live_page.file_plan(annotated, None, 0.5)
