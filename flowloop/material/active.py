@@ -88,12 +88,16 @@ def number_arg(parameter: str, value: Any, accepts: str,
             number = None
     if isinstance(number, bool) or not isinstance(number, (int, float)) \
             or not lo <= number <= hi:  # also refuses NaN
-        got = repr(value) if isinstance(value, str) else _json_text(value)
-        if len(got) > 40:
-            got = got[:37] + "..."
         prefix = f"{parameter}: " if parameter else ""  # argparse names it itself
-        raise FlowloopError(f"{prefix}got {got}; accepts {accepts}")
+        raise FlowloopError(f"{prefix}got {shown(value)}; accepts {accepts}")
     return float(number)
+
+
+def shown(value: Any) -> str:
+    """A request value as a refusal shows it: text as 'text', anything else as
+    JSON (nan and inf as such), at most 40 characters."""
+    got = repr(value) if isinstance(value, str) else _json_text(value)
+    return got if len(got) <= 40 else got[:37] + "..."
 
 
 def _json_text(value: Any) -> str:

@@ -12,14 +12,12 @@ from typing import TYPE_CHECKING, Any, Dict, Optional
 from flowloop.errors import FlowloopError
 from flowloop.material import plot
 from flowloop.material import profile as fl_profile
-from flowloop.material.active import (
-    ActiveProfile,
-    active_to_stored,
-    working_point_arg,
-)
+from flowloop.material.active import ActiveProfile, active_to_stored
 
 from ...common import RequestType, WebRequest
-from .errors import one_line, quoted
+from . import args
+from .endpoints import Endpoints
+from .errors import quoted
 from .info import Info
 from .profiles import Profiles
 from .store import ProfileStore, UnknownProfile
@@ -45,6 +43,7 @@ class Api:
         self.profiles = profiles
         self.info = info
         self.default_wp = default_wp
+        endpoints = Endpoints(server)
         for path, methods, handler in (
             ("/server/flowloop/info", RequestType.GET, self._handle_info),
             ("/server/flowloop/profile",
@@ -54,8 +53,8 @@ class Api:
             ("/server/flowloop/profile/activate", RequestType.POST,
              self._handle_activate),
         ):
-            server.register_endpoint(path, methods, handler)
-        server.register_endpoint(
+            endpoints.register_endpoint(path, methods, handler)
+        endpoints.register_endpoint(
             "/server/flowloop/profile/plot", RequestType.GET, self._handle_plot,
             wrap_result=False, content_type="image/svg+xml")
         server.register_remote_method(
@@ -63,11 +62,8 @@ class Api:
 
     # --- arguments -----------------------------------------------------------
 
-    def _error(self, msg: Any, code: int = 400) -> Exception:
-        return self.server.error(one_line(msg), code)
-
     def _not_found(self, name: str) -> Exception:
-        return self._error(f"no profile named {quoted(name)}", 404)
+        return args.refusal(f"no profile named {quoted(name)}", 404)
 
     def _known(self, name: str) -> fl_profile.Profile:
         try:
@@ -75,50 +71,26 @@ class Api:
         except UnknownProfile:
             raise self._not_found(name) from None
 
-    def _name_arg(self, web_request: WebRequest) -> str:
-        name = web_request.get("name", None)
-        if name is None:
-            raise self._error("the profile name is missing (argument 'name')")
-        if not isinstance(name, str):
-            raise self._error("the profile name must be a string")
-        try:
-            return fl_profile.check_name(name)
-        except FlowloopError as e:
-            raise self._error(e) from None
-
-    def _wp_arg(self, value: Any) -> float:
-        try:
-            return working_point_arg(value)
-        except FlowloopError as e:
-            raise self._error(e) from None
-
-    def _extruder_arg(self, extruder: Any) -> str:
-        if not fl_profile.is_extruder_name(extruder):
-            raise self._error(f"{quoted(str(extruder))} is not an extruder name "
-                              f"(extruder, extruder1, ...)")
-        return extruder
-
     def parse_profile(self, value: Any) -> fl_profile.Profile:
         if value is None:
-            raise self._error("the profile is missing (argument 'profile')")
+            raise args.refusal("the profile is missing (argument 'profile')")
         try:
             if isinstance(value, str):  # JSON text: decoded without recursion
                 return fl_profile.decode_profile(_utf8(value))
             return fl_profile.profile_from_dict(value)
         except FlowloopError as e:
-            raise self._error(f"argument 'profile': {e}") from None
+            raise args.refusal(f"argument 'profile': {e}") from None
         except RecursionError:  # a nesting no profile has
-            raise self._error("argument 'profile': nested too deeply to be a "
-                              "profile") from None
+            raise args.refusal("argument 'profile': nested too deeply to be a "
+                               "profile") from None
 
     async def parse_profile_off_loop(self, value: Any) -> fl_profile.Profile:
         # Validating a large profile takes milliseconds of CPU: in a thread,
         # Moonraker keeps answering other clients meanwhile.
         return await self.eventloop.run_in_thread(self.parse_profile, value)
 
-    async def _activate(self, name: str, extruder: Any, wp: Any) -> Dict[str, Any]:
-        extruder = self._extruder_arg(extruder)
-        entry = ActiveProfile(name=name, working_point=self._wp_arg(wp))
+    async def _activate(self, name: str, extruder: str, wp: float) -> Dict[str, Any]:
+        entry = ActiveProfile(name=name, working_point=wp)
         try:
             return await self.profiles.activate(extruder, entry)
         except UnknownProfile:  # deleted meanwhile
@@ -130,9 +102,9 @@ class Api:
         req_type = web_request.get_request_type()
         if req_type == RequestType.POST:
             profile = await self.parse_profile_off_loop(
-                web_request.get("profile", None))
+                web_request.get_args().get("profile"))
             return await self.profiles.store_profile(profile, "api")
-        name = self._name_arg(web_request)
+        name = args.profile_name(web_request)
         if req_type == RequestType.DELETE:
             try:
                 return await self.profiles.delete_profile(name)
@@ -147,17 +119,16 @@ class Api:
                 "active": active_to_stored(self.store.active)}
 
     async def _handle_activate(self, web_request: WebRequest) -> Dict[str, Any]:
-        name = self._name_arg(web_request)
-        extruder = web_request.get("extruder", "extruder")
-        entry = self.store.active.get(extruder) if isinstance(extruder, str) else None
-        wp = web_request.get("working_point", self.default_wp if entry is None
-                             else entry.working_point)
+        name = args.profile_name(web_request)
+        extruder = args.extruder(web_request.get_args())
+        entry = self.store.active.get(extruder)
+        wp = args.working_point(web_request.get_args(), self.default_wp
+                                if entry is None else entry.working_point)
         return await self._activate(name, extruder, wp)
 
     async def _handle_plot(self, web_request: WebRequest) -> str:
-        name = self._name_arg(web_request)
-        profile = self._known(name)
-        wp = self._wp_arg(web_request.get("working_point", self.default_wp))
+        profile = self._known(args.profile_name(web_request))
+        wp = args.working_point(web_request.get_args(), self.default_wp)
         return await self.eventloop.run_in_thread(plot.svg, profile, wp)
 
     async def _handle_info(self, web_request: WebRequest) -> Dict[str, Any]:
@@ -173,9 +144,11 @@ class Api:
         try:
             parsed = await self.parse_profile_off_loop(profile)
             if activate_extruder is not None:  # checked before anything is stored
-                extruder = self._extruder_arg(activate_extruder)
-                wp = self._wp_arg(self.default_wp if working_point is None
-                                  else working_point)
+                extruder = args.extruder({"activate_extruder": activate_extruder},
+                                         "activate_extruder")
+                wp = args.working_point({} if working_point is None else
+                                        {"working_point": working_point},
+                                        self.default_wp)
             await self.profiles.store_profile(parsed, "klippy")
             if activate_extruder is not None:
                 await self._activate(parsed.name, extruder, wp)

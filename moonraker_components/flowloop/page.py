@@ -18,7 +18,6 @@ import asyncio
 import html
 import json
 import logging
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
@@ -29,7 +28,10 @@ from flowloop.host import live_page
 from flowloop.material import profile as fl_profile
 
 from ...common import RequestType, TransportType, WebRequest
+from . import args
+from .endpoints import Endpoints
 from .errors import one_line, quoted
+from .info import KLIPPY_ANSWER_S
 from .store import ProfileStore
 
 if TYPE_CHECKING:
@@ -43,6 +45,12 @@ class Page:
         self.server = server
         self.store = store
         self.file_manager = server.lookup_component("file_manager")
+        self.klippy_apis = server.lookup_component("klippy_apis")
+        # Each heater's max_temp as klippy reported it: it changes only with
+        # klippy's config, so it is asked again only after klippy restarts.
+        self._heater_max_temp_c: Dict[str, float] = {}
+        server.register_event_handler("server:klippy_ready",
+                                      self._heater_max_temp_c.clear)
         # Read once: a request hands out the held bytes.
         try:
             self.document = live_page.document()
@@ -54,25 +62,31 @@ class Page:
         # its name is another profile.
         self._plan_key: Optional[Tuple[Any, ...]] = None
         self._plan: Dict[str, Any] = {}
+        endpoints = Endpoints(server)
         for path in (PAGE_PATH, PAGE_PATH.rstrip("/")):
-            server.register_endpoint(
+            endpoints.register_endpoint(
                 path, RequestType.GET, self._handle_page,
                 transports=TransportType.HTTP, wrap_result=False,
                 content_type="text/html; charset=utf-8")
-        server.register_endpoint(
+        endpoints.register_endpoint(
             "/server/flowloop/page/lines", RequestType.GET, self._handle_lines)
-        server.register_endpoint(
+        endpoints.register_endpoint(
             "/server/flowloop/page/plan", RequestType.GET, self._handle_plan)
 
-    def _error(self, msg: Any, code: int = 400) -> Exception:
-        return self.server.error(one_line(msg), code)
-
-    def _extruder_arg(self, web_request: WebRequest) -> str:
-        extruder = web_request.get("extruder", "extruder")
-        if not fl_profile.is_extruder_name(extruder):
-            raise self._error(f"{quoted(str(extruder))} is not an extruder name "
-                              f"(extruder, extruder1, ...)")
-        return extruder
+    async def _heater_max_temp(self, extruder: str) -> Optional[float]:
+        """The extruder heater's max_temp as klippy reports it with the active
+        profile (None: klippy does not tell within KLIPPY_ANSWER_S)."""
+        if extruder not in self._heater_max_temp_c:
+            try:
+                status = await asyncio.wait_for(self.klippy_apis.query_objects(
+                    {"flowloop": ["profiles"]}, default={}), KLIPPY_ANSWER_S)
+            except asyncio.TimeoutError:
+                return None
+            for name, shown in status.get("flowloop", {}).get("profiles",
+                                                              {}).items():
+                if shown.get("heater_max_temp_c") is not None:
+                    self._heater_max_temp_c[name] = shown["heater_max_temp_c"]
+        return self._heater_max_temp_c.get(extruder)
 
     def _active(self, extruder: str) -> Tuple[Optional[fl_profile.Profile], float]:
         entry = self.store.active.get(extruder)
@@ -84,26 +98,19 @@ class Page:
         return self.document
 
     async def _handle_lines(self, web_request: WebRequest) -> Dict[str, Any]:
-        extruder = self._extruder_arg(web_request)
+        extruder = args.extruder(web_request.get_args())
         profile, wp = self._active(extruder)
         if profile is None:
             return {"extruder": extruder, "lines": None,
                     "why": f"no active profile for {extruder}"}
+        heater_max_temp_c = await self._heater_max_temp(extruder)
         return {"extruder": extruder, "why": "",
-                "lines": live_page.profile_lines(profile, wp)}
-
-    def _gcode_path(self, filename: Any) -> Path:
-        if not isinstance(filename, str) or not filename:
-            raise self._error("the file name is missing (argument 'filename')")
-        root = os.path.realpath(self.file_manager.get_directory("gcodes"))
-        path = os.path.realpath(os.path.join(root, filename))
-        if os.path.commonpath([path, root]) != root or not os.path.isfile(path):
-            raise self._error(f"no G-code file named {quoted(filename)}", 404)
-        return Path(path)
+                "lines": live_page.profile_lines(profile, wp, heater_max_temp_c)}
 
     async def _handle_plan(self, web_request: WebRequest) -> Dict[str, Any]:
-        extruder = self._extruder_arg(web_request)
-        path = self._gcode_path(web_request.get("filename", None))
+        extruder = args.extruder(web_request.get_args())
+        _, path = args.gcode_file(web_request.get_args(),
+                                  self.file_manager.get_directory("gcodes"))
         profile, wp = self._active(extruder)
         stat = path.stat()
         key = (str(path), stat.st_size, stat.st_mtime_ns,
@@ -127,11 +134,11 @@ class Page:
         except asyncio.TimeoutError:
             proc.kill()
             await proc.wait()
-            raise self._error(f"planning {quoted(path.name)} took longer than "
-                              f"{live_page.PLAN_TIMEOUT_S:g} s", 500) from None
+            raise args.refusal(f"planning {quoted(path.name)} took longer than "
+                               f"{live_page.PLAN_TIMEOUT_S:g} s", 500) from None
         if proc.returncode != 0:
             logging.error(f"flowloop: the plan of {path} failed: "
                           f"{err.decode(errors='replace')[-2000:]}")
-            raise self._error(f"planning {quoted(path.name)} failed (see "
-                              f"moonraker.log)", 500)
+            raise args.refusal(f"planning {quoted(path.name)} failed (see "
+                               f"moonraker.log)", 500)
         return json.loads(out)

@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING, Any, Dict, List, Optional
 from flowloop.gcode import annotate
 
 from ...common import RequestType, WebRequest
-from .errors import one_line, quoted
+from . import args
+from .endpoints import Endpoints
 
 if TYPE_CHECKING:
     from ...confighelper import ConfigHelper
@@ -63,20 +64,15 @@ class Processor:
             self.file_manager.get_metadata_storage().register_gcode_processor(
                 PROCESSOR_NAME, self.config)
             self.registered_name = PROCESSOR_NAME
-        self.server.register_endpoint(
+        Endpoints(self.server).register_endpoint(
             "/server/flowloop/annotation", RequestType.GET,
             self._handle_annotation)
 
     async def _handle_annotation(self, web_request: WebRequest) -> Dict[str, Any]:
-        filename = web_request.get_str("filename")
-        root = self.file_manager.get_directory("gcodes")
-        path = os.path.realpath(os.path.join(root, filename))
-        if os.path.commonpath([path, os.path.realpath(root)]) \
-                != os.path.realpath(root) or not os.path.isfile(path):
-            raise self.server.error(one_line(f"no G-code file named"
-                                             f" {quoted(filename)}"), 404)
+        filename, path = args.gcode_file(web_request.get_args(),
+                                         self.file_manager.get_directory("gcodes"))
         state = await self.server.get_event_loop().run_in_thread(
-            _read_state, path)
+            _read_state, str(path))
         metadata = self.file_manager.get_metadata_storage().get(filename, {})
         processors = metadata.get("file_processors", [])
         return {"filename": filename, "annotate_uploads": self.enabled,

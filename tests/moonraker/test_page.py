@@ -298,7 +298,9 @@ def test_the_printed_files_plan_shows_with_the_position_marked(browser, printer)
     activate_profile(printer)
     open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")
-    assert "No file is being printed" in message(browser, "plan-chart")
+    # asked once the profile's lines are in
+    wait_for(browser, "document.getElementById('plan-chart').dataset.message"
+                      ".includes('No file is being printed')")
     print_file(printer, "annotated.gcode")
     wait_for(browser, "!!document.querySelector('#plan-chart canvas')")
     assert message(browser, "plan-chart") == ""
