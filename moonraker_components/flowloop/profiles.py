@@ -2,16 +2,27 @@
 # delete, activate). Each writes through the store, keeps klippy's copy
 # current and tells clients with a notify_flowloop_profile_changed.
 #
+# One rule keeps the active profiles Moonraker stores and klippy's copies
+# the same: an activation stands only while klippy accepts it. With klippy
+# ready it is sent first and stored only if klippy takes it (refused: 400,
+# nothing stored). With klippy away it is stored and queued; each time
+# klippy becomes ready every stored activation is sent again, and one klippy
+# refuses then (an extruder it no longer has, a heater too cold for the
+# profile) is dropped and notified as `refused`. Storing an active profile
+# again sends the new version the same way.
+#
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Dict
+import logging
+from typing import TYPE_CHECKING, Any, Dict, List, Optional
 
 from flowloop.material import profile as fl_profile
 from flowloop.material.active import ActiveProfile
 
-from .klippy_sync import KlippySync
+from .args import refusal
+from .klippy_sync import KlippyRefused, KlippySync
 from .store import ProfileStore
 
 if TYPE_CHECKING:
@@ -27,6 +38,7 @@ class Profiles:
         self.store = store
         self.klippy = klippy
         server.register_notification(NOTIFICATION, "flowloop_profile_changed")
+        server.register_event_handler("server:klippy_ready", self._on_klippy_ready)
 
     def notify(self, action: str, name: str, **extra: Any) -> None:
         self.server.send_event(NOTIFICATION, {"action": action, "name": name, **extra})
@@ -36,20 +48,65 @@ class Profiles:
         action = await self.store.put(profile)
         self.notify(action, profile.name, source=source,
                     profile=fl_profile.summary(profile))
-        await self.klippy.resend(profile.name)
-        return {"name": profile.name, "action": action}
+        dropped = [extruder for extruder in self.store.active_for(profile.name)
+                   if await self._confirm(extruder) == "refused"]
+        return {"name": profile.name, "action": action, "deactivated": dropped}
 
     async def delete_profile(self, name: str) -> Dict[str, Any]:
         stopped = await self.store.remove(name)
-        for extruder in stopped:  # clears klippy's copy
-            await self.klippy.send(extruder, quiet=True)
+        for extruder in stopped:
+            await self._clear_klippy(extruder)
         self.notify("deleted", name, deactivated=stopped)
         return {"name": name, "action": "deleted", "deactivated": stopped}
 
     async def activate(self, extruder: str, entry: ActiveProfile) -> Dict[str, Any]:
-        sent = await self.store.set_active(
-            extruder, entry, lambda: self.klippy.send(extruder, entry))
+        try:
+            sent = await self.store.set_active(
+                extruder, entry, lambda: self.klippy.send(extruder, entry))
+        except KlippyRefused as e:
+            raise refusal(f"klippy refused the profile: {e}") from None
         self.notify("activated", entry.name, extruder=extruder,
                     working_point=entry.working_point, sent_to_klippy=sent)
         return {"extruder": extruder, "name": entry.name,
                 "working_point": entry.working_point, "sent_to_klippy": sent}
+
+    # --- klippy's copies ----------------------------------------------------------
+
+    async def _clear_klippy(self, extruder: str) -> None:
+        try:
+            await self.klippy.send(extruder, None)
+        except KlippyRefused as e:
+            logging.info(f"flowloop: klippy did not clear {extruder}: {e}")
+
+    async def _confirm(self, extruder: str) -> Optional[str]:
+        """Send the extruder's stored activation to klippy: "sent", "queued"
+        (klippy away), "refused" (dropped, klippy's copy cleared, notified),
+        None (no activation)."""
+        outcome: List[str] = []
+
+        async def accepts(entry: ActiveProfile) -> bool:
+            try:
+                outcome.append("sent" if await self.klippy.send(extruder, entry)
+                               else "queued")
+                return True
+            except KlippyRefused as e:
+                outcome[:] = ["refused", str(e)]
+            # klippy keeps what it had (an older version of the profile)
+            await self._clear_klippy(extruder)
+            return False
+
+        dropped = await self.store.confirm_active(extruder, accepts)
+        if dropped is not None:
+            reason = f"klippy refused the profile: {outcome[1]}"
+            logging.info(f"flowloop: the active profile for {extruder} dropped: "
+                         f"{reason}")
+            self.notify("refused", dropped.name, source="klippy", extruder=extruder,
+                        working_point=dropped.working_point, reason=reason)
+        return outcome[0] if outcome else None
+
+    async def _on_klippy_ready(self) -> None:
+        for extruder in sorted(self.store.active):
+            outcome = await self._confirm(extruder)
+            if outcome == "sent":
+                logging.info(f"flowloop: active profile for {extruder} sent to "
+                             f"klippy")

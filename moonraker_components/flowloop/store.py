@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Any, Awaitable, Callable, Dict, List, TypeVar
+from typing import Any, Awaitable, Callable, Dict, List, Optional, TypeVar
 
 from flowloop.errors import FlowloopError
 from flowloop.material import profile as fl_profile
@@ -126,3 +126,18 @@ class ProfileStore:
             await self.db.insert(ACTIVE_KEY, active_to_stored(active))
             self.active = active
         return answer
+
+    async def confirm_active(self, extruder: str,
+                             accepts: Callable[[ActiveProfile], Awaitable[bool]]
+                             ) -> Optional[ActiveProfile]:
+        """Ask `accepts` (klippy) about the extruder's activation, under the
+        lock; one it does not accept is dropped and returned."""
+        async with self.write_lock:
+            entry = self.active.get(extruder)
+            if entry is None or await accepts(entry):
+                return None
+            active = {ext: kept for ext, kept in self.active.items()
+                      if ext != extruder}
+            await self.db.insert(ACTIVE_KEY, active_to_stored(active))
+            self.active = active
+        return entry

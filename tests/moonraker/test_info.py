@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
+import time
 
 import pytest
 
@@ -44,6 +46,30 @@ def test_info_reports_what_klippy_loaded(full_stack):
                           "flow_sensor", "flowrate_limiter", "autotemp",
                           "diff_ab_calibrate", "endstop_calibrate"))
     assert declared and info["sections"] == declared
+
+
+def test_info_answers_in_bounded_time_while_klippy_does_not(full_stack):
+    def info(timeout=10.0):
+        status, body = full_stack.moonraker.request("GET", "/server/flowloop/info",
+                                                    timeout=timeout)
+        assert status == 200, body
+        return body["result"]
+    before = info()
+    os.kill(full_stack.klippy.pid, signal.SIGSTOP)  # connected, never answering
+    try:
+        start = time.monotonic()
+        stopped = info(timeout=6.0)
+        elapsed = time.monotonic() - start
+    finally:
+        os.kill(full_stack.klippy.pid, signal.SIGCONT)
+    assert elapsed < 4.0
+    assert before["klippy_answered"] is True
+    assert stopped["klippy_connected"] is True and stopped["klippy_answered"] is False
+    assert stopped["klippy_state"] == "ready"
+    # what klippy said last
+    for key in ("klippy_version", "sections", "sensor_firmware"):
+        assert stopped[key] == before[key], key
+    assert stack.wait_until(lambda: info()["klippy_answered"], 10.0)
 
 
 def test_sensor_firmware_check_matches_the_built_dictionary(full_stack, klipper_build):

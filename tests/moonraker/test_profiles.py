@@ -79,7 +79,8 @@ def get(srv, name):
 
 
 def test_crud_over_http(server):
-    assert store(server, name="crud-http") == {"name": "crud-http", "action": "created"}
+    assert store(server, name="crud-http") == {"name": "crud-http", "action": "created",
+                                               "deactivated": []}
     status, body = get(server, "crud-http")
     assert status == 200
     assert body["result"]["profile"]["lines"]["into_air"]["temp_c"] == 171.6312
@@ -97,7 +98,8 @@ def test_crud_over_json_rpc(server, rpc):
     async def steps(client):
         created = await client.call("server.flowloop.post_profile",
                                     profile=make(name="crud-rpc"))
-        assert created["result"] == {"name": "crud-rpc", "action": "created"}
+        assert created["result"] == {"name": "crud-rpc", "action": "created",
+                                     "deactivated": []}
         got = await client.call("server.flowloop.get_profile", name="crud-rpc")
         assert got["result"]["profile"]["identity"]["name"] == "crud-rpc"
         listed = await client.call("server.flowloop.profiles")
@@ -168,7 +170,7 @@ def test_bad_activation_arguments_answer_400(server):
                           ({"name": "act-args", "extruder": "extruder\n"},
                            "is not an extruder name"),
                           ({"name": "act-args", "extruder": ["extruder"]},
-                           "is not an extruder name"),
+                           "the extruder name must be a string"),
                           ({}, "the profile name is missing")):
         status, body = server.request("POST", "/server/flowloop/profile/activate",
                                       args)

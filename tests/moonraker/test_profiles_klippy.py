@@ -86,6 +86,10 @@ def test_activation_reaches_klippy_and_shows_in_get_status(printer):
     # the profile allows 280 degC, config/printer.cfg's heater only 260
     assert shown["heater_max_temp_c"] == 260.0 and shown["max_temp_c"] == 260.0
     assert printer.query("webhooks")["state"] == "ready"
+    # the live page bounds its lines the same way
+    status, body = request(printer, "GET", "/server/flowloop/page/lines")
+    assert status == 200, body
+    assert body["result"]["lines"]["max_temp_c"] == 260.0
 
 
 def test_klippy_refuses_an_extruder_it_does_not_have(printer):
@@ -113,6 +117,60 @@ def test_storing_the_active_profile_again_updates_klippy(printer):
     assert stack.wait_until(
         lambda: klippy_profiles(printer)["extruder"]["min_temp_c"] == 195.0, WAIT_S)
     assert klippy_profiles(printer)["extruder"]["max_temp_c"] == 240.0
+
+
+def test_storing_the_active_profile_as_one_klippy_refuses_drops_the_activation(
+        printer):
+    store(printer, name="will overheat")
+    assert activate(printer, "will overheat")[0] == 200
+    # config/printer.cfg's extruder stops at 260 degC, this version needs 270+
+    status, body = request(printer, "POST", "/server/flowloop/profile", {
+        "profile": make(name="will overheat", bounds=(270.0, 380.0, 420.0),
+                        real=(0.146, 390.0, 10.0), air=(0.146, 380.0, 12.0))})
+    assert status == 200, body
+    assert body["result"]["deactivated"] == ["extruder"]
+    # klippy does not run the older version either
+    assert "extruder" not in klippy_profiles(printer)
+    active = request(printer, "GET", "/server/flowloop/profiles")[1]["result"]["active"]
+    assert "extruder" not in active
+
+
+def klippy_state(ps):
+    status, body = ps.moonraker.request("GET", "/server/info")
+    return status == 200 and body["result"]["klippy_state"]
+
+
+def test_an_activation_made_while_klippy_is_away_stands_only_if_klippy_accepts_it(
+        printer):
+    store(printer, name="queued")
+    assert request(printer, "POST", "/printer/emergency_stop")[0] == 200
+    assert stack.wait_until(lambda: klippy_state(printer) == "shutdown", WAIT_S)
+    for extruder in ("extruder7", "extruder"):  # klippy has no extruder7
+        status, body = activate(printer, "queued", extruder=extruder,
+                                working_point=0.4)
+        assert status == 200, body
+        assert body["result"]["sent_to_klippy"] is False
+    assert request(printer, "POST", "/printer/restart")[0] == 200
+    printer.moonraker.wait_ready(klippy=True)
+
+    def active():
+        return request(printer, "GET", "/server/flowloop/profiles")[1]["result"][
+            "active"]
+    # klippy refused extruder7 when it came back: Moonraker keeps none of it
+    assert stack.wait_until(lambda: "extruder7" not in active(), WAIT_S), active()
+    info = request(printer, "GET", "/server/flowloop/info")[1]["result"]
+    assert "extruder7" not in info["active_profiles"]
+    lines = request(printer, "GET", "/server/flowloop/page/lines?extruder=extruder7")
+    assert lines[1]["result"]["lines"] is None
+    stored = request(printer, "GET",
+                     "/server/database/item?namespace=flowloop&key=active")
+    assert "extruder7" not in stored[1]["result"]["value"]
+    assert ("the active profile for extruder7 dropped: klippy refused the profile: "
+            in printer.moonraker.log_path.read_text())
+    # the one klippy accepted stands on both sides
+    assert active()["extruder"] == {"name": "queued", "working_point": 0.4}
+    assert stack.wait_until(
+        lambda: klippy_profiles_or_none(printer) == "queued", WAIT_S)
 
 
 def test_names_with_gcode_characters_never_reach_gcode(printer):
