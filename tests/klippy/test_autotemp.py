@@ -99,3 +99,32 @@ def test_the_status_says_which_host_it_runs_on(host, klipper_build, klippy_venv,
         host, klipper_build, klippy_venv, short_tmp,
         f"[include {stack.PROJECT / 'tests' / 'klippy' / 'autotemp_plain.cfg'}]\n",
         "autotemp")
+
+
+def test_a_start_macro_waits_at_its_temperature_then_the_plan_takes_over(
+        tmp_path, klipper_build, klippy_venv):
+    """docs/autotemp.md, "Your start G-code": a PRINT_START macro heats and
+    waits inside Klipper (its M109 is obeyed, M104 alone is overridden),
+    then autotemp sets the heater to its plan as the first moves run."""
+    src = tmp_path / "macro_start.gcode"
+    body = GCODE.read_text().split("M82 ; use absolute distances for extrusion\n",
+                                   1)[1]
+    src.write_text("PRINT_START EXTRUDER=200 BED=60\nG90\nM82\n" + body)
+    config = stack.PROJECT / "tests" / "klippy" / "autotemp_print_start.cfg"
+    records, _, log = print_with_autotemp(1, klipper_build, klippy_venv,
+                                          text=annotated(src), config=config)
+    assert "Unknown command" not in log
+    start = next(i for i, r in enumerate(records)
+                 if any(x.startswith("PRINT_START") for x in r["lines"]))
+    # the macro's M109 set 200 C (M109 is never overridden) ...
+    assert "M109 S200 overridden" not in log and "M104 S200 overridden" not in log
+    # ... and within the first chunks of moves after it autotemp drives the
+    # heater at the plan's need for the first layer's 6.6 mm^3/s (226 C,
+    # clamped at the profile's 225 C), not at the macro's 200 C
+    # (Kalico sets it at its step generators' next call: a chunk later)
+    after = [r for r in records[start:start + 8]
+             if r["autotemp"]["target"] is not None
+             and r["heater_target"] == r["autotemp"]["target"]]
+    assert after, "autotemp drove the heater in none of the first chunks"
+    assert after[0]["autotemp"]["source"] == "annotation"
+    assert after[0]["heater_target"] >= 220.0
