@@ -39,6 +39,7 @@ class DemoContext:
         self.printer = printer
         self.project = stack.PROJECT
         self.kept = kept or contextlib.ExitStack()
+        self.live_page_url: Optional[str] = None   # set by the live step
 
     def keep(self, context):
         """Enter a context (another stack, for the live step) that stays up
@@ -137,9 +138,14 @@ def main(argv=None) -> int:
         print(f"  GET {printer.moonraker.url}/server/flowloop/info")
         print("  " + describe(body["result"], printer.moonraker.url).replace(
             "\n", "\n  "))
-        failed = run_steps(DemoContext(printer, kept), args.step)
+        ctx = DemoContext(printer, kept)
+        failed = run_steps(ctx, args.step)
         if failed:
             print(f"\n!!! {failed} demo step(s) failed (see above)")
+        print(f"\nCheck it as a user would: flowloop doctor --moonraker"
+              f" {printer.moonraker.url}", flush=True)
+        if ctx.live_page_url:
+            print(f"Live page: {ctx.live_page_url}", flush=True)
         if not args.once:
             print(f"\nThe stack is running at {printer.moonraker.url}. "
                   f"Ctrl-C stops everything.", flush=True)

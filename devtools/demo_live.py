@@ -82,6 +82,7 @@ def live(ctx, printer: stack.PrinterStack) -> None:
     mr = printer.moonraker
     ctx.say(f"A second stack whose klippy runs in real time: {mr.url}")
     ctx.say(f"  live page: {mr.url}{PAGE_PATH}")
+    ctx.live_page_url = f"{mr.url}{PAGE_PATH}"
     (profile,) = ddprint.import_file(PROFILE).profiles
     name = profile.identity.name
     _call(mr, "POST", "/server/flowloop/profile",
