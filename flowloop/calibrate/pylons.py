@@ -24,6 +24,7 @@ import jinja2
 
 from .. import __version__
 from ..errors import FlowloopError
+from ..gcode import bounds
 from . import diff_ab
 
 TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
@@ -32,6 +33,21 @@ MIN_GAP_LINES = 2.0      # free space between neighbouring pylons, in line width
 BED_MARGIN_MM = 5.0
 
 Point = Tuple[float, float]
+# What each option written into the G-code may be (flowloop.gcode.bounds).
+BOUNDS = {
+    "pylon_width_mm": bounds.SIZE_MM, "pylon_depth_mm": bounds.SIZE_MM,
+    "pylon_height_mm": bounds.SIZE_MM, "bed_size_x_mm": bounds.SIZE_MM,
+    "bed_size_y_mm": bounds.SIZE_MM, "line_width_mm": bounds.SIZE_MM,
+    "layer_height_mm": bounds.SIZE_MM,
+    "nozzle_diameter_mm": bounds.NOZZLE_DIAMETER_MM,
+    "filament_diameter_mm": bounds.FILAMENT_DIAMETER_MM,
+    "print_speed_mm_s": bounds.SPEED_MM_S,
+    "first_layer_speed_mm_s": bounds.SPEED_MM_S,
+    "travel_speed_mm_s": bounds.SPEED_MM_S,
+    "retract_speed_mm_s": bounds.SPEED_MM_S,
+    "retract_mm": bounds.RETRACT_MM, "z_hop_mm": bounds.RETRACT_MM,
+    "hotend_temp_c": bounds.HOTEND_TEMP_C, "bed_temp_c": bounds.BED_TEMP_C,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,28 +107,15 @@ def validate(o: PylonOptions) -> None:
     if o.kinematics not in diff_ab.KINEMATICS:
         raise FlowloopError(
             f"kinematics must be corexy or cartesian, not '{o.kinematics}'")
-    for name in ("pylon_width_mm", "pylon_depth_mm", "pylon_height_mm",
-                 "bed_size_x_mm", "bed_size_y_mm", "nozzle_diameter_mm",
-                 "line_width_mm", "layer_height_mm", "filament_diameter_mm",
-                 "print_speed_mm_s", "first_layer_speed_mm_s", "travel_speed_mm_s",
-                 "retract_speed_mm_s"):
-        _positive(name, getattr(o, name))
+    for name, bound in BOUNDS.items():
+        bound.check(name, getattr(o, name))
     if o.accel_mm_s2 is not None:
-        _positive("accel_mm_s2", o.accel_mm_s2)
+        bounds.ACCEL_MM_S2.check("accel_mm_s2", o.accel_mm_s2)
     for name in ("centre_x_mm", "centre_y_mm"):
         value = getattr(o, name)
         if value is not None and not math.isfinite(value):
             raise FlowloopError(f"{name} must be a finite number, got {value}")
     _positive("extrusion_multiplier", o.extrusion_multiplier, 1.5)
-    for name in ("retract_mm", "z_hop_mm"):
-        value = getattr(o, name)
-        if not (math.isfinite(value) and 0.0 <= value <= 10.0):
-            raise FlowloopError(f"{name} must be in [0, 10], got {value}")
-    if not 150.0 <= o.hotend_temp_c <= 320.0:
-        raise FlowloopError(
-            f"hotend temperature {o.hotend_temp_c:g} C is outside 150..320")
-    if not 0.0 <= o.bed_temp_c <= 130.0:
-        raise FlowloopError(f"bed temperature {o.bed_temp_c:g} C is outside 0..130")
     if o.layer_height_mm > 0.8 * o.nozzle_diameter_mm:
         raise FlowloopError("layer height must be at most 0.8 x nozzle diameter")
     if not o.nozzle_diameter_mm <= o.line_width_mm <= 2.0 * o.nozzle_diameter_mm:

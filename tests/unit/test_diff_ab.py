@@ -320,7 +320,7 @@ def test_pylons_are_solid():
     ({"distances_mm": (7.0, 150.0)}, "gap"),
     ({"distances_mm": (150.0, 10.0)}, "increase"),
     ({"bed_size_x_mm": 100.0}, "does not fit"),
-    ({"hotend_temp_c": 400.0}, "outside"),
+    ({"hotend_temp_c": 400.0}, "from 150 to 320 C"),
     ({"kinematics": "delta"}, "corexy or cartesian"),
     ({"distances_mm": (10.0, 80.0, 84.0, 150.0)}, "too close"),
 ])
@@ -406,8 +406,10 @@ def test_cli_force_accepts_a_large_scale(capsys):
 
 
 @pytest.mark.parametrize("option, value, message", [
-    ("--speed", "inf", "--speed must be a finite number above 0, got inf"),
-    ("--accel", "-1e3", "--accel must be a finite number above 0, got -1000.0"),
+    ("--speed", "inf", "--speed must be a number above 0 and at most 1000 mm/s,"
+                       " got inf"),
+    ("--accel", "-1e3", "--accel must be a number above 0 and at most 100000"
+                        " mm/s^2, got -1000"),
     ("--centre-x", "nan", "--centre-x must be a finite number, got nan"),
     ("--d2", "nan", "D2 must be a number in (0, 1000], got nan"),
 ])
