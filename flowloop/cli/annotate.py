@@ -17,6 +17,7 @@ from ..gcode.annotate import (
 from ..gcode.planner import PrinterLimits, limits_from_config
 from ..host.klipper_config import read_config
 from ..material.profile import DEFAULT_WORKING_POINT
+from .paths import refuse_overwriting
 
 DEFAULT_HOTEND = HotendParams()
 
@@ -79,6 +80,9 @@ def run(args) -> int:
         return run_bake(args, settings, limits)
     if args.plot is not None or args.working_point is not None:
         raise FlowloopError("--plot and --working-point need --bake PROFILE.json")
+    # -o IN.gcode itself is the default: annotate in place
+    refuse_overwriting([("-o", args.output)],
+                       [("--printer-cfg", args.printer_cfg)])
     out = args.output if args.output is not None else args.gcode
     summary = annotate_file(args.gcode, out, limits, settings)
     if not summary.annotated:
@@ -103,6 +107,10 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
     if args.output is None:
         raise FlowloopError("--bake needs -o OUT.gcode (a baked file is for one"
                             " profile; the slicer's file stays as it is)")
+    plot = (args.output.with_suffix(".svg") if args.plot is True else args.plot)
+    refuse_overwriting([("-o", args.output), ("--plot", plot)],
+                       [("IN.gcode", args.gcode), ("--bake", args.bake),
+                        ("--printer-cfg", args.printer_cfg)])
     try:
         params = HotendParams(time_constant_s=args.time_constant,
                               dead_time_s=args.dead_time,
@@ -129,9 +137,8 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
     if result.under_capacity_s > 0:
         print(f"  the modelled hotend melts less than demanded for"
               f" {result.under_capacity_s:.1f} s of the print")
-    if args.plot is not None:
-        path = args.output.with_suffix(".svg") if args.plot is True else args.plot
-        path.write_text(timeline_svg(timeline, f"{args.gcode.name}: autotemp"
+    if plot is not None:
+        plot.write_text(timeline_svg(timeline, f"{args.gcode.name}: autotemp"
                                      f" for {profile.name}, WP {wp:g}"))
-        print(f"  timeline: {path}")
+        print(f"  timeline: {plot}")
     return 0

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -99,3 +101,78 @@ def test_pylons_take_a_centre_written_with_an_exponent(tmp_path, capsys):
                      "--centre-x", "1.5e2", "--centre-y", "-1e1"]) == 2
     # The value reached the pylon check (a centre at y = -10 does not fit).
     assert "does not fit" in capsys.readouterr().err
+
+
+# --- an output never overwrites an input ------------------------------------------
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
+PROFILE_JSON = json.dumps({
+    "identity": {"name": "weak", "nozzle_diameter_mm": 0.4},
+    "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                           "flow_mm3_s": 4.5},
+              "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                             "flow_mm3_s": 3.5}},
+    "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 200.0, "max_temp_c": 240.0},
+    "provenance": {"method": "manual"}})
+
+
+@pytest.fixture
+def slicer_files(tmp_path, monkeypatch):
+    """f.gcode (a slicer's file) and p.json (a profile), in the current folder."""
+    monkeypatch.chdir(tmp_path)
+    gcode = tmp_path / "f.gcode"
+    gcode.write_bytes((DATA / "block_layers_1_2.gcode").read_bytes())
+    (tmp_path / "p.json").write_text(PROFILE_JSON)
+    return gcode
+
+
+def other_spelling(path: Path, how: str) -> str:
+    if how == "dot":
+        return f"./{path.name}"
+    if how == "symlink":
+        link = path.with_name("link.gcode")
+        link.symlink_to(path.name)
+        return str(link)
+    if how == "hardlink":
+        link = path.with_name("hard.gcode")
+        os.link(path, link)
+        return str(link)
+    return str(path.resolve())
+
+
+@pytest.mark.parametrize("how", ["dot", "symlink", "hardlink", "absolute"])
+def test_baking_onto_the_slicers_own_file_is_refused_and_leaves_it_alone(
+        slicer_files, capsys, how):
+    before = slicer_files.read_bytes()
+    out = other_spelling(slicer_files, how)
+    assert cli.main(["annotate", "f.gcode", "-o", out, "--bake", "p.json"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"flowloop annotate: error: -o {Path(out)} would overwrite"
+                   f" IN.gcode f.gcode: write elsewhere\n")
+    assert slicer_files.read_bytes() == before
+    # and baking elsewhere still works: the slicer's file is there
+    assert cli.main(["annotate", "f.gcode", "-o", "baked.gcode", "--bake",
+                     "p.json"]) == 0
+
+
+@pytest.mark.parametrize("args, named", [
+    (["-o", "p.json", "--bake", "p.json"], "-o p.json would overwrite --bake p.json"),
+    (["-o", "b.gcode", "--bake", "p.json", "--plot", "f.gcode"],
+     "--plot f.gcode would overwrite IN.gcode f.gcode"),
+    (["-o", "b.gcode", "--bake", "p.json", "--plot", "b.gcode"],
+     "--plot b.gcode would overwrite -o b.gcode"),
+    (["-o", "printer.cfg", "--printer-cfg", "printer.cfg"],
+     "-o printer.cfg would overwrite --printer-cfg printer.cfg"),
+])
+def test_no_output_of_annotate_overwrites_one_of_its_inputs(slicer_files, capsys,
+                                                            args, named):
+    (slicer_files.parent / "printer.cfg").write_text("[printer]\nmax_velocity: 300\n")
+    before = {p.name: p.read_bytes() for p in slicer_files.parent.iterdir()}
+    assert cli.main(["annotate", "f.gcode", *args]) == 2
+    assert named in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in slicer_files.parent.iterdir()} == before
+
+
+def test_annotating_in_place_is_still_asked_for_with_the_same_path(slicer_files):
+    assert cli.main(["annotate", "f.gcode", "-o", "./f.gcode"]) == 0
+    assert b"AUTOTEMP_FLOW" in slicer_files.read_bytes()
