@@ -8,6 +8,7 @@ exit status 2.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import re
 import sys
@@ -49,6 +50,24 @@ class ArgumentParser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
         # argparse's own hook for this: the pattern of "looks like a negative number".
         self._negative_number_matcher = SIGNED_VALUE
+
+    def parse_known_args(self, args=None, namespace=None):
+        # The innermost (sub)command refuses what it does not know, so the
+        # usage and message are its own ("flowloop annotate"), not the top's.
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(self._unknown(extras))
+        return namespace, extras
+
+    def _unknown(self, extras: List[str]) -> str:
+        option = next((e for e in extras if e.startswith("-")), None)
+        if option is None:
+            return f"unrecognized arguments: {' '.join(extras)}"
+        option = option.split("=", 1)[0]
+        known = [o for action in self._actions for o in action.option_strings]
+        close = difflib.get_close_matches(option, known, n=1)
+        return f"unknown option {option}" + (f" (did you mean {close[0]}?)"
+                                             if close else "")
 
 
 def build_parser() -> argparse.ArgumentParser:
