@@ -3,6 +3,7 @@ of time, as AUTOTEMP_FLOW commands (flowloop.gcode.annotate)."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from ..control.hotend import HotendParams
@@ -17,9 +18,13 @@ from ..gcode.annotate import (
 from ..gcode.planner import PrinterLimits, limits_from_config
 from ..host.klipper_config import read_config
 from ..material.profile import DEFAULT_WORKING_POINT
+from .flags import with_flags
 from .paths import refuse_overwriting
 
 DEFAULT_HOTEND = HotendParams()
+# --bake's hotend options: (flag, HotendParams field)
+HOTEND_FLAGS = (("time-constant", "time_constant_s"), ("dead-time", "dead_time_s"),
+                ("heater-power", "max_power_w"))
 
 
 def register(subparsers) -> None:
@@ -91,12 +96,20 @@ def run(args) -> int:
         print(f"{args.gcode}: annotated already{peak}, unchanged"
               + (f" (copied to {out})" if out != args.gcode else ""))
         return 0
+    if summary.windows == 0:
+        _warn_nothing_extrudes(args.gcode)
     minutes, seconds = divmod(round(summary.print_time_s), 60)
     print(f"{out}: {summary.windows} {'window' if summary.windows == 1 else 'windows'}"
           f", peak flow {summary.peak_flow_mm3_s:.1f} mm^3/s, print time "
           f"{minutes // 60}:{minutes % 60:02d}:{seconds:02d} (lead {settings.lead_s:g}"
           f" s, window {settings.window_s:g} s)")
     return 0
+
+
+def _warn_nothing_extrudes(path: Path) -> None:
+    # an empty file, or the wrong one (a start script): say so, not just "0"
+    print(f"flowloop annotate: warning: {path}: no move extrudes: nothing to"
+          f" announce", file=sys.stderr)
 
 
 def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
@@ -116,13 +129,14 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
                               dead_time_s=args.dead_time,
                               max_power_w=args.heater_power)
     except FlowloopError as e:
-        raise FlowloopError(f"--time-constant/--dead-time/--heater-power: {e}") \
-            from None
+        raise with_flags(e, HOTEND_FLAGS) from None
     wp = working_point_arg(DEFAULT_WORKING_POINT if args.working_point is None
                            else args.working_point, "--working-point")
     profile = load(args.bake)
     result, timeline = bake_file(args.gcode, args.output, profile, wp, params,
                                  limits, settings)
+    if result.peak_flow_mm3_s == 0:
+        _warn_nothing_extrudes(args.gcode)
     lo = "none" if result.min_target_c is None else f"{result.min_target_c:.0f}"
     hi = "none" if result.max_target_c is None else f"{result.max_target_c:.0f}"
     print(f"{args.output}: {result.commands} M104 for {profile.name} at working"

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from ..calibrate import diff_ab, pylons
 from ..errors import FlowloopError
+from .flags import with_flags
 
 # --a3/--b3/--d3 ... for rows of more pylons
 EXTRA_DISTANCES = tuple(range(3, diff_ab.MAX_DISTANCES + 1))
@@ -74,14 +75,6 @@ BUDGET_OPTIONS = (
 )
 
 
-def _with_flags(error: FlowloopError, table) -> FlowloopError:
-    """The core names its fields; the user typed flags."""
-    text = str(error)
-    for flag, field, _ in table:
-        text = text.replace(field, f"--{flag}")
-    return FlowloopError(text)
-
-
 def _axis_sets(args, axis: str):
     ks = (1, 2) + EXTRA_DISTANCES
     nominals = {k: getattr(args, f"d{k}") for k in ks}
@@ -95,7 +88,7 @@ def calibration_from_args(args) -> diff_ab.Calibration:
         budget = diff_ab.ErrorBudget(**{field: getattr(args, field)
                                         for _, field, _ in BUDGET_OPTIONS})
     except FlowloopError as e:
-        raise _with_flags(e, BUDGET_OPTIONS) from None
+        raise with_flags(e, BUDGET_OPTIONS) from None
     ks = (1, 2) + EXTRA_DISTANCES
     diff_ab.check_nominals_used(
         [k for k in EXTRA_DISTANCES if getattr(args, f"d{k}") is not None],
@@ -212,7 +205,7 @@ def run_pylons(args) -> int:
     try:
         options = pylon_options_from_args(args)
     except FlowloopError as e:
-        raise _with_flags(e, PYLON_OPTIONS) from None
+        raise with_flags(e, PYLON_OPTIONS) from None
     text = pylons.render(options)
     if args.output == "-":
         sys.stdout.write(text)

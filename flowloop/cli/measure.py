@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..errors import FlowloopError
 from ..gcode import measure_part
+from .flags import with_flags
 
 # flag -> PartOptions field, help
 OPTIONS = (
@@ -50,10 +51,7 @@ def run(args) -> int:
         options = measure_part.PartOptions(
             **{k: v for k, v in vars(args).items() if k in fields})
     except FlowloopError as e:
-        message = str(e)   # name the flag typed, not the field
-        for flag, field, _ in OPTIONS:
-            message = message.replace(field, f"--{flag}")
-        raise FlowloopError(message) from None
+        raise with_flags(e, OPTIONS) from None
     layers = measure_part.write(options, args.output)
     plan = measure_part.layer_plan(options)
     print(f"wrote {args.output}: {layers} layers, flow {plan[1].flow_mm3_s:.2f}"
