@@ -14,19 +14,23 @@ from typing import Optional, Sequence, Tuple, Union
 from .errors import FlowloopError
 
 _SEPARATORS = re.compile(r"[,\s]+")
+# "9,9": one number with a decimal comma (as typed in much of Europe), or two?
+_DECIMAL_COMMA = re.compile(r"[-+]?\d+,\d+")
 
 
 def parse_numbers(text: Union[str, Sequence[float]], name: str, *,
                   what: str = "value", count: Optional[int] = None,
-                  minimum_count: int = 1, positive: bool = False
-                  ) -> Tuple[float, ...]:
+                  minimum_count: int = 1, positive: bool = False,
+                  decimal_comma_refused: bool = False) -> Tuple[float, ...]:
     """'150.12, 150.14,150.1' -> (150.12, 150.14, 150.1), all finite.
 
     text: commas and/or spaces between numbers (a trailing comma is fine), or
     a sequence of numbers. name: the parameter or option, first in every
     message; what: one value's name in messages ("reading", "speed").
     count: exactly this many values; minimum_count: at least this many;
-    positive: every value above 0.
+    positive: every value above 0. decimal_comma_refused: values that are
+    rarely whole (caliper readings): "9,9" in a text without a dot is refused
+    as a likely 9.9 typed with a decimal comma, not read as two values.
     """
     if isinstance(text, str):
         parts = [p for p in _SEPARATORS.split(text.strip()) if p]
@@ -34,6 +38,8 @@ def parse_numbers(text: Union[str, Sequence[float]], name: str, *,
         parts = list(text)
     if not parts:
         raise FlowloopError(f"{name}: no {what}s given")
+    if decimal_comma_refused and isinstance(text, str):
+        _refuse_decimal_comma(text, name, what)
     values = []
     for part in parts:
         try:
@@ -52,3 +58,20 @@ def parse_numbers(text: Union[str, Sequence[float]], name: str, *,
         raise FlowloopError(f"{name}: needs at least {minimum_count} {what}s,"
                             f" got {len(values)}")
     return tuple(values)
+
+
+def _two(word: str) -> str:
+    """'9,9' as two values that cannot be misread: '9.0,9.0'."""
+    return ",".join(f"{part}.0" for part in word.split(","))
+
+
+def _refuse_decimal_comma(text: str, name: str, what: str) -> None:
+    """Without a dot anywhere, "9,9" (no space after the comma) may be 9.9
+    typed as much of Europe writes it, or two values: refuse to guess."""
+    if "." in text:
+        return
+    for word in text.split():
+        if _DECIMAL_COMMA.fullmatch(word):
+            raise FlowloopError(f"{name}: '{word}' has a decimal comma: write"
+                                f" {word.replace(',', '.')}, or separate {what}s"
+                                f" with spaces (or dots: {_two(word)})")

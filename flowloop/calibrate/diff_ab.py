@@ -376,7 +376,7 @@ def reading_sets(nominals: Sequence[float], readings: Sequence, axis: str,
                                 f"D{numbers[i - 1]} ({low:g} mm)")
     return [ReadingSet(float(nominal),
                        parse_numbers(values, f"{axis.upper()}{k}", what="reading",
-                                     positive=True))
+                                     positive=True, decimal_comma_refused=True))
             for k, nominal, values in zip(numbers, nominals, readings)]
 
 

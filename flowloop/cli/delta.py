@@ -44,7 +44,8 @@ def register(subparsers) -> None:
 def run(args) -> int:
     probes = [parse_numbers(text, f"--probe {text}", what="coordinate", count=3)
               for text in args.probe]
-    z_offset, = parse_numbers(args.z_offset, "--z-offset", count=1)
+    z_offset, = parse_numbers(args.z_offset, "--z-offset", count=1,
+                              decimal_comma_refused=True)
     if len(probes) < 3:
         raise FlowloopError(f"need at least 3 --probe points (near each tower),"
                             f" got {len(probes)}")

@@ -50,3 +50,24 @@ def test_bad_text_is_refused_naming_the_parameter(text, kw, message):
 def test_signs_trailing_commas_and_sequences_are_accepted():
     assert parse_numbers("-86.6,-50,0.3,", "--probe", count=3) == (-86.6, -50.0, 0.3)
     assert parse_numbers([1, "2.5"], "A1", positive=True) == (1.0, 2.5)
+
+
+@pytest.mark.parametrize("text", ["9,9", "150,12", "9,9 9,8", "-0,5", "0,5, 0,6"])
+def test_a_decimal_comma_is_refused_with_what_to_type_instead(text):
+    with pytest.raises(FlowloopError) as e:
+        parse_numbers(text, "A1", what="reading", decimal_comma_refused=True)
+    message = str(e.value)
+    assert message.startswith("A1: '") and "has a decimal comma" in message
+    assert "write " in message and "separate readings with spaces" in message
+
+
+@pytest.mark.parametrize("text, values", [
+    ("9.9,9.8", (9.9, 9.8)), ("9 9", (9.0, 9.0)), ("0,100,0", (0.0, 100.0, 0.0)),
+    ("9, 9", (9.0, 9.0)), ("-86.6,-50,0.3", (-86.6, -50.0, 0.3))])
+def test_lists_that_cannot_be_a_decimal_comma_are_read_as_lists(text, values):
+    assert parse_numbers(text, "A1", decimal_comma_refused=True) == values
+
+
+def test_where_whole_numbers_are_usual_a_comma_separates_them():
+    # G-code parameters cannot hold spaces: SPEEDS=1,2 and TEMPS=200,220 are lists
+    assert parse_numbers("1,2", "SPEEDS") == (1.0, 2.0)
