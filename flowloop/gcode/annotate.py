@@ -25,6 +25,7 @@ file processor), so annotating twice changes nothing; the last line sums up
 from __future__ import annotations
 
 import bisect
+import codecs
 import math
 import os
 import re
@@ -371,6 +372,19 @@ class _Annotator:
         self.copy_to(offset)
         self.out.write(line.encode() + self.newline)
 
+    def keep_byte_order_mark(self) -> None:
+        """A UTF-8 byte-order mark stays the file's first bytes, before the
+        marker; no command goes before the first line after it."""
+        head = self.src.read(len(codecs.BOM_UTF8))
+        if head == codecs.BOM_UTF8:
+            self.out.write(head)
+            self.copied = self.block_start = len(head)
+            self.candidates = _Candidates(0.0, len(head))
+        elif self.src.seekable():
+            self.src.seek(-len(head), os.SEEK_CUR)   # read in whole blocks, as before
+        else:
+            self.block = memoryview(head)
+
     def copy_to(self, offset: Optional[int]) -> None:
         """Copy the source up to byte offset (None: to its end), read in
         blocks of a MB."""
@@ -417,6 +431,7 @@ def annotate_stream(events: Iterable[Union[Event, Segments]], src: BinaryIO,
     src is read from its start as the events reach further into it.
     """
     a = _Annotator(settings, src, out, newline)
+    a.keep_byte_order_mark()
     out.write(marker_line(settings).encode() + newline)
     for event in events:
         if isinstance(event, Barrier):

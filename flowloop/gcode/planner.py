@@ -24,6 +24,7 @@ knows the time across it is not the time the printer will take.
 
 from __future__ import annotations
 
+import codecs
 import io
 import math
 import re
@@ -391,6 +392,9 @@ class Planner:
 
     def line(self, raw: bytes, offset: int, number: int) -> List[Event]:
         """Plan one line of G-code (bytes, with or without its newline)."""
+        if number == 1 and raw.startswith(codecs.BOM_UTF8):
+            # a UTF-8 byte-order mark (Windows editors write one) is no command
+            raw, offset = raw[len(codecs.BOM_UTF8):], offset + len(codecs.BOM_UTF8)
         if b"\0" in raw:
             raise FlowloopError(f"line {number}: binary data, not G-code text")
         end = offset + len(raw)

@@ -3,6 +3,7 @@ comes out whole, once."""
 
 from __future__ import annotations
 
+import codecs
 import io
 import os
 import re
@@ -406,3 +407,15 @@ def test_memory_does_not_grow_with_the_file(extruding, plan):
     small = peak_memory_annotating(file(2000), plan)
     large = peak_memory_annotating(file(20000), plan)
     assert large < 1.5 * small
+
+
+def test_a_byte_order_mark_stays_first_and_the_file_is_annotated_as_without_it(
+        tmp_path):
+    body = b"M83\n" + b"".join(f"G1 X{i % 2 * 10} Y{i} E0.2 F1200\n".encode()
+                               for i in range(40))
+    bom, plain = tmp_path / "bom.gcode", tmp_path / "plain.gcode"
+    bom.write_bytes(codecs.BOM_UTF8 + body)
+    plain.write_bytes(body)
+    assert annotate_file(bom) == annotate_file(plain)
+    # the mark, then exactly what the file without it becomes
+    assert bom.read_bytes() == codecs.BOM_UTF8 + plain.read_bytes()

@@ -176,3 +176,64 @@ def test_no_output_of_annotate_overwrites_one_of_its_inputs(slicer_files, capsys
 def test_annotating_in_place_is_still_asked_for_with_the_same_path(slicer_files):
     assert cli.main(["annotate", "f.gcode", "-o", "./f.gcode"]) == 0
     assert b"AUTOTEMP_FLOW" in slicer_files.read_bytes()
+
+
+# --- errors that say what is wrong ---------------------------------------------------
+
+@pytest.mark.parametrize("typo", [["--leed", "30"], ["--leed=30"]])
+def test_an_unknown_option_names_its_subcommand_and_the_option_meant(typo, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["annotate", *typo, "f.gcode"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: flowloop annotate ")
+    assert err.endswith("flowloop annotate: error: unknown option --leed"
+                        " (did you mean --lead?)\n")
+
+
+def test_an_unknown_option_of_an_action_names_the_action(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["profile", "show", "p.json", "--jsn"])
+    assert capsys.readouterr().err.endswith(
+        "flowloop profile show: error: unknown option --jsn (did you mean --json?)\n")
+
+
+def test_a_bad_heater_power_names_that_option_alone(slicer_files, capsys):
+    assert cli.main(["annotate", "f.gcode", "-o", "b.gcode", "--bake", "p.json",
+                     "--heater-power", "-5"]) == 2
+    assert capsys.readouterr().err == (
+        "flowloop annotate: error: --heater-power must be above 0, not -5.0\n")
+
+
+def test_an_empty_gcode_file_is_annotated_with_a_warning(tmp_path, capsys):
+    empty = tmp_path / "empty.gcode"
+    empty.write_bytes(b"")
+    assert cli.main(["annotate", str(empty)]) == 0
+    err = capsys.readouterr().err
+    assert err == (f"flowloop annotate: warning: {empty}: no move extrudes: nothing"
+                   f" to announce\n")
+
+
+def test_a_decimal_comma_reading_is_refused_not_read_as_two(capsys):
+    code = cli.main(["ab-calibrate", "--rotation-distance-a", "40",
+                     "--rotation-distance-b", "40", "--a1", "9,9",
+                     "--a2", "153.9", "--b1", "13.9", "--b2", "153.9"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err == ("flowloop ab-calibrate: error: A1: '9,9' has a decimal comma:"
+                   " write 9.9, or separate readings with spaces (or dots:"
+                   " 9.0,9.0)\n")
+
+
+def test_a_baked_empty_file_gets_the_same_warning(slicer_files, capsys):
+    slicer_files.write_bytes(b"")
+    assert cli.main(["annotate", "f.gcode", "-o", "b.gcode", "--bake", "p.json"]) == 0
+    assert capsys.readouterr().err == ("flowloop annotate: warning: f.gcode: no move"
+                                       " extrudes: nothing to announce\n")
+
+
+def test_a_z_offset_with_a_decimal_comma_says_so(capsys):
+    assert cli.main(["delta-endstops", "--printer-cfg", str(DELTA_CFG),
+                     *[w for p in PROBES for w in ("--probe", p)],
+                     "--z-offset", "0,1"]) == 2
+    assert "--z-offset: '0,1' has a decimal comma: write 0.1" in capsys.readouterr().err

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import codecs
+import io
 import math
 from pathlib import Path
 
@@ -10,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flowloop.errors import FlowloopError
+from flowloop.gcode import fastplan
 from flowloop.gcode.planner import (
     Barrier,
     Planner,
@@ -385,3 +388,14 @@ def test_invariants_of_any_plan(move_list):
         assert s.flow_mm3_s >= max(s.start_flow_mm3_s, s.end_flow_mm3_s) - 1e-9
         if s.filament_mm > 0:
             assert s.flow_mm3_s > 0
+
+
+
+@pytest.mark.parametrize("plan", [plan_file, fastplan.plan_file])
+def test_a_byte_order_mark_before_the_first_line_is_planned_past(plan):
+    text = b"G28\nM83\nG1 X10 E1 F600\nG1 X20 E1\n"
+    plain = list(plan(io.BytesIO(text)))
+    marked = list(plan(io.BytesIO(codecs.BOM_UTF8 + text)))
+    # the same events, each line's place 3 bytes further into the file
+    assert marked == [e._replace(offset=e.offset + 3) for e in plain]
+    assert any(isinstance(e, Segment) for e in marked)
