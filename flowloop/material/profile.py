@@ -409,6 +409,8 @@ def profile_from_dict(obj: Any) -> Profile:
 
 def decode_profile(data: Union[bytes, str]) -> Profile:
     """A validated Profile from JSON text."""
+    if not data.strip():    # msgspec would say "Input data was truncated"
+        raise _bad("empty: no profile in it")
     try:
         return msgspec.json.decode(data, type=Profile)
     except msgspec.ValidationError as e:

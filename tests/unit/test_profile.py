@@ -420,3 +420,19 @@ def test_slopes_must_be_positive_finite(slope):
         assert not ok, str(e)
         return
     assert ok
+
+
+@pytest.mark.parametrize("data", [b"", b"  \n", ""])
+def test_an_empty_file_is_called_empty(data):
+    with pytest.raises(FlowloopError) as e:
+        P.decode_profile(data)
+    assert str(e.value) == "empty: no profile in it"
+
+
+def test_the_profile_command_says_an_empty_file_is_empty(tmp_path, capsys):
+    from flowloop import cli
+    empty = tmp_path / "p.json"
+    empty.write_bytes(b"")
+    assert cli.main(["profile", "show", str(empty)]) == 2
+    assert capsys.readouterr().err == (f"flowloop profile: error: {empty}: empty:"
+                                       f" no profile in it\n")
