@@ -82,11 +82,11 @@ def run(args) -> int:
     if args.dry_run:
         check_all(changes)
         for change in changes:
-            print(f"would {change.what}: {change.path}")
+            print(f"would {change.what}")
         return 0
     apply(changes)  # checks everything first; prints only what was done
     for change in changes:
-        print(f"{change.what}: {change.path}")
+        print(change.what)
     host = host_name(args.klipper)
     if not args.uninstall and mcu_sources(source):
         where = ("Firmware Extras > Support EMS22 filament flow sensor"
@@ -96,5 +96,6 @@ def run(args) -> int:
     if not args.uninstall and not args.no_moonraker and not is_checkout(source):
         print("flowloop runs from a pip install: update it with pip install "
               "-U klipper-flowloop, then run flowloop install again")
-    print(f"restart {host.lower()} and moonraker to load the change")
+    restart = host.lower() if args.no_moonraker else f"{host.lower()} and moonraker"
+    print(f"restart {restart} to load the change")
     return 0

@@ -183,7 +183,7 @@ def _line_starts(text: str, after: int):
 @dataclasses.dataclass
 class Change:
     path: Path
-    what: str
+    what: str      # the change as the user reads it, path included: "link A -> B"
     new_text: Optional[str] = None      # write this text
     old_text: Optional[str] = None      # what it replaces (None: a new file)
     link_to: Optional[Path] = None      # create this symlink
@@ -388,14 +388,16 @@ def _exclude_changes(changes: List[Change], tree: Path, rel_paths: List[str],
     body = "".join(f"/{rel}\n" for rel in rel_paths)
     if not exclude.exists():
         if not uninstall and body and exclude.parent.is_dir():
-            changes.append(Change(exclude, "git exclude",
+            changes.append(Change(exclude, f"write {exclude}: git ignores"
+                                  f" flowloop's links",
                                   new_text=put_block("", "files", body)))
         return
     if uninstall or not body:
-        _edit(changes, exclude, "git exclude", lambda t: drop_block(t, "files"))
+        _edit(changes, exclude, f"remove flowloop's links from {exclude}",
+              lambda t: drop_block(t, "files"))
     else:
-        _edit(changes, exclude, "git exclude",
-              lambda t: put_block(t, "files", body))
+        _edit(changes, exclude, f"add flowloop's links to {exclude} (git ignores"
+              f" them)", lambda t: put_block(t, "files", body))
 
 
 def is_kalico(klipper: Path) -> bool:
@@ -449,9 +451,11 @@ def plan_kalico(klipper: Path, source: Path, uninstall: bool) -> List[Change]:
     _stale_links(changes, plugins, source, modules)
     _stale_links(changes, extras, source, [])  # a Klipper-style install
     _stale_links(changes, klipper / "src", source, [])
-    _edit(changes, klipper / "src" / "Makefile", "src/Makefile",
+    _edit(changes, klipper / "src" / "Makefile",
+          f"remove the EMS22 sensor source from {klipper / 'src' / 'Makefile'}",
           lambda t: drop_block(t, "sensor"))
-    _edit(changes, klipper / "src" / "Kconfig", "src/Kconfig",
+    _edit(changes, klipper / "src" / "Kconfig",
+          f"remove the EMS22 sensor option from {klipper / 'src' / 'Kconfig'}",
           lambda t: drop_block(drop_block(t, "sensor-prompt"), "sensor"))
     _exclude_changes(changes, klipper, [], uninstall=True)
 
@@ -506,11 +510,12 @@ def plan_klipper(klipper: Path, source: Path, uninstall: bool = False) -> List[C
     makefile = klipper / "src" / "Makefile"
     kconfig = klipper / "src" / "Kconfig"
     if uninstall or not c_files:
-        _edit(changes, makefile, "src/Makefile", lambda t: drop_block(t, "sensor"))
-        _edit(changes, kconfig, "src/Kconfig",
+        _edit(changes, makefile, f"remove the EMS22 sensor source from {makefile}",
+              lambda t: drop_block(t, "sensor"))
+        _edit(changes, kconfig, f"remove the EMS22 sensor option from {kconfig}",
               lambda t: drop_block(drop_block(t, "sensor-prompt"), "sensor"))
     else:
-        _edit(changes, makefile, "src/Makefile",
+        _edit(changes, makefile, f"add the EMS22 sensor source to {makefile}",
               lambda t: put_block(t, "sensor", MAKEFILE_LINES))
 
         def kconfig_edit(text: str) -> str:
@@ -518,7 +523,8 @@ def plan_klipper(klipper: Path, source: Path, uninstall: bool = False) -> List[C
                              lambda t: _line_offset(t, LIMITED_MENU, kconfig))
             return put_block(text, "sensor-prompt", KCONFIG_PROMPT,
                              lambda t: _prompt_offset(t, kconfig))
-        _edit(changes, kconfig, "src/Kconfig", kconfig_edit)
+        _edit(changes, kconfig, f"add the EMS22 sensor option (make menuconfig)"
+              f" to {kconfig}", kconfig_edit)
     _exclude_changes(changes, klipper, excluded, uninstall)
     return changes
 
@@ -587,19 +593,18 @@ def plan_moonraker_conf(config_dir: Path, source: Path,
     if not conf.is_file():
         raise InstallError(f"{conf}: no such file (use --config-dir)")
     changes: List[Change] = []
+    drop = f"remove [update_manager flowloop] from {conf}"
     if uninstall:
-        _edit(changes, conf, "moonraker.conf",
-              lambda t: drop_block(t, "update-manager"))
+        _edit(changes, conf, drop, lambda t: drop_block(t, "update-manager"))
         return changes
     if not is_checkout(source):
         # Installed from a wheel: pip updates it, not a git_repo updater.
-        _edit(changes, conf, "moonraker.conf",
-              lambda t: drop_block(t, "update-manager"))
+        _edit(changes, conf, drop, lambda t: drop_block(t, "update-manager"))
         return changes
     text = conf.read_text(encoding="utf-8")
     has_own = find_block(text, "update-manager") is not None
     if not has_own and "[update_manager flowloop]" in text:
         return changes  # the user wrote one: theirs wins
-    _edit(changes, conf, "moonraker.conf",
+    _edit(changes, conf, f"add [update_manager flowloop] to {conf}",
           lambda t: put_block(t, "update-manager", "\n" + update_manager_block(source)))
     return changes

@@ -537,3 +537,24 @@ def test_without_klipper_path_the_default_is_klipper_else_kalico(tmp_path,
     assert cli_install.default_klipper().expanduser() == tmp_path / "klipper"
     monkeypatch.setenv("KLIPPER_PATH", str(tmp_path / "elsewhere"))
     assert cli_install.default_klipper() == tmp_path / "elsewhere"
+
+
+def test_a_dry_run_says_each_change_once_and_what_it_adds(klipper_tree, capsys):
+    assert install.mcu_sources(install.source_tree())  # the Makefile gets lines
+    assert run_install("--klipper", str(klipper_tree), "--no-moonraker",
+                       "--dry-run") == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines and all(line.startswith("would ") for line in lines)
+    for line in lines:   # the path once: "would link A -> B", not "...: A"
+        path = line.split()[2].rstrip(":")
+        assert line.count(path) == 1, line
+    makefile = klipper_tree / "src" / "Makefile"
+    assert f"would add the EMS22 sensor source to {makefile}" in lines
+
+
+def test_without_moonraker_only_klipper_is_to_be_restarted(klipper_tree, capsys):
+    assert run_install("--klipper", str(klipper_tree), "--no-moonraker") == 0
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last == "restart klipper to load the change"
+    assert run_install("--klipper", str(klipper_tree), "--no-moonraker",
+                       "--uninstall") == 0
