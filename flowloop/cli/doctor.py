@@ -15,6 +15,7 @@ from urllib.parse import quote, urlparse
 from .. import __version__
 from ..host import doctor, install
 from .install import _default_moonraker as default_moonraker
+from .install import default_klipper
 
 FLOWLOOP_ENDPOINTS = ("/server/flowloop/info", "/server/flowloop/profiles")
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -61,11 +62,15 @@ class Client:
 
 def gather(client: Client, klipper: Optional[Path] = None,
            moonraker_dir: Optional[Path] = None) -> doctor.Facts:
+    local = urlparse(client.url).hostname in LOOPBACK
     server_info, error = client.get("/server/info")
     if server_info is None:
         hint = " (is --api-key right?)" if error and "401" in error else ""
+        # Moonraker down on the printer: the trees are still here to check
+        trees = _local_trees(klipper or default_klipper(), moonraker_dir) \
+            if local else {}
         return doctor.Facts(client.url, moonraker_error=f"Moonraker at {client.url}:"
-                            f" {error}{hint}")
+                            f" {error}{hint}", on_this_machine=local, **trees)
     endpoints: Dict[str, Optional[str]] = {}
     results: Dict[str, Optional[dict]] = {}
     for path in FLOWLOOP_ENDPOINTS:
@@ -78,18 +83,22 @@ def gather(client: Client, klipper: Optional[Path] = None,
     if "update_manager" in server_info.get("components", []):
         updates, _ = client.get("/machine/update/status")
         update_status = ((updates or {}).get("version_info") or {}).get("flowloop")
-    local = urlparse(client.url).hostname in LOOPBACK
     if klipper is None and local and printer_info:
         klipper = Path(printer_info["klipper_path"])
-    pending, install_error, moonraker_seen = _install_plan(klipper, moonraker_dir,
-                                                           local)
     return doctor.Facts(
         client.url, server_info=server_info, endpoint_errors=endpoints,
         flowloop_info=results["/server/flowloop/info"], printer_info=printer_info,
         objects=objects or {}, update_status=update_status,
-        install_pending=pending, install_error=install_error,
-        moonraker_tree_checked=moonraker_seen,
-        **_klipper_tree(klipper))
+        on_this_machine=local, **_local_trees(klipper, moonraker_dir, local))
+
+
+def _local_trees(klipper: Optional[Path], moonraker_dir: Optional[Path],
+                 local: bool = True) -> dict:
+    """What the Klipper and Moonraker trees on this machine say, as Facts fields."""
+    pending, install_error, moonraker_seen = _install_plan(klipper, moonraker_dir,
+                                                           local)
+    return dict(install_pending=pending, install_error=install_error,
+                moonraker_tree_checked=moonraker_seen, **_klipper_tree(klipper))
 
 
 def _objects(client: Client) -> Dict[str, dict]:

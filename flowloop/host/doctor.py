@@ -78,6 +78,7 @@ class Facts:
     install_pending: Optional[Tuple[str, ...]] = None
     install_error: Optional[str] = None
     moonraker_tree_checked: bool = True      # the plan covered Moonraker's link
+    on_this_machine: bool = False            # Moonraker's URL is a loopback address
 
 
 # ---------------------------------------------------------------------------
@@ -142,10 +143,11 @@ def check_links(facts: Facts) -> Check:
             "sudo systemctl restart klipper moonraker (or run the doctor of"
             " the flowloop they load)")
     if facts.install_pending is None:
-        return Check("links", SKIP, "not checked from another machine (run"
-                     " flowloop doctor on the printer)" + (
-                         f"; the hosts run flowloop {__version__}" if running
-                         else ""))
+        where = ("not checked: no Klipper tree found here (pass --klipper DIR)"
+                 if facts.on_this_machine else "not checked from another machine"
+                 " (run flowloop doctor on the printer)")
+        return Check("links", SKIP, where + (
+            f"; the hosts run flowloop {__version__}" if running else ""))
     unseen = ("" if facts.moonraker_tree_checked else "; Moonraker's link not"
               " checked: no ~/moonraker or ~/moonraker-env (pass --moonraker-dir)")
     return Check("links", OK, f"installed and pointing at flowloop {__version__}"

@@ -310,3 +310,26 @@ def test_on_the_printer_without_a_moonraker_tree_only_klipper_s_links_count(
     assert error is None and not seen
     assert pending and all("moonraker" not in what for what in pending)
     assert any("klippy/extras/flow_sensor.py" in what for what in pending)
+
+
+def test_a_loopback_moonraker_that_does_not_answer_is_still_this_machine(
+        tmp_path, capsys):
+    # Moonraker down on the printer: the trees are here, so the links are checked.
+    tree = klipper_tree(tmp_path / "k")
+    components = tmp_path / "moonraker" / "moonraker" / "components"
+    components.mkdir(parents=True)
+    (components / "klippy_apis.py").write_text("")
+    assert main(["doctor", "--moonraker", "http://127.0.0.1:9", "--klipper",
+                 str(tree), "--moonraker-dir", str(tmp_path / "moonraker")]) == 1
+    lines = {line.split(":")[0]: line for line in capsys.readouterr().out.splitlines()}
+    assert "another machine" not in lines["FAIL links"]
+    assert "install would link" in lines["FAIL links"]
+
+
+def test_a_loopback_moonraker_without_a_tree_is_not_called_another_machine(
+        tmp_path, capsys):
+    assert main(["doctor", "--moonraker", "http://localhost:9", "--klipper",
+                 str(tmp_path / "nowhere")]) == 1
+    out = capsys.readouterr().out
+    links = next(line for line in out.splitlines() if " links:" in line)
+    assert "another machine" not in links and "--klipper" in links
