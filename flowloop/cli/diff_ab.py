@@ -107,7 +107,10 @@ def _load_history(path: Path):
     if not path.exists():
         return []
     try:
-        history = json.loads(path.read_text())
+        text = path.read_text()
+        if not text.strip():    # a file made ready (touch): no rounds yet
+            return []
+        history = json.loads(text)
     except (OSError, ValueError) as e:
         raise FlowloopError(f"cannot read history {path}: {e}") from None
     return diff_ab.check_history(history, str(path))

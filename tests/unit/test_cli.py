@@ -237,3 +237,12 @@ def test_a_z_offset_with_a_decimal_comma_says_so(capsys):
                      *[w for p in PROBES for w in ("--probe", p)],
                      "--z-offset", "0,1"]) == 2
     assert "--z-offset: '0,1' has a decimal comma: write 0.1" in capsys.readouterr().err
+
+
+def test_an_empty_history_file_is_a_history_of_no_rounds(tmp_path, capsys):
+    history = tmp_path / "h.json"
+    history.write_text("")
+    assert cli.main(["ab-calibrate", "--rotation-distance-a", "40",
+                     "--rotation-distance-b", "40", "--a1", "9.93", "--a2", "149.9",
+                     "--b1", "9.95", "--b2", "149.9", "--history", str(history)]) == 0
+    assert len(json.loads(history.read_text())) == 1
