@@ -24,6 +24,7 @@ from ..material.profile import (
     line_warnings,
     temp_for_flow,
 )
+from .paths import refuse_overwriting
 
 
 def safe_file_stem(name: str) -> str:
@@ -116,6 +117,7 @@ def cmd_validate(args) -> int:
 def cmd_plot(args) -> int:
     profile = load(args.file)
     out: Path = args.output or Path(safe_file_stem(profile.identity.name) + ".svg")
+    refuse_overwriting([("-o", out)], [("FILE", args.file)])
     if out.suffix.lower() == ".png":
         plot.png(profile, out, args.wp)
     elif out.suffix.lower() == ".svg":
@@ -153,6 +155,7 @@ def cmd_import(args) -> int:
 
 def cmd_export(args) -> int:
     profile = load(args.file)
+    refuse_overwriting([("-o", args.output)], [("FILE", args.file)])
     text = ddprint.export_text(profile)
     if args.output is None:
         sys.stdout.write(text)

@@ -131,7 +131,8 @@ def test_cli_bake_and_plot(tmp_path, capsys):
 @pytest.mark.parametrize("args, word", [
     (["--bake", "{profile}"], "-o"),
     (["--plot"], "--bake"),
-    (["-o", "{out}", "--bake", "{profile}", "--dead-time", "-1"], "--dead-time must be"),
+    (["-o", "{out}", "--bake", "{profile}", "--dead-time", "-1"],
+     "--dead-time must be"),
     (["-o", "{out}", "--bake", "{profile}", "--working-point", "3"],
      "working-point"),
 ])

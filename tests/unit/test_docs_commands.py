@@ -10,12 +10,13 @@ from pathlib import Path
 from flowloop.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[2]
-PLACES = (["README.md"] + [str(p.relative_to(ROOT)) for p in
-                           sorted((ROOT / "docs").glob("*.md"))
-                           + sorted((ROOT / "config").glob("*.cfg"))
-                           + sorted((ROOT / "macros").glob("*.cfg"))
-                           + sorted((ROOT / "flowloop" / "host" / "page").glob("*.js"))
-                           + sorted((ROOT / "flowloop" / "host" / "page").glob("*.html"))])
+PAGE = ROOT / "flowloop" / "host" / "page"
+PLACES = (["README.md"]
+          + [str(p.relative_to(ROOT)) for p in
+             sorted((ROOT / "docs").glob("*.md"))
+             + sorted((ROOT / "config").glob("*.cfg"))
+             + sorted((ROOT / "macros").glob("*.cfg"))
+             + sorted(PAGE.glob("*.js")) + sorted(PAGE.glob("*.html"))])
 # A command as a user would type it: in a code span or block of a doc, after
 # "$ ", or in parentheses or quotes in a config comment or the page.
 _CALL = re.compile(r"^(?:\$ )?flowloop ([a-z][a-z-]*)(?: ([a-z][a-z-]*))?")

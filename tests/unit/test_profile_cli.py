@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import pytest
 
@@ -158,3 +159,16 @@ def test_import_never_overwrites_what_it_wrote_in_the_same_run(tmp_path, capsys)
     assert code == 1
     assert text.count("pla_40.json") == 1 and "was written above" in err
     assert P.decode_profile((out / "pla_40.json").read_bytes()).bounds.min_temp_c == 190
+
+
+@pytest.mark.parametrize("action", ["export", "plot"])
+def test_export_and_plot_never_overwrite_the_profile(action, tmp_path, capsys):
+    from flowloop.cli import main as cli_main
+    src = tmp_path / "p.json"
+    src.write_text((Path(__file__).resolve().parents[2] / "docs" / "examples"
+                    / "weak.json").read_text())
+    before = src.read_bytes()
+    assert cli_main(["profile", action, str(src), "-o",
+                     str(tmp_path / "." / "p.json")]) == 2
+    assert "would overwrite FILE" in capsys.readouterr().err
+    assert src.read_bytes() == before
