@@ -372,12 +372,12 @@ class _Annotator:
         self.copy_to(offset)
         self.out.write(line.encode() + self.newline)
 
-    def keep_byte_order_mark(self) -> None:
-        """A UTF-8 byte-order mark stays the file's first bytes, before the
-        marker; no command goes before the first line after it."""
+    def drop_byte_order_mark(self) -> None:
+        """A UTF-8 byte-order mark is left out: the marker must be the file's
+        first bytes (is_annotated, Moonraker's `ident`), and no command goes
+        before the first line after it."""
         head = self.src.read(len(codecs.BOM_UTF8))
         if head == codecs.BOM_UTF8:
-            self.out.write(head)
             self.copied = self.block_start = len(head)
             self.candidates = _Candidates(0.0, len(head))
         elif self.src.seekable():
@@ -431,7 +431,7 @@ def annotate_stream(events: Iterable[Union[Event, Segments]], src: BinaryIO,
     src is read from its start as the events reach further into it.
     """
     a = _Annotator(settings, src, out, newline)
-    a.keep_byte_order_mark()
+    a.drop_byte_order_mark()
     out.write(marker_line(settings).encode() + newline)
     for event in events:
         if isinstance(event, Barrier):

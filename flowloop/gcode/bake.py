@@ -27,6 +27,7 @@ capacity there) is kept for `--plot` (timeline_svg).
 
 from __future__ import annotations
 
+import codecs
 import math
 import re
 from dataclasses import dataclass, field
@@ -298,12 +299,17 @@ def marker_line(profile: Profile, working_point: float,
 def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
            newline: bytes, profile: Profile, working_point: float,
            params: HotendParams, fix: Optional[StartFix] = None) -> int:
-    out.write(marker_line(profile, working_point, params).encode() + newline)
     overridden = 0
     i = 0
     first = placements[0][0] if placements else None
-    offset = 0
     with open(src, "rb") as f:
+        # a UTF-8 byte-order mark is left out, as annotate leaves it out: the
+        # marker is the file's first bytes
+        offset = len(codecs.BOM_UTF8)
+        if f.read(offset) != codecs.BOM_UTF8:
+            f.seek(0)
+            offset = 0
+        out.write(marker_line(profile, working_point, params).encode() + newline)
         for line in f:
             if fix is not None and fix.line is not None and fix.offset == offset:
                 # the start's wait, before any baked M104 at the same line
