@@ -22,6 +22,7 @@ without either, one is added before the first extrusion.
 
 from __future__ import annotations
 
+import codecs
 import re
 from dataclasses import dataclass
 from typing import BinaryIO, Optional
@@ -62,6 +63,8 @@ class StartFix:
 
 
 def _code(line: bytes) -> bytes:
+    if line.startswith(codecs.BOM_UTF8):    # no command (planner.Planner.line)
+        line = line[len(codecs.BOM_UTF8):]
     return line.split(b";", 1)[0].rstrip(b"\r\n")
 
 
@@ -123,40 +126,40 @@ def start_fix(heat: StartHeat, plan_start_c: float, newline: str = "\n"
     degrees, rounded up by the caller) when the first extrusion starts."""
     t = int(plan_start_c)
     where = f"line {heat.line_no}"
+    name = heat.text.split()[0] if heat.text else ""
+    if heat.kind == "none":
+        return _added(heat.offset, t, plan_start_c, newline,
+                      f"no M109 or start macro before the first extrusion"
+                      f" ({where}): added M109 S{t} before it")
+    if heat.temp_c is not None and heat.temp_c >= plan_start_c:
+        said = (f"the file's {heat.text} ({where}) heats to at least the plan's"
+                f" {t} C: kept, the plan's targets follow it"
+                if heat.kind == "m109" else
+                f"{name} ({where}) is given {heat.param}={heat.temp_c:g}, at"
+                f" least the plan's {t} C: kept, assuming your macro waits at it")
+        return StartFix("keep", heat.offset, heat.end, None, heat.temp_c,
+                        "start: " + said)
     if heat.kind == "m109" and heat.temp_c is not None:
-        if heat.temp_c >= plan_start_c:
-            return StartFix(
-                "keep", heat.offset, heat.end, None, heat.temp_c,
-                f"start: the file's {heat.text} ({where}) heats to at least the"
-                f" plan's {t} C: kept, the plan's targets follow it")
         return StartFix(
             "raise", heat.offset, heat.end,
             f"M109 S{t} ; flowloop bake: was {heat.text}" + newline,
             plan_start_c,
             f"start: raised the file's {heat.text} ({where}) to M109 S{t},"
             f" the temperature the plan starts from")
-    if heat.kind in ("macro", "m109"):   # an M109 without S or R: unknown
-        name = heat.text.split()[0]
-        if heat.temp_c is not None and heat.temp_c >= plan_start_c:
-            return StartFix(
-                "keep", heat.offset, heat.end, None, heat.temp_c,
-                f"start: {name} ({where}) is given {heat.param}="
-                f"{heat.temp_c:g}, at least the plan's {t} C: kept, assuming"
-                f" your macro waits at it")
-        told = (f"is given {heat.param}={heat.temp_c:g}, below the plan's {t} C"
-                if heat.temp_c is not None else
-                "heats inside Klipper to a temperature the file does not say")
-        hint = (f"give it {heat.param}={t}" if heat.param is not None
-                else f"make it wait at {t} C")
-        return StartFix(
-            "add", heat.end, heat.end,
-            f"M109 S{t} ; flowloop bake: the plan starts at {t} C" + newline,
-            plan_start_c,
-            f"start: {name} ({where}) {told}: added M109 S{t} after it; to"
-            f" heat once, {hint}")
-    return StartFix(
-        "add", heat.offset, heat.offset,
-        f"M109 S{t} ; flowloop bake: the plan starts at {t} C" + newline,
-        plan_start_c,
-        f"start: no M109 or start macro before the first extrusion ({where}):"
-        f" added M109 S{t} before it")
+    # a start macro (or an M109 without S or R): what it waits at is unknown
+    # or below the plan
+    told = (f"is given {heat.param}={heat.temp_c:g}, below the plan's {t} C"
+            if heat.temp_c is not None else
+            "waits at a temperature the file does not say")
+    hint = (f"give it {heat.param}={t}" if heat.param is not None
+            else f"make it wait at {t} C")
+    return _added(heat.end, t, plan_start_c, newline,
+                  f"{name} ({where}) {told}: added M109 S{t} after it; to heat"
+                  f" once, {hint}")
+
+
+def _added(offset: int, t: int, start_c: float, newline: str, said: str
+           ) -> StartFix:
+    return StartFix("add", offset, offset,
+                    f"M109 S{t} ; flowloop bake: the plan starts at {t} C"
+                    + newline, start_c, "start: " + said)

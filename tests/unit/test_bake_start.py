@@ -143,7 +143,7 @@ def test_another_tools_wait_and_plain_commands_are_not_the_start():
     heat = _heat("START_PRINT\n")
     assert (heat.kind, heat.temp_c) == ("macro", None)
     assert start_fix(heat, 226.0).action == "add"
-    assert "to a temperature the file does not say" in start_fix(heat, 226).message
+    assert "waits at a temperature the file does not say" in start_fix(heat, 226).message
 
 
 def test_a_wait_after_the_first_extrusion_is_not_the_start():
@@ -154,3 +154,29 @@ def test_a_wait_after_the_first_extrusion_is_not_the_start():
 def test_an_m109_without_a_temperature_is_unknown():
     fix = start_fix(_heat("M109\n"), 226.0)
     assert fix.action == "add" and fix.line.startswith("M109 S226")
+
+
+def test_a_byte_order_mark_is_left_out_and_the_baked_file_is_not_baked_again(
+        tmp_path):
+    import codecs
+
+    from flowloop.errors import FlowloopError
+    src = _file(tmp_path, STARTS["plain"])
+    bom = tmp_path / "bom.gcode"
+    bom.write_bytes(codecs.BOM_UTF8 + src.read_bytes())
+    out, again = tmp_path / "out.gcode", tmp_path / "again.gcode"
+    result, _ = bake_file(bom, out, PROFILE, 0.5)
+    baked = out.read_bytes()
+    assert baked.startswith(b"; flowloop autotemp annotations v")
+    # the start's M109 on a later line is still found and raised
+    assert result.start.action == "raise"
+    with pytest.raises(FlowloopError, match="annotated or baked already"):
+        bake_file(out, again, PROFILE, 0.5)
+    # and it is the same file as the one baked without the mark
+    bake_file(src, again, PROFILE, 0.5)
+    assert again.read_bytes() == baked
+
+
+def test_a_start_wait_on_the_first_line_after_a_byte_order_mark_is_found():
+    heat = _heat("\ufeffM109 S210\nG1 X1 E1\n")
+    assert (heat.kind, heat.temp_c) == ("m109", 210.0)
