@@ -33,22 +33,6 @@ MIN_GAP_LINES = 2.0      # free space between neighbouring pylons, in line width
 BED_MARGIN_MM = 5.0
 
 Point = Tuple[float, float]
-# What each option written into the G-code may be (flowloop.gcode.bounds).
-BOUNDS = {
-    "pylon_width_mm": bounds.SIZE_MM, "pylon_depth_mm": bounds.SIZE_MM,
-    "pylon_height_mm": bounds.SIZE_MM, "bed_size_x_mm": bounds.SIZE_MM,
-    "bed_size_y_mm": bounds.SIZE_MM, "line_width_mm": bounds.SIZE_MM,
-    "layer_height_mm": bounds.SIZE_MM,
-    "nozzle_diameter_mm": bounds.NOZZLE_DIAMETER_MM,
-    "filament_diameter_mm": bounds.FILAMENT_DIAMETER_MM,
-    "print_speed_mm_s": bounds.SPEED_MM_S,
-    "first_layer_speed_mm_s": bounds.SPEED_MM_S,
-    "travel_speed_mm_s": bounds.SPEED_MM_S,
-    "retract_speed_mm_s": bounds.SPEED_MM_S,
-    "retract_mm": bounds.RETRACT_MM, "z_hop_mm": bounds.RETRACT_MM,
-    "hotend_temp_c": bounds.HOTEND_TEMP_C, "bed_temp_c": bounds.BED_TEMP_C,
-}
-
 
 @dataclasses.dataclass(frozen=True)
 class PylonOptions:
@@ -107,10 +91,7 @@ def validate(o: PylonOptions) -> None:
     if o.kinematics not in diff_ab.KINEMATICS:
         raise FlowloopError(
             f"kinematics must be corexy or cartesian, not '{o.kinematics}'")
-    for name, bound in BOUNDS.items():
-        bound.check(name, getattr(o, name))
-    if o.accel_mm_s2 is not None:
-        bounds.ACCEL_MM_S2.check("accel_mm_s2", o.accel_mm_s2)
+    bounds.check_options(o)
     for name in ("centre_x_mm", "centre_y_mm"):
         value = getattr(o, name)
         if value is not None and not math.isfinite(value):

@@ -30,21 +30,6 @@ TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
 TEMPLATE_NAME = "measure_part.gcode.j2"
 MAX_LAYERS = 1000
 BED_MARGIN_MM = 5.0
-# What each option written into the G-code may be (flowloop.gcode.bounds);
-# the rest (flows, the rise) only need to be above 0.
-BOUNDS = {
-    "length_mm": bounds.SIZE_MM, "width_mm": bounds.SIZE_MM,
-    "height_mm": bounds.SIZE_MM, "line_width_mm": bounds.SIZE_MM,
-    "layer_height_mm": bounds.SIZE_MM,
-    "nozzle_diameter_mm": bounds.NOZZLE_DIAMETER_MM,
-    "filament_diameter_mm": bounds.FILAMENT_DIAMETER_MM,
-    "first_layer_speed_mm_s": bounds.SPEED_MM_S,
-    "max_speed_mm_s": bounds.SPEED_MM_S,
-    "travel_speed_mm_s": bounds.SPEED_MM_S,
-    "hotend_temp_c": bounds.HOTEND_TEMP_C, "bed_temp_c": bounds.BED_TEMP_C,
-    "bed_size_x_mm": bounds.SIZE_MM, "bed_size_y_mm": bounds.SIZE_MM,
-}
-
 
 @dataclasses.dataclass(frozen=True)
 class PartOptions:
@@ -67,11 +52,12 @@ class PartOptions:
     bed_size_y_mm: float = 220.0
 
     def __post_init__(self):
+        bounds.check_options(self)
+        # the rest (flows, the rise) only need to be above 0
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if field.name in BOUNDS:
-                BOUNDS[field.name].check(field.name, value)
-            elif not (math.isfinite(value) and value > 0):
+            if field.name not in bounds.OPTIONS \
+                    and not (math.isfinite(value) and value > 0):
                 raise FlowloopError(f"{field.name} must be a number above 0, "
                                     f"got {value}")
         if self.layer_height_mm > 0.8 * self.nozzle_diameter_mm:

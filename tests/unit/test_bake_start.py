@@ -143,7 +143,8 @@ def test_another_tools_wait_and_plain_commands_are_not_the_start():
     heat = _heat("START_PRINT\n")
     assert (heat.kind, heat.temp_c) == ("macro", None)
     assert start_fix(heat, 226.0).action == "add"
-    assert "waits at a temperature the file does not say" in start_fix(heat, 226).message
+    assert "waits at a temperature the file does not say" in start_fix(
+        heat, 226).message
 
 
 def test_a_wait_after_the_first_extrusion_is_not_the_start():

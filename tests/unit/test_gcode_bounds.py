@@ -3,6 +3,8 @@ bounded, from one table (flowloop.gcode.bounds), for the CLI and the core alike.
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from flowloop import cli
@@ -83,3 +85,15 @@ def test_a_bound_names_the_value_and_its_range():
     assert str(e.value) == ("--speed must be a number above 0 and at most 1000"
                             " mm/s, got 0")
     assert bounds.SPEED_MM_S.check("--speed", 1000) == 1000.0
+
+
+@pytest.mark.parametrize("options", [PartOptions, PylonOptions])
+def test_every_number_a_generator_writes_has_its_bound_in_the_one_table(options):
+    # a new option is bounded by bounds.OPTIONS or named here as not written
+    not_written = {"rise", "start_flow_mm3_s", "max_flow_mm3_s",
+                   "extrusion_multiplier", "centre_x_mm", "centre_y_mm",
+                   "distances_mm"}
+    numbers = {f.name for f in dataclasses.fields(options)
+               if "float" in str(f.type)}
+    assert numbers - not_written <= set(bounds.OPTIONS)
+    assert numbers - not_written
