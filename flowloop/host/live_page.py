@@ -9,6 +9,7 @@ Moonraker's websocket.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from pathlib import Path
@@ -20,6 +21,7 @@ from ..errors import FlowloopError
 from ..gcode.annotate import COMMAND, HEADER_BYTES, is_annotated
 from ..gcode.bake import _parse as parse_announcement
 from ..gcode.bake import replay
+from ..material.plot import COLORS
 from ..material.profile import Profile, decode_profile, encode_profile, profile_line
 
 ASSETS = Path(__file__).resolve().parent / "page"
@@ -30,6 +32,8 @@ LINE_POINTS = 41
 
 _LINK = re.compile(r'<link rel="stylesheet" href="(?P<name>[\w.]+)">')
 _SCRIPT = re.compile(r'<script src="(?P<name>[\w.]+)"></script>')
+# Where page.js takes the plots' colours (one palette, flowloop.material.plot's).
+PALETTE_MARK = "{/* plot.COLORS */}"
 
 
 def _read(assets: Path, name: str) -> str:
@@ -48,7 +52,8 @@ def document(assets: Path = ASSETS) -> bytes:
     (a trusted client, or Moonraker's `?access_token=` / `?token=` in the
     URL, which a browser sends with the page but not with its sub-requests).
     The files stay separate in the package: index.html also opens straight
-    from the folder while the page is being worked on.
+    from the folder while the page is being worked on. page.js gets the
+    plots' colours (flowloop.material.plot.COLORS) here.
     """
     html = _read(assets, "index.html")
     html = _LINK.sub(
@@ -57,7 +62,7 @@ def document(assets: Path = ASSETS) -> bytes:
     # to JavaScript.
     html = _SCRIPT.sub(lambda m: "<script>\n" + _read(assets, m["name"]).replace(
         "</script", "<\\/script") + "\n</script>", html)
-    return html.encode("utf-8")
+    return html.replace(PALETTE_MARK, json.dumps(COLORS)).encode("utf-8")
 
 
 # ---------------------------------------------------------------------------

@@ -47,8 +47,8 @@ PROFILE_WIDTH = WIDTH + LEGEND_WIDTH
 HEADER_HEIGHT = 40  # the plot's title
 WARNING_LINE_HEIGHT = 16
 WARNING_COLOR = "#b42318"
-# Every picture's colours, the live page's too (page.js holds a copy that
-# tests/unit/test_profile_plot.py compares with this one).
+# Every picture's colours, the live page's too (flowloop.host.live_page
+# writes them into page.js).
 COLORS = {
     # a profile's lines and marks
     "into_air": "#1f77b4", "real_print": "#d62728", "working": "#2ca02c",

@@ -47,6 +47,14 @@ def test_the_document_carries_every_file_it_links_inline():
     assert page.count("<script>") == page.count("</script>") == 2
 
 
+def test_the_page_draws_in_the_plots_colours():
+    from flowloop.material.plot import COLORS
+    page = live_page.document().decode()
+    (served,) = re.findall(r"const COLORS = (\{.*?\});", page)
+    assert json.loads(served) == COLORS
+    assert live_page.PALETTE_MARK not in page
+
+
 def test_a_missing_page_file_is_named(tmp_path):
     shutil.copytree(live_page.ASSETS, tmp_path / "page")
     (tmp_path / "page" / "page.js").unlink()

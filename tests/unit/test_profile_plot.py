@@ -296,17 +296,3 @@ def pixels_like(image, color: str, tolerance: float = 40 / 255) -> int:
     """Pixels within tolerance of #rrggbb (antialiased dots are paler)."""
     want = np.array([int(color[i:i + 2], 16) for i in (1, 3, 5)]) / 255.0
     return int((np.abs(image[..., :3] - want).max(axis=-1) < tolerance).sum())
-
-
-
-def test_the_page_draws_with_the_plots_colours():
-    # regenerate page.js's copy: python -c "import json; from flowloop.material
-    #   import plot; print(json.dumps(plot.COLORS))"
-    import json
-    import re
-    from pathlib import Path
-
-    import flowloop.host
-    page_js = Path(flowloop.host.__file__).parent / "page" / "page.js"
-    (copy,) = re.findall(r"const COLORS = (\{.*?\});", page_js.read_text(), re.S)
-    assert json.loads(copy) == plot.COLORS

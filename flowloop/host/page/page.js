@@ -19,15 +19,9 @@
   // span at least this much, so noise does not read as steps.
   const TEMP_MIN_SPAN_C = 10;
 
-  // The colours of flowloop's plots (flowloop.material.plot.COLORS; a unit
-  // test, tests/unit/test_profile_plot.py, keeps this copy the same).
-  const COLORS = {
-    "into_air": "#1f77b4", "real_print": "#d62728", "working": "#2ca02c",
-    "band": "#e5e5e5", "grid": "#dddddd", "bound": "#7f7f7f",
-    "recommended": "#d62728", "target": "#d62728", "nozzle": "#1f77b4",
-    "demand": "#7f7f7f", "measured": "#9467bd", "capacity": "#2ca02c",
-    "cap": "#d62728", "planned": "#ff7f0e", "grip": "#17becf", "now": "#9467bd"
-  };
+  // The colours of flowloop's plots: live_page.document() writes
+  // flowloop.material.plot.COLORS in place of this mark when it serves the page.
+  const COLORS = {/* plot.COLORS */};
 
   const query = new URLSearchParams(location.search);
   const extruder = query.get("extruder") || "extruder";
