@@ -342,11 +342,8 @@ def time_axis(end_s: float) -> Tuple[str, List[Tuple[float, str]]]:
     if end_s <= 7200:
         return "print time (min)", [(m * 60, f"{m:g}")
                                     for m in plot.nice_ticks(0.0, end_s / 60)]
-    step_min = next((m for m in (15, 30, 60, 120, 180, 360, 720)
-                     if end_s / 60 / m <= 8), 1440 * math.ceil(end_s / 86400 / 8))
-    ticks = [k * step_min * 60 for k in range(int(end_s // (step_min * 60)) + 1)]
-    return "print time (h:mm)", [(t, f"{int(t // 3600)}:{int(t % 3600 // 60):02d}")
-                                 for t in ticks]
+    return "print time (h:mm)", [(h * 3600, f"{int(h)}:{round(h % 1 * 60):02d}")
+                                 for h in plot.nice_ticks(0.0, end_s / 3600)]
 
 
 def timeline_svg(timeline: Timeline, title: str) -> str:

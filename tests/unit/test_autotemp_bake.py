@@ -170,6 +170,7 @@ def test_a_long_print_s_timeline_reads_in_hours_and_minutes():
     label, ticks = _time_ticks(20000.0)
     assert label == "print time (h:mm)"
     assert ticks == ["0:00", "1:00", "2:00", "3:00", "4:00", "5:00"]
+    assert _time_ticks(9000.0)[1] == ["0:00", "0:30", "1:00", "1:30", "2:00", "2:30"]
 
 
 def test_a_timeline_reads_in_seconds_when_short_and_minutes_when_medium():
