@@ -35,9 +35,6 @@ class KlippySync:
         self.store = store
         self.klippy: KlippyConnection = server.lookup_component("klippy_connection")
 
-    def is_ready(self) -> bool:
-        return self.klippy.is_ready()
-
     async def send(self, extruder: str, entry: Optional[ActiveProfile]) -> bool:
         """Send an extruder's activation (None clears it) to klippy: True
         once klippy took it, False when klippy is away (not ready, or gone
