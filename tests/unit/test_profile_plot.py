@@ -111,10 +111,13 @@ def test_png_without_matplotlib_says_what_to_install(tmp_path, monkeypatch):
     assert not (tmp_path / "x.png").exists()
 
 
-def pixels_of(image, color: str) -> int:
-    """How many pixels of the PNG have this #rrggbb colour (within 8/255)."""
+def pixels_of(image, color: str, tolerance: float = 8 / 255) -> int:
+    """How many pixels of the image have this #rrggbb colour, within tolerance."""
     want = np.array([int(color[i:i + 2], 16) for i in (1, 3, 5)]) / 255.0
-    return int((np.abs(image[:, :, :3] - want).max(axis=2) < 8 / 255).sum())
+    return int((np.abs(image[..., :3] - want).max(axis=-1) < tolerance).sum())
+
+
+ANTIALIASED = 40 / 255  # a renderer's thin or dotted lines come out paler
 
 
 def test_png_draws_the_same_panels_as_the_svg(measured, tmp_path):
@@ -275,24 +278,18 @@ def test_the_profile_plot_renders_its_labels_and_marks_outside_a_browser(
     for mark, color in (("min_temp", "bound"), ("recommended_temp", "recommended")):
         x = axes.x({m.element_id: m.temp_c for m in panel.bounds}[mark])
         column = image[int(axes.top) + 5:int(axes.bottom) - 5,
-                       int(x) - 1:int(x) + 2][None]
-        assert pixels_like(column, plot.COLORS[color]) > 40, mark
+                       int(x) - 1:int(x) + 2]
+        assert pixels_of(column, plot.COLORS[color], ANTIALIASED) > 40, mark
     # the measured points: rings around white
     for p in measured.points:
         x, y = int(round(axes.x(p.temp_c))), int(round(axes.y(p.flow_mm3_s)))
         assert image[y, x].min() > 0.9, p
-        ring = image[y - 6:y + 7, x - 6:x + 7][None]
-        assert pixels_like(ring, plot.COLORS[p.kind]) > 8, p
+        ring = image[y - 6:y + 7, x - 6:x + 7]
+        assert pixels_of(ring, plot.COLORS[p.kind], ANTIALIASED) > 8, p
     # the band, as pale as in a browser
     x = axes.x(250.0)
     air, real = (measured.lines.into_air.line().flow_mm3_s(250.0),
                  measured.lines.real_print.line().flow_mm3_s(250.0))
     inside = image[int(axes.y((air + real) / 2)) - 3:int(axes.y((air + real) / 2)) + 3,
-                   int(x) - 3:int(x) + 3][None]
-    assert pixels_like(inside, plot.COLORS["band"]) > 20
-
-
-def pixels_like(image, color: str, tolerance: float = 40 / 255) -> int:
-    """Pixels within tolerance of #rrggbb (antialiased dots are paler)."""
-    want = np.array([int(color[i:i + 2], 16) for i in (1, 3, 5)]) / 255.0
-    return int((np.abs(image[..., :3] - want).max(axis=-1) < tolerance).sum())
+                   int(x) - 3:int(x) + 3]
+    assert pixels_of(inside, plot.COLORS["band"], ANTIALIASED) > 20
