@@ -4,16 +4,14 @@ line each. Exit status 1 when a check fails."""
 
 from __future__ import annotations
 
-import json
 import os
-import urllib.error
-import urllib.request
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 from urllib.parse import quote, urlparse
 
 from .. import __version__
 from ..host import doctor, install
+from ..host.moonraker_api import DEFAULT_URL, MoonrakerApi
 from .install import _default_moonraker as default_moonraker
 from .install import default_klipper
 
@@ -28,9 +26,9 @@ def register(subparsers) -> None:
                     "firmware, Moonraker's component, the config, the sensors, the "
                     "active profiles and the G-code processor. Exit status 1 when "
                     "a check fails.")
-    p.add_argument("--moonraker", default="http://127.0.0.1:7125",
-                   help="Moonraker URL (default: http://127.0.0.1:7125); from "
-                        "another machine the tree checks are skipped")
+    p.add_argument("--moonraker", default=DEFAULT_URL, metavar="URL",
+                   help=f"Moonraker: a URL or HOST[:PORT] (default {DEFAULT_URL});"
+                        f" from another machine the tree checks are skipped")
     p.add_argument("--api-key", default=os.environ.get("MOONRAKER_API_KEY"),
                    help="Moonraker API key (default: $MOONRAKER_API_KEY)")
     p.add_argument("--klipper", type=Path, default=None,
@@ -43,21 +41,15 @@ def register(subparsers) -> None:
 
 
 class Client:
+    """Moonraker as the doctor asks it: every answer (result, None) or (None,
+    one-line reason), never raised (flowloop.host.moonraker_api)."""
+
     def __init__(self, url: str, api_key: Optional[str], timeout: float = 5.0):
-        self.url = url.rstrip("/")
-        self.headers = {"X-Api-Key": api_key} if api_key else {}
-        self.timeout = timeout
+        self.api = MoonrakerApi(url, api_key, timeout)
+        self.url = self.api.url
 
     def get(self, path: str) -> Tuple[Optional[dict], Optional[str]]:
-        """(result, None) or (None, one-line error)."""
-        req = urllib.request.Request(self.url + path, headers=self.headers)
-        try:
-            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
-                return json.loads(resp.read())["result"], None
-        except urllib.error.HTTPError as e:
-            return None, f"HTTP {e.code} {e.reason}"
-        except (urllib.error.URLError, OSError, ValueError, KeyError) as e:
-            return None, f"no answer ({getattr(e, 'reason', e)})"
+        return self.api.answer("GET", path)
 
 
 def gather(client: Client, klipper: Optional[Path] = None,
@@ -65,12 +57,11 @@ def gather(client: Client, klipper: Optional[Path] = None,
     local = urlparse(client.url).hostname in LOOPBACK
     server_info, error = client.get("/server/info")
     if server_info is None:
-        hint = " (is --api-key right?)" if error and "401" in error else ""
         # Moonraker down on the printer: the trees are still here to check
         trees = _local_trees(klipper or default_klipper(), moonraker_dir) \
             if local else {}
         return doctor.Facts(client.url, moonraker_error=f"Moonraker at {client.url}:"
-                            f" {error}{hint}", on_this_machine=local, **trees)
+                            f" {error}", on_this_machine=local, **trees)
     endpoints: Dict[str, Optional[str]] = {}
     results: Dict[str, Optional[dict]] = {}
     for path in FLOWLOOP_ENDPOINTS:

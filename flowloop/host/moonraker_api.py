@@ -1,5 +1,6 @@
-"""A small client of a printer's Moonraker: the flowloop endpoints the CLI
-uses (`flowloop profile store|activate|list|remove`), over plain HTTP.
+"""A small client of a printer's Moonraker over plain HTTP: the flowloop
+endpoints `flowloop profile store|activate|list|remove` use, and the
+answers `flowloop doctor` gathers.
 
 The address may be typed as Moonraker's URL (`http://printer.local:7125`) or
 as a bare host with or without a port (`printer.local`, `192.168.1.20:7125`);
@@ -12,7 +13,7 @@ import json
 import urllib.error
 import urllib.parse
 import urllib.request
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 from ..errors import FlowloopError
 
@@ -51,6 +52,15 @@ class MoonrakerApi:
     def request(self, method: str, path: str, query: Optional[Dict[str, str]] = None,
                 body: Optional[Dict[str, Any]] = None) -> Any:
         """The `result` of one request; a refusal or no answer is one line."""
+        result, error = self.answer(method, path, query, body)
+        if error is not None:
+            raise FlowloopError(f"{self.url}: {error}")
+        return result
+
+    def answer(self, method: str, path: str, query: Optional[Dict[str, str]] = None,
+               body: Optional[Dict[str, Any]] = None) -> Tuple[Any, Optional[str]]:
+        """(result, None), or (None, the one-line reason) when Moonraker
+        refused or did not answer."""
         url = self.url + path
         if query:
             url += "?" + urllib.parse.urlencode(query)
@@ -62,15 +72,13 @@ class MoonrakerApi:
         req = urllib.request.Request(url, data=data, headers=headers, method=method)
         try:
             with urllib.request.urlopen(req, timeout=self.timeout_s) as resp:
-                return json.loads(resp.read())["result"]
+                return json.loads(resp.read())["result"], None
         except urllib.error.HTTPError as e:
-            raise FlowloopError(f"{self.url}: {_refusal(e)}") from None
+            return None, _refusal(e)
         except (urllib.error.URLError, OSError) as e:
-            reason = getattr(e, "reason", e)
-            raise FlowloopError(f"{self.url}: no answer from Moonraker ({reason})"
-                                ) from None
+            return None, f"no answer from Moonraker ({getattr(e, 'reason', e)})"
         except (ValueError, KeyError):
-            raise FlowloopError(f"{self.url}{path}: not a Moonraker answer") from None
+            return None, f"{path}: not a Moonraker answer"
 
     # --- the flowloop endpoints ------------------------------------------------
     def profiles(self) -> Dict[str, Any]:
@@ -95,12 +103,12 @@ def _refusal(e: urllib.error.HTTPError) -> str:
     """Moonraker's message from the JSON body (the reason phrase may have
     been replaced), else the status line."""
     if e.code == 401:
-        return "401 unauthorized: give --api-key (or $MOONRAKER_API_KEY)"
+        return "HTTP 401 unauthorized: is --api-key (or $MOONRAKER_API_KEY) right?"
     try:
         message = json.loads(e.read())["error"]["message"]
     except (ValueError, KeyError, TypeError, OSError):
         message = e.reason
     if e.code == 404 and str(message).strip().lower() in ("not found", ""):
-        return ("404: no flowloop endpoint here; is [flowloop] in moonraker.conf"
+        return ("HTTP 404: no such endpoint here; is [flowloop] in moonraker.conf"
                 " (flowloop install)?")
-    return f"{e.code} {message}"
+    return f"HTTP {e.code} {message}"

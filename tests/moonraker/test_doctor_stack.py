@@ -171,7 +171,7 @@ def test_from_another_machine_with_an_api_key(klipper_build, klippy_venv,
         assert code == 1
         assert lines["moonraker"].startswith(
             f"FAIL moonraker: Moonraker at {ps.moonraker.url}: HTTP 401")
-        assert "(is --api-key right?)" in lines["moonraker"]
+        assert "is --api-key (or $MOONRAKER_API_KEY) right?" in lines["moonraker"]
         key = moonraker_api_key(ps)
         monkeypatch.setattr("flowloop.cli.doctor.LOOPBACK", ())  # as if remote
         assert stack.wait_until(lambda: ps.moonraker.request(

@@ -56,7 +56,7 @@ def test_a_refusal_is_moonrakers_one_line_and_changes_nothing(printer, capsys):
     code, out, err = flowloop(capsys, "profile", "activate", "no-such",
                               "--moonraker", address)
     assert code == 2 and out == ""
-    assert err == (f'flowloop profile: error: http://{address}: 404 no profile'
+    assert err == (f'flowloop profile: error: http://{address}: HTTP 404 no profile'
                    f' named "no-such"\n')
     code, _, err = flowloop(capsys, "profile", "activate", "x", "--extruder",
                             "nozzle", "--moonraker", address)
