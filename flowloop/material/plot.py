@@ -75,7 +75,7 @@ def svg_open(width: float, height: float, extra: str = "") -> List[str]:
 
 
 def svg_line(x1: float, y1: float, x2: float, y2: float, color: str,
-         dash: str = "", width: float = 1, element_id: str = "") -> str:
+             dash: str = "", width: float = 1, element_id: str = "") -> str:
     """An SVG line (fill="none": ImageMagick fills a dashed line's gaps)."""
     ident = f'id="{element_id}" ' if element_id else ""
     dashed = f' stroke-dasharray="{dash}"' if dash else ""
@@ -254,6 +254,7 @@ class BoundMark(NamedTuple):
 
 
 BOUND_DASH = "2,3"
+BOUND_WIDTH = 1.5
 WORKING_DASH = "8,4"
 # The working line is drawn first and wider: where it follows a measured line
 # (a profile with a warning) both stay visible.
@@ -384,9 +385,9 @@ def legend(series: PanelSeries) -> List[Key]:
     outer = [m for m in series.bounds if m.element_id != "recommended_temp"]
     if outer:
         keys.append(Key("min / max temperature", outer[0].color, BOUND_DASH,
-                        names=" ".join(m.element_id for m in outer), width=1.5))
+                        names=" ".join(m.element_id for m in outer), width=BOUND_WIDTH))
     keys += [Key("recommended temperature", m.color, BOUND_DASH, names=m.element_id,
-                 width=1.5)
+                 width=BOUND_WIDTH)
              for m in series.bounds if m.element_id == "recommended_temp"]
     return keys
 
@@ -420,7 +421,7 @@ def _svg_panel(series: PanelSeries, top: float) -> _Panel:
     for mark in series.bounds:
         x = panel.x(mark.temp_c)
         panel.add(tooltip(f"{mark.element_id} {mark.temp_c:g} °C", svg_line(
-            x, panel.top, x, panel.bottom, mark.color, BOUND_DASH, 1.5,
+            x, panel.top, x, panel.bottom, mark.color, BOUND_DASH, BOUND_WIDTH,
             mark.element_id)))
     for line in series.lines:
         panel.polyline(line.points, line.color, line.element_id, line.dash,
@@ -512,7 +513,8 @@ def _png_panel(ax, series: PanelSeries) -> None:
         ax.fill([t for t, _ in series.band], [f for _, f in series.band],
                 color=COLORS["band"], linewidth=0, zorder=0.1)
     for mark in series.bounds:
-        ax.axvline(mark.temp_c, color=mark.color, linestyle=":")
+        ax.axvline(mark.temp_c, color=mark.color, linestyle=_mpl_dash(BOUND_DASH),
+                   linewidth=BOUND_WIDTH)
     for line in series.lines:
         ax.plot([x for x, _ in line.points], [f for _, f in line.points],
                 _mpl_dash(line.dash), color=line.color, linewidth=line.width)
