@@ -293,3 +293,15 @@ def test_the_profile_plot_renders_its_labels_and_marks_outside_a_browser(
     inside = image[int(axes.y((air + real) / 2)) - 3:int(axes.y((air + real) / 2)) + 3,
                    int(x) - 3:int(x) + 3]
     assert pixels_of(inside, plot.COLORS["band"], ANTIALIASED) > 20
+
+
+def test_a_warned_profile_s_png_prints_its_warning_above_the_panels(warned, tmp_path):
+    from matplotlib import image as mpl_image
+    out = tmp_path / "x.png"
+    plot.png(warned, out)
+    image = mpl_image.imread(str(out))
+    rows = len(plot.warning_lines(warned))
+    header = plot.HEADER_HEIGHT + plot.WARNING_LINE_HEIGHT * rows
+    assert image.shape[:2] == (header + plot.PANEL_HEIGHT, plot.PROFILE_WIDTH)
+    assert pixels_of(image[:header], plot.WARNING_COLOR) > 50
+    assert pixels_of(image[header:], plot.WARNING_COLOR) == 0
