@@ -21,6 +21,7 @@ from ..material.profile import (
     decode_profile,
     encode_profile,
     flow_at,
+    is_extruder_name,
     line_warnings,
     temp_for_flow,
 )
@@ -172,10 +173,11 @@ def _printer(args) -> MoonrakerApi:
 
 
 def cmd_list(args) -> int:
-    answer = _printer(args).profiles()
+    api = _printer(args)
+    answer = api.profiles()
     active = answer.get("active", {})
     if not answer.get("profiles"):
-        print(f"{args.moonraker}: no profiles stored (flowloop profile store FILE)")
+        print(f"{api.url}: no profiles stored (flowloop profile store FILE)")
     for summary in answer.get("profiles", []):
         name = summary.get("name")
         on = [f"{ext} at working point {entry.get('working_point'):g}"
@@ -186,11 +188,18 @@ def cmd_list(args) -> int:
 
 def cmd_store(args) -> int:
     profile = load(args.file)
+    if args.activate is not None and not is_extruder_name(args.activate):
+        # refused before anything is stored
+        raise FlowloopError(f"--activate: {args.activate!r} is not an extruder"
+                            f" name (extruder, extruder1, ...)")
     api = _printer(args)
     api.store(json.loads(encode_profile(profile)))
     print(f"stored {json.dumps(profile.name)} on {api.url}")
     if args.activate is not None:
-        _activate(api, profile.name, args.activate, args.wp)
+        try:
+            _activate(api, profile.name, args.activate, args.wp)
+        except FlowloopError as e:
+            raise FlowloopError(f"stored, but not active: {e}") from None
     return 0
 
 
@@ -205,7 +214,8 @@ def _activate(api: MoonrakerApi, name: str, extruder: str, wp) -> None:
     print(f"{json.dumps(name)} active on {extruder}"
           + (f" at working point {wp:g}" if isinstance(wp, (int, float)) else "")
           + ("" if answer.get("sent_to_klippy", True)
-             else " (klippy is not connected: it gets it when it is)"))
+             else " (klippy is not connected: sent when it is, and dropped"
+                  " if klippy refuses it then)"))
 
 
 def cmd_remove(args) -> int:

@@ -62,6 +62,16 @@ def test_a_refusal_is_moonrakers_one_line_and_changes_nothing(printer, capsys):
                             "nozzle", "--moonraker", address)
     assert code == 2 and "is not an extruder name" in err
     assert len(err.splitlines()) == 1
+    # an extruder this printer does not have: klippy refuses, and the line
+    # says the profile was stored but is not active
+    code, out, err = flowloop(capsys, "profile", "store", str(WEAK), "--activate",
+                              "extruder7", "--moonraker", address)
+    assert code == 2 and out.startswith('stored "weak"')
+    assert err.startswith(f"flowloop profile: error: stored, but not active:"
+                          f" http://{address}: HTTP 400 ")
+    status, body = printer.moonraker.request("GET", "/server/flowloop/profiles")
+    assert "extruder7" not in body["result"]["active"]
+    flowloop(capsys, "profile", "remove", "weak", "--moonraker", address)
 
 
 def test_no_moonraker_there_is_one_line(capsys):

@@ -47,30 +47,43 @@ def _snippets(text: str):
             yield n, (m[1] or m[2] or m[3]).strip()
 
 
-def _named():
-    for place in PLACES:
-        for n, snippet in _snippets((ROOT / place).read_text()):
-            m = _CALL.match(snippet)
-            if m:
-                yield place, n, [w for w in m.groups() if w]
+def _named(text: str):
+    for n, snippet in _snippets(text):
+        m = _CALL.match(snippet)
+        if m:
+            yield n, [w for w in m.groups() if w]
 
 
-def test_every_command_the_docs_name_exists():
-    commands = _commands()
-    missing = []
-    seen = 0
-    for place, n, words in _named():
+def _missing(place: str, text: str, commands):
+    """(commands named, the ones the CLI does not have) of one text."""
+    named, missing = 0, []
+    for n, words in _named(text):
+        named += 1
         command = words[0]
-        seen += 1
         if command not in commands or (
                 commands[command] and len(words) > 1
                 and words[1] not in commands[command]):
             missing.append(f"{place}:{n}: flowloop {' '.join(words)}")
+    return named, missing
+
+
+def test_every_command_the_docs_name_exists():
+    commands = _commands()
+    seen, missing = 0, []
+    for place in PLACES:
+        named, bad = _missing(place, (ROOT / place).read_text(), commands)
+        seen += named
+        missing += bad
     assert seen > 20          # the scan finds the docs' commands
     assert missing == []
 
 
-def test_the_scan_finds_a_missing_action():
-    commands = _commands()
-    assert "activate" in commands["profile"]
-    assert "frobnicate" not in commands["profile"]
+def test_the_scan_reports_a_command_or_action_the_cli_lacks():
+    text = ("Run `flowloop profile frobnicate NAME` then\n"
+            "    $ flowloop annotate part.gcode\n"
+            "# (flowloop bake part.gcode) in a config comment\n"
+            "prose: flowloop is a package, `flowloop profile activate NAME`\n")
+    named, missing = _missing("x.md", text, _commands())
+    assert named == 4
+    assert missing == ["x.md:1: flowloop profile frobnicate",
+                       "x.md:3: flowloop bake part"]

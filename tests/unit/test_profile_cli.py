@@ -172,3 +172,14 @@ def test_export_and_plot_never_overwrite_the_profile(action, tmp_path, capsys):
                      str(tmp_path / "." / "p.json")]) == 2
     assert "would overwrite FILE" in capsys.readouterr().err
     assert src.read_bytes() == before
+
+
+def test_store_refuses_a_bad_extruder_before_it_stores_anything(capsys):
+    # no Moonraker at that port: had it tried to store, it would say "no answer"
+    from devtools.stack import free_port
+    weak = Path(__file__).resolve().parents[2] / "docs" / "examples" / "weak.json"
+    assert main(["profile", "store", str(weak), "--activate", "nozzle",
+                 "--moonraker", f"127.0.0.1:{free_port()}"]) == 2
+    assert capsys.readouterr().err == (
+        "flowloop profile: error: --activate: 'nozzle' is not an extruder name"
+        " (extruder, extruder1, ...)\n")
