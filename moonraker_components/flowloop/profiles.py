@@ -16,7 +16,7 @@
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, Dict, List, Optional
+from typing import TYPE_CHECKING, Any, Dict, Optional
 
 from flowloop.material import profile as fl_profile
 from flowloop.material.active import ActiveProfile
@@ -49,7 +49,7 @@ class Profiles:
         self.notify(action, profile.name, source=source,
                     profile=fl_profile.summary(profile))
         dropped = [extruder for extruder in self.store.active_for(profile.name)
-                   if await self._confirm(extruder) == "refused"]
+                   if await self._confirm(extruder)]
         return {"name": profile.name, "action": action, "deactivated": dropped}
 
     async def delete_profile(self, name: str) -> Dict[str, Any]:
@@ -78,35 +78,31 @@ class Profiles:
         except KlippyRefused as e:
             logging.info(f"flowloop: klippy did not clear {extruder}: {e}")
 
-    async def _confirm(self, extruder: str) -> Optional[str]:
-        """Send the extruder's stored activation to klippy: "sent", "queued"
-        (klippy away), "refused" (dropped, klippy's copy cleared, notified),
-        None (no activation)."""
-        outcome: List[str] = []
-
-        async def accepts(entry: ActiveProfile) -> bool:
+    async def _confirm(self, extruder: str) -> bool:
+        """Send the extruder's stored activation to klippy again (queued while
+        klippy is away); one klippy refuses is dropped, klippy's copy cleared
+        and clients notified: True."""
+        async def refusal(entry: ActiveProfile) -> Optional[str]:
             try:
-                outcome.append("sent" if await self.klippy.send(extruder, entry)
-                               else "queued")
-                return True
+                if await self.klippy.send(extruder, entry):
+                    logging.info(f"flowloop: active profile for {extruder} sent "
+                                 f"to klippy")
+                return None
             except KlippyRefused as e:
-                outcome[:] = ["refused", str(e)]
-            # klippy keeps what it had (an older version of the profile)
-            await self._clear_klippy(extruder)
-            return False
+                # klippy keeps what it had (an older version of the profile)
+                await self._clear_klippy(extruder)
+                return f"klippy refused the profile: {e}"
 
-        dropped = await self.store.confirm_active(extruder, accepts)
-        if dropped is not None:
-            reason = f"klippy refused the profile: {outcome[1]}"
-            logging.info(f"flowloop: the active profile for {extruder} dropped: "
-                         f"{reason}")
-            self.notify("refused", dropped.name, source="klippy", extruder=extruder,
-                        working_point=dropped.working_point, reason=reason)
-        return outcome[0] if outcome else None
+        dropped = await self.store.confirm_active(extruder, refusal)
+        if dropped is None:
+            return False
+        entry, reason = dropped
+        logging.info(f"flowloop: the active profile for {extruder} dropped: "
+                     f"{reason}")
+        self.notify("refused", entry.name, source="klippy", extruder=extruder,
+                    working_point=entry.working_point, reason=reason)
+        return True
 
     async def _on_klippy_ready(self) -> None:
         for extruder in sorted(self.store.active):
-            outcome = await self._confirm(extruder)
-            if outcome == "sent":
-                logging.info(f"flowloop: active profile for {extruder} sent to "
-                             f"klippy")
+            await self._confirm(extruder)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Any, Awaitable, Callable, Dict, List, Optional, TypeVar
+from typing import Any, Awaitable, Callable, Dict, List, Optional, Tuple, TypeVar
 
 from flowloop.errors import FlowloopError
 from flowloop.material import profile as fl_profile
@@ -127,17 +127,22 @@ class ProfileStore:
             self.active = active
         return answer
 
-    async def confirm_active(self, extruder: str,
-                             accepts: Callable[[ActiveProfile], Awaitable[bool]]
-                             ) -> Optional[ActiveProfile]:
-        """Ask `accepts` (klippy) about the extruder's activation, under the
-        lock; one it does not accept is dropped and returned."""
+    async def confirm_active(
+            self, extruder: str,
+            refusal: Callable[[ActiveProfile], Awaitable[Optional[str]]]
+    ) -> Optional[Tuple[ActiveProfile, str]]:
+        """Ask `refusal` (klippy) about the extruder's activation, under the
+        lock; one it refuses (it answers why) is dropped and returned with
+        that reason."""
         async with self.write_lock:
             entry = self.active.get(extruder)
-            if entry is None or await accepts(entry):
+            if entry is None:
+                return None
+            reason = await refusal(entry)
+            if reason is None:
                 return None
             active = {ext: kept for ext, kept in self.active.items()
                       if ext != extruder}
             await self.db.insert(ACTIVE_KEY, active_to_stored(active))
             self.active = active
-        return entry
+        return entry, reason
