@@ -173,6 +173,36 @@ def test_an_activation_made_while_klippy_is_away_stands_only_if_klippy_accepts_i
         lambda: klippy_profiles_or_none(printer) == "queued", WAIT_S)
 
 
+def test_a_queued_activation_klippy_refuses_does_not_stick_across_a_moonraker_restart(
+        printer):
+    store(printer, name="queued over restart")
+    assert request(printer, "POST", "/printer/emergency_stop")[0] == 200
+    assert stack.wait_until(lambda: klippy_state(printer) == "shutdown", WAIT_S)
+    status, body = activate(printer, "queued over restart", extruder="extruder6")
+    assert status == 200 and body["result"]["sent_to_klippy"] is False, body
+
+    def restarts():
+        return printer.moonraker.log_path.read_text().count(
+            "Attempting Server Restart...")
+    before = restarts()
+    assert request(printer, "POST", "/server/restart")[0] == 200
+    assert stack.wait_until(lambda: restarts() > before, WAIT_S)
+    printer.moonraker.wait_ready()
+    assert stack.wait_until(lambda: klippy_state(printer) == "shutdown", WAIT_S)
+
+    def active():
+        return request(printer, "GET", "/server/flowloop/profiles")[1]["result"][
+            "active"]
+    # read back from the database; klippy, still shut down, was not asked
+    assert active()["extruder6"]["name"] == "queued over restart"
+    assert request(printer, "POST", "/printer/restart")[0] == 200
+    printer.moonraker.wait_ready(klippy=True)
+    assert stack.wait_until(lambda: "extruder6" not in active(), WAIT_S), active()
+    stored = request(printer, "GET",
+                     "/server/database/item?namespace=flowloop&key=active")
+    assert "extruder6" not in stored[1]["result"]["value"]
+
+
 def test_names_with_gcode_characters_never_reach_gcode(printer):
     name = 'inject"; M112 ; {action_emergency_stop()}'
     store(printer, name=name)
