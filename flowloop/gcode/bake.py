@@ -48,6 +48,7 @@ from .annotate import (
     _newline_of,
     _replace_atomically,
     is_annotated,
+    quantise_flow,
 )
 from .fastplan import plan_file
 from .planner import Barrier, PrinterLimits
@@ -260,7 +261,8 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
         min_target_c=min((t for _, t in placements), default=None),
         max_target_c=max((t for _, t in placements), default=None),
         capped_windows=controller.plan.capped_windows,
-        peak_flow_mm3_s=max(rec.demand, default=0.0),
+        # the file's peak as its annotation announces it (annotate's summary)
+        peak_flow_mm3_s=quantise_flow(rec.peak),
         print_time_s=rec.end_s, under_capacity_s=short_s, start=fix)
     return result, timeline
 
