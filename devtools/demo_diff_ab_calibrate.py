@@ -91,10 +91,15 @@ def on_demo_printer(ctx) -> bool:
     if "diff_ab_calibrate" not in sections:
         return False
     before = ctx.query("diff_ab_calibrate")["rotation_distance"]
-    ctx.say(f"demo printer: rotation_distance {before}")
-    ctx.say(ctx.gcode("DIFF_AB_CALIBRATE A1=10.01,10.02,10.00 A2=150.30,150.31,150.32 "
-                      "B1=10.00,10.01,9.99 B2=149.80,149.81,149.82"))
-    ctx.say(f"now: {ctx.query('diff_ab_calibrate')['rotation_distance']}")
+    readings = ("A1=10.01,10.02,10.00 A2=150.30,150.31,150.32 "
+                "B1=10.00,10.01,9.99 B2=149.80,149.81,149.82")
+    ctx.say(f"demo printer (its own readings, not the simulated rounds above):"
+            f"\n$ DIFF_AB_CALIBRATE {readings}")
+    ctx.gcode(f"DIFF_AB_CALIBRATE {readings}")
+    after = ctx.query("diff_ab_calibrate")["rotation_distance"]
+    for stepper in sorted(after):
+        ctx.say(f"  {stepper}: rotation_distance {before[stepper]:.6f} ->"
+                f" {after[stepper]:.6f} (applied, staged for SAVE_CONFIG)")
     return True
 
 
