@@ -243,6 +243,13 @@ def legend(driver, chart):
         return out;""")
 
 
+def legend_value(chart, label):
+    """JavaScript: the value a chart's legend shows for one series."""
+    return (f"[...document.querySelectorAll('#{chart} .u-legend .u-series')]"
+            f".find((row) => row.querySelector('.u-label').textContent == "
+            f"'{label}').querySelector('.u-value').textContent")
+
+
 def rgb(color):
     return "rgb({}, {}, {})".format(*(int(color[i:i + 2], 16) for i in (1, 3, 5)))
 
@@ -261,10 +268,10 @@ def test_the_charts_show_now_in_the_plots_colours_on_a_readable_scale(browser,
     temp = legend(browser, "temp-chart")
     assert temp["target"][0] == "205.0"
     assert temp["temperature"][0] == f"{float(field(browser, 'temperature')):.1f}"
+    # the commanded flow (a number even when idle) as the readout has it
+    wait_for(browser, f"{legend_value('flow-chart', 'commanded')} == "
+                      f"(+{FIELD.format('commanded_flow')}.dataset.value).toFixed(2)")
     profile = legend(browser, "profile-chart")
-    flow = legend(browser, "flow-chart")
-    for shown in (temp, profile, flow):
-        assert all(value != "--" for value, _ in shown.values()), shown
     # a steady hotend: the axis spans 10 C around it, not its 0.1 C of noise
     low, high = map(float, js(browser, "return document.getElementById("
                                        "'temp-chart').dataset.yRange").split(","))
@@ -314,6 +321,9 @@ def test_the_printed_files_plan_shows_with_the_position_marked(browser, printer)
     assert end == (printer.data_dir / "gcodes" / "annotated.gcode").stat().st_size
     wait_for(browser, "Math.abs(document.getElementById('plan-chart').dataset"
                       f".position - {plan['print_time_s']}) < 0.01")
+    # off the chart its legend shows the plan there
+    wait_for(browser, f"Math.abs({legend_value('plan-chart', 's')} - "
+                      f"{plan['print_time_s']}) <= 1")
     print_file(printer, "plain.gcode")
     wait_for(browser, "document.getElementById('plan-chart').dataset.message"
                       ".includes('plain.gcode has no autotemp annotations')")
