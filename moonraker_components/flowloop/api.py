@@ -16,7 +16,7 @@ from flowloop.material.active import ActiveProfile, active_to_stored
 
 from ...common import RequestType, WebRequest
 from . import args
-from .endpoints import Endpoints
+from .endpoints import register_endpoint
 from .errors import quoted
 from .info import Info
 from .profiles import Profiles
@@ -43,7 +43,6 @@ class Api:
         self.profiles = profiles
         self.info = info
         self.default_wp = default_wp
-        endpoints = Endpoints(server)
         for path, methods, handler in (
             ("/server/flowloop/info", RequestType.GET, self._handle_info),
             ("/server/flowloop/profile",
@@ -53,9 +52,9 @@ class Api:
             ("/server/flowloop/profile/activate", RequestType.POST,
              self._handle_activate),
         ):
-            endpoints.register_endpoint(path, methods, handler)
-        endpoints.register_endpoint(
-            "/server/flowloop/profile/plot", RequestType.GET, self._handle_plot,
+            register_endpoint(server, path, methods, handler)
+        register_endpoint(
+            server, "/server/flowloop/profile/plot", RequestType.GET, self._handle_plot,
             wrap_result=False, content_type="image/svg+xml")
         server.register_remote_method(
             "flowloop_store_profile", self._remote_store_profile)

@@ -68,21 +68,16 @@ class FlowloopRequestHandler(DynamicRequestHandler):
         self.finish(jsonw.dumps({"error": err}))
 
 
-class Endpoints:
-    """Registers flowloop's endpoints as server.register_endpoint does, each
-    HTTP route then served by FlowloopRequestHandler."""
-
-    def __init__(self, server: Server) -> None:
-        self.server = server
-
-    def register_endpoint(self, path: str, *args: Any, **kwargs: Any) -> None:
-        self.server.register_endpoint(path, *args, **kwargs)
-        app = self.server.lookup_component("application")
-        router = getattr(app, "mutable_router", None)
-        rules = getattr(router, "pattern_to_rule", {})
-        rule = rules.get(f"{getattr(app, 'route_prefix', '')}{path}")
-        if rule is None or rule.target is not DynamicRequestHandler:
-            # Another Moonraker: its own handler serves (see above).
-            logging.info(f"flowloop: {path} is served by Moonraker's own handler")
-            return
-        rule.target = FlowloopRequestHandler
+def register_endpoint(server: Server, path: str, *args: Any, **kwargs: Any) -> None:
+    """server.register_endpoint, the HTTP route then served by
+    FlowloopRequestHandler."""
+    server.register_endpoint(path, *args, **kwargs)
+    app = server.lookup_component("application")
+    router = getattr(app, "mutable_router", None)
+    rules = getattr(router, "pattern_to_rule", {})
+    rule = rules.get(f"{getattr(app, 'route_prefix', '')}{path}")
+    if rule is None or rule.target is not DynamicRequestHandler:
+        # Another Moonraker: its own handler serves (see above).
+        logging.info(f"flowloop: {path} is served by Moonraker's own handler")
+        return
+    rule.target = FlowloopRequestHandler

@@ -29,7 +29,7 @@ from flowloop.material import profile as fl_profile
 
 from ...common import RequestType, TransportType, WebRequest
 from . import args
-from .endpoints import Endpoints
+from .endpoints import register_endpoint
 from .errors import one_line, quoted
 from .info import KLIPPY_ANSWER_S
 from .store import ProfileStore
@@ -62,16 +62,15 @@ class Page:
         # its name is another profile.
         self._plan_key: Optional[Tuple[Any, ...]] = None
         self._plan: Dict[str, Any] = {}
-        endpoints = Endpoints(server)
         for path in (PAGE_PATH, PAGE_PATH.rstrip("/")):
-            endpoints.register_endpoint(
-                path, RequestType.GET, self._handle_page,
+            register_endpoint(
+                server, path, RequestType.GET, self._handle_page,
                 transports=TransportType.HTTP, wrap_result=False,
                 content_type="text/html; charset=utf-8")
-        endpoints.register_endpoint(
-            "/server/flowloop/page/lines", RequestType.GET, self._handle_lines)
-        endpoints.register_endpoint(
-            "/server/flowloop/page/plan", RequestType.GET, self._handle_plan)
+        register_endpoint(
+            server, "/server/flowloop/page/lines", RequestType.GET, self._handle_lines)
+        register_endpoint(
+            server, "/server/flowloop/page/plan", RequestType.GET, self._handle_plan)
 
     async def _heater_max_temp(self, extruder: str) -> Optional[float]:
         """The extruder heater's max_temp as klippy reports it with the active

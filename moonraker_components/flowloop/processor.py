@@ -22,7 +22,7 @@ from flowloop.gcode import annotate
 
 from ...common import RequestType, WebRequest
 from . import args
-from .endpoints import Endpoints
+from .endpoints import register_endpoint
 
 if TYPE_CHECKING:
     from ...confighelper import ConfigHelper
@@ -64,8 +64,8 @@ class Processor:
             self.file_manager.get_metadata_storage().register_gcode_processor(
                 PROCESSOR_NAME, self.config)
             self.registered_name = PROCESSOR_NAME
-        Endpoints(self.server).register_endpoint(
-            "/server/flowloop/annotation", RequestType.GET,
+        register_endpoint(
+            self.server, "/server/flowloop/annotation", RequestType.GET,
             self._handle_annotation)
 
     async def _handle_annotation(self, web_request: WebRequest) -> Dict[str, Any]:
