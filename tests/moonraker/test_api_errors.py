@@ -12,6 +12,7 @@ import shutil
 import pytest
 
 from devtools import stack
+from flowloop.host import install
 from tests.samples import make
 
 
@@ -173,3 +174,48 @@ def test_page_lines_max_temp_is_the_profiles_not_the_plots_margin(server):
     lines = body["result"]["lines"]
     assert (lines["min_temp_c"], lines["max_temp_c"]) == (190.0, 260.0)
     assert lines["temp_c"][-1] == pytest.approx(267.0)  # the plot's margin
+
+
+# --- a Moonraker whose endpoints another handler serves ---------------------------
+
+OWN_HANDLER = 'f"{self._route_prefix}{http_path}", DynamicRequestHandler, params'
+
+
+def test_where_moonraker_serves_with_another_handler_its_own_answers(
+        moonraker_venv, tmp_path):
+    """endpoints.register_endpoint swaps its handler only for the class it
+    was written against: a Moonraker whose routes another class serves keeps
+    that class, and every flowloop endpoint still answers through it."""
+    site = tmp_path / "site"
+    real = install.moonraker_components_dir(moonraker_venv.path).parent
+    shutil.copytree(real, site / "moonraker", symlinks=True,
+                    ignore=shutil.ignore_patterns("__pycache__", "flowloop",
+                                                  "flowloop.py"))
+    application = site / "moonraker" / "components" / "application.py"
+    text = application.read_text()
+    assert text.count(OWN_HANDLER) == 1  # the copy is the Moonraker tested here
+    application.write_text(
+        text.replace(OWN_HANDLER, OWN_HANDLER.replace("Dynamic", "Other"))
+        + "\n\nclass OtherRequestHandler(DynamicRequestHandler):\n    pass\n")
+    install.apply(install.plan_moonraker(site, stack.PROJECT))
+    data_dir = stack.short_tempdir("fl-own-")
+    mr = stack.Moonraker(moonraker_venv, data_dir, moonraker_path=site)
+    try:
+        mr.wait_ready()
+        result = mr.request("GET", "/server/info")[1]["result"]
+        assert "flowloop" in result["components"], result
+        assert "flowloop" not in result["failed_components"]
+        log = mr.log_path.read_text()
+        assert str(site / "moonraker") in log  # it ran the copy, not the venv's
+        assert ("flowloop: /server/flowloop/profile is served by Moonraker's own "
+                "handler") in log
+        assert mr.request("POST", "/server/flowloop/profile",
+                          {"profile": make(name="own")})[0] == 200
+        status, reason, body = raw(mr, "GET", "/server/flowloop/profile?name=nope")
+        assert (status, body["error"]["message"]) == (404, 'no profile named "nope"')
+        assert reason == body["error"]["message"]
+        status, body = mr.request("GET", "/server/flowloop/profile?name=own")
+        assert status == 200 and body["result"]["name"] == "own"
+    finally:
+        mr.stop()
+        shutil.rmtree(data_dir, ignore_errors=True)
