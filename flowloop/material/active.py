@@ -11,6 +11,7 @@ becomes active on the linked extruder, keeping that extruder's working point.
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Tuple
 
@@ -111,6 +112,15 @@ def _json_text(value: Any) -> str:
 
 def working_point_arg(value: Any, parameter: str = "working_point") -> float:
     return number_arg(parameter, value, WORKING_POINT_ACCEPTS, 0.0, 1.0)
+
+
+def extruder_arg(name: str) -> str:
+    """An extruder name a request or a config option gives; refused in the
+    one wording: "extruder9x" is not an extruder name (extruder, ...)."""
+    if not is_extruder_name(name):
+        raise FlowloopError(f"{json.dumps(name)} is not an extruder name "
+                            f"(extruder, extruder1, ...)")
+    return name
 
 
 def spool_filament_id(spool: Any) -> Optional[int]:

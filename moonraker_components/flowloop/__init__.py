@@ -20,7 +20,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from flowloop.errors import FlowloopError
 from flowloop.material import profile as fl_profile
+from flowloop.material.active import extruder_arg
 
 from .api import Api
 from .info import Info
@@ -40,11 +42,11 @@ class Flowloop:
         self.server = config.get_server()
         spoolman_link = config.getboolean("spoolman_link", False)
         spoolman_extruder = config.get("spoolman_extruder", "extruder")
-        if not fl_profile.is_extruder_name(spoolman_extruder):
+        try:
+            extruder_arg(spoolman_extruder)
+        except FlowloopError as e:
             raise config.error(
-                f"Section [flowloop], option spoolman_extruder: "
-                f"{spoolman_extruder!r} is not an extruder name "
-                f"(extruder, extruder1, ...)")
+                f"Section [flowloop], option spoolman_extruder: {e}") from None
         default_wp = config.getfloat(
             "working_point", fl_profile.DEFAULT_WORKING_POINT, minval=0.0, maxval=1.0)
         self.store = ProfileStore(self.server.lookup_component("database"))

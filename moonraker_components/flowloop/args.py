@@ -16,7 +16,7 @@ from typing import Any, Dict, Tuple
 
 from flowloop.errors import FlowloopError
 from flowloop.material import profile as fl_profile
-from flowloop.material.active import shown, working_point_arg
+from flowloop.material.active import extruder_arg, shown, working_point_arg
 
 from ...common import ServerError, WebRequest
 from .errors import one_line, quoted
@@ -52,11 +52,10 @@ def profile_name(web_request: WebRequest) -> str:
 
 def extruder(args: Dict[str, Any], key: str = "extruder") -> str:
     """An extruder name (default `extruder`)."""
-    name = text(args, key, "extruder name", DEFAULT_EXTRUDER)
-    if not fl_profile.is_extruder_name(name):
-        raise refusal(f"{quoted(name)} is not an extruder name (extruder, "
-                      f"extruder1, ...)")
-    return name
+    try:
+        return extruder_arg(text(args, key, "extruder name", DEFAULT_EXTRUDER))
+    except FlowloopError as e:
+        raise refusal(e) from None
 
 
 def working_point(args: Dict[str, Any], default: float,

@@ -527,7 +527,7 @@ def test_a_bad_spoolman_extruder_names_the_section_and_option(moonraker_venv):
         info = mr.request("GET", "/server/info")[1]["result"]
         assert "flowloop" in info["failed_components"]
         log = (data_dir / "moonraker.log").read_text()
-        assert ("Section [flowloop], option spoolman_extruder: 'heater_bed' is not "
+        assert ('Section [flowloop], option spoolman_extruder: "heater_bed" is not '
                 "an extruder name (extruder, extruder1, ...)") in log
     finally:
         mr.stop()
