@@ -14,14 +14,13 @@ from pathlib import Path
 from ..errors import FlowloopError
 from ..host.moonraker_api import DEFAULT_URL, MoonrakerApi
 from ..material import ddprint, plot
-from ..material.active import working_point_arg
+from ..material.active import extruder_arg, working_point_arg
 from ..material.profile import (
     DEFAULT_WORKING_POINT,
     Profile,
     decode_profile,
     encode_profile,
     flow_at,
-    is_extruder_name,
     line_warnings,
     temp_for_flow,
 )
@@ -188,10 +187,11 @@ def cmd_list(args) -> int:
 
 def cmd_store(args) -> int:
     profile = load(args.file)
-    if args.activate is not None and not is_extruder_name(args.activate):
-        # refused before anything is stored
-        raise FlowloopError(f"--activate: {args.activate!r} is not an extruder"
-                            f" name (extruder, extruder1, ...)")
+    if args.activate is not None:   # refused before anything is stored
+        try:
+            extruder_arg(args.activate)
+        except FlowloopError as e:
+            raise FlowloopError(f"--activate: {e}") from None
     api = _printer(args)
     api.store(json.loads(encode_profile(profile)))
     print(f"stored {json.dumps(profile.name)} on {api.url}")

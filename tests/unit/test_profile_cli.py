@@ -181,5 +181,5 @@ def test_store_refuses_a_bad_extruder_before_it_stores_anything(capsys):
     assert main(["profile", "store", str(weak), "--activate", "nozzle",
                  "--moonraker", f"127.0.0.1:{free_port()}"]) == 2
     assert capsys.readouterr().err == (
-        "flowloop profile: error: --activate: 'nozzle' is not an extruder name"
+        'flowloop profile: error: --activate: "nozzle" is not an extruder name'
         " (extruder, extruder1, ...)\n")
