@@ -17,9 +17,10 @@ from pathlib import Path
 from typing import Any, Dict, List, Tuple
 
 from devtools import stack
-from devtools.demo_flowrate_limiter import WEAK_PROFILE, warm_up
+from devtools.demo_flowrate_limiter import WEAK_PROFILE, announced_peak, warm_up
 from devtools.klippy_api import KlippyApi
 from flowloop.gcode.annotate import annotate_file
+from flowloop.material.profile import profile_from_dict, profile_line
 
 GCODE = stack.PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
 CONFIG = stack.PROJECT / "tests" / "klippy" / "autotemp.cfg"
@@ -88,11 +89,14 @@ def print_with_autotemp(enable: int, build=None, venv=None,
 
 
 def with_klippy(ctx) -> None:
-    ctx.say("A weak hotend (melts 4 mm^3/s at 200 C) prints two layers of a "
-            "real slicer file\n(infill asks for up to 6.7 mm^3/s, 227 C; the "
-            "profile stops at 225 C), on the simulated sensor\nand hotend, with "
-            "[autotemp] (tests/klippy/test_autotemp.py compares the file's own"
-            "\ntemperatures, 200 and 215 C):")
+    peak = announced_peak(GCODE, CONFIG)
+    need = profile_line(profile_from_dict(PROFILE), 0.5).temp_c(peak)
+    ctx.say(f"A weak hotend (melts 4 mm^3/s at 200 C) prints two layers of a "
+            f"real slicer file\n(infill asks for up to {peak:.1f} mm^3/s,"
+            f" {need:.0f} C; the profile stops at"
+            f" {PROFILE['bounds']['max_temp_c']:.0f} C), on the simulated sensor"
+            f"\nand hotend, with [autotemp] (tests/klippy/test_autotemp.py"
+            f" compares the file's own\ntemperatures, 200 and 215 C):")
     records, moved, _ = print_with_autotemp(1)
     targets = [r["heater_target"] for r in records]
     sources = {r["autotemp"]["source"] for r in records} - {None}
@@ -105,7 +109,6 @@ def with_klippy(ctx) -> None:
 
 def bake(ctx) -> None:
     from flowloop.gcode.bake import bake_file
-    from flowloop.material.profile import profile_from_dict
     profile = profile_from_dict({**PROFILE, "bounds": {**PROFILE["bounds"],
                                                        "max_temp_c": 240.0}})
     with tempfile.TemporaryDirectory() as tmp:

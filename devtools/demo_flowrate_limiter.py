@@ -3,7 +3,7 @@
 With Klipper: a batch-mode klippy prints the first two layers of a real
 PrusaSlicer file (tests/data/gcode/block_layers_1_2.gcode) on the simulated
 sensor, whose twin is a 40 W hotend melting what a weak material profile
-says (4 mm^3/s at 200 C; the infill asks for up to 6.4). Once without the
+says (4 mm^3/s at 200 C; the infill asks for up to 6.7). Once without the
 limiter, once with it (mode predictive), after heating the nozzle as M109 would: grip
 windows below min_grip, the filament that really moved, the time the limiter
 added. Offline: the
@@ -19,6 +19,10 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 from devtools import stack
 from devtools.klippy_api import KlippyApi
 from flowloop.control import rule_plot
+from flowloop.gcode.annotate import AnnotateSettings, quantise_flow
+from flowloop.gcode.bake import plan_announcements
+from flowloop.gcode.planner import limits_from_config
+from flowloop.host.klipper_config import read_config
 
 GCODE = stack.PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
 CONFIG = stack.PROJECT / "tests" / "klippy" / "flowrate_limiter_loop.cfg"
@@ -112,10 +116,17 @@ def print_closed_loop(enable: int, build=None, venv=None,
         shutil.rmtree(workdir, ignore_errors=True)
 
 
+def announced_peak(gcode: Path = GCODE, config: Path = CONFIG) -> float:
+    """The file's peak flow as its annotation announces it on this printer
+    (flowloop annotate's summary): one figure for every demo that names it."""
+    limits = limits_from_config(read_config(config))
+    return quantise_flow(plan_announcements(gcode, limits, AnnotateSettings()).peak)
+
+
 def with_klippy(ctx) -> None:
-    ctx.say("A weak hotend (melts 4 mm^3/s at 200 C) prints two layers of a "
-            "real slicer file\n(infill asks for up to 6.4 mm^3/s), on the "
-            "simulated sensor and hotend:")
+    ctx.say(f"A weak hotend (melts 4 mm^3/s at 200 C) prints two layers of a "
+            f"real slicer file\n(infill asks for up to {announced_peak():.1f}"
+            f" mm^3/s), on the simulated sensor and hotend:")
     for enable, what in ((0, "limiter off"), (1, "limiter on ")):
         status, moved = print_closed_loop(enable)
         windows = status["grip_windows"]

@@ -38,6 +38,9 @@ def test_demo_runs_its_steps_with_klippy_and_stops_every_process(moonraker_venv)
     assert code == 0, out[-5000:]
     assert "Moonraker: http://127.0.0.1:" in out
     assert "klippy: flowloop" in out and "demo step" not in out
+    # one file, one peak flow in every step that names it (was 6.4 and 6.7)
+    peaks = set(re.findall(r"asks for up to ([0-9.]+) mm\^3/s", out))
+    assert len(peaks) == 1, peaks
     # the demo printer's DIFF_AB_CALIBRATE says what it changed, not "ok"
     assert re.search(r"stepper_x: rotation_distance [0-9.]+ -> [0-9.]+", out)
     assert not re.search(r"^ok$", out, re.M)
