@@ -1,13 +1,20 @@
 """Helpers for the Moonraker tier: a JSON-RPC websocket client that also
-collects notifications (polling is devtools.stack.wait_until)."""
+collects notifications (polling is devtools.stack.wait_until), and a
+Moonraker run from a copy of its package (polling is devtools.stack.wait_until)."""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import shutil
 import time
+from pathlib import Path
 
 import pytest
+
+from devtools import stack
+from flowloop.host import install
 
 
 class Rpc:
@@ -71,3 +78,32 @@ def rpc():
                 return await steps(client)
         return asyncio.run(main())
     return run
+
+
+def copy_of_moonraker(moonraker_venv, site: Path) -> Path:
+    """The test venv's Moonraker package copied to site/moonraker, without
+    flowloop; returns site/moonraker."""
+    real = install.moonraker_components_dir(moonraker_venv.path).parent
+    shutil.copytree(real, site / "moonraker", symlinks=True,
+                    ignore=shutil.ignore_patterns("__pycache__", "flowloop",
+                                                  "flowloop.py"))
+    return site / "moonraker"
+
+
+@contextlib.contextmanager
+def moonraker_from(site: Path, moonraker_venv, prefix: str):
+    """Moonraker started from the copy at site (flowloop installed into it
+    by the caller), checked to have loaded flowloop from that copy."""
+    data_dir = stack.short_tempdir(prefix)
+    mr = stack.Moonraker(moonraker_venv, data_dir, moonraker_path=site)
+    try:
+        mr.wait_ready()
+        result = mr.request("GET", "/server/info")[1]["result"]
+        assert "flowloop" in result["components"], result
+        assert "flowloop" not in result["failed_components"]
+        # it ran the copy, not the venv's
+        assert str(site / "moonraker") in mr.log_path.read_text()
+        yield mr
+    finally:
+        mr.stop()
+        shutil.rmtree(data_dir, ignore_errors=True)

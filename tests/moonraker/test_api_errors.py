@@ -13,6 +13,7 @@ import pytest
 
 from devtools import stack
 from flowloop.host import install
+from tests.moonraker.conftest import copy_of_moonraker, moonraker_from
 from tests.samples import make
 
 
@@ -187,26 +188,16 @@ def test_where_moonraker_serves_with_another_handler_its_own_answers(
     was written against: a Moonraker whose routes another class serves keeps
     that class, and every flowloop endpoint still answers through it."""
     site = tmp_path / "site"
-    real = install.moonraker_components_dir(moonraker_venv.path).parent
-    shutil.copytree(real, site / "moonraker", symlinks=True,
-                    ignore=shutil.ignore_patterns("__pycache__", "flowloop",
-                                                  "flowloop.py"))
-    application = site / "moonraker" / "components" / "application.py"
+    application = copy_of_moonraker(moonraker_venv, site) / "components" \
+        / "application.py"
     text = application.read_text()
     assert text.count(OWN_HANDLER) == 1  # the copy is the Moonraker tested here
     application.write_text(
         text.replace(OWN_HANDLER, OWN_HANDLER.replace("Dynamic", "Other"))
         + "\n\nclass OtherRequestHandler(DynamicRequestHandler):\n    pass\n")
     install.apply(install.plan_moonraker(site, stack.PROJECT))
-    data_dir = stack.short_tempdir("fl-own-")
-    mr = stack.Moonraker(moonraker_venv, data_dir, moonraker_path=site)
-    try:
-        mr.wait_ready()
-        result = mr.request("GET", "/server/info")[1]["result"]
-        assert "flowloop" in result["components"], result
-        assert "flowloop" not in result["failed_components"]
+    with moonraker_from(site, moonraker_venv, "fl-own-") as mr:
         log = mr.log_path.read_text()
-        assert str(site / "moonraker") in log  # it ran the copy, not the venv's
         assert ("flowloop: /server/flowloop/profile is served by Moonraker's own "
                 "handler") in log
         assert mr.request("POST", "/server/flowloop/profile",
@@ -216,6 +207,3 @@ def test_where_moonraker_serves_with_another_handler_its_own_answers(
         assert reason == body["error"]["message"]
         status, body = mr.request("GET", "/server/flowloop/profile?name=own")
         assert status == 200 and body["result"]["name"] == "own"
-    finally:
-        mr.stop()
-        shutil.rmtree(data_dir, ignore_errors=True)

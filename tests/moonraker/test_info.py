@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import time
 
@@ -11,6 +10,7 @@ import pytest
 
 from devtools import stack
 from flowloop.host import install
+from tests.moonraker.conftest import copy_of_moonraker, moonraker_from
 
 
 @pytest.fixture(scope="module")
@@ -113,10 +113,7 @@ def test_install_then_uninstall_in_a_moonraker_that_then_loads_it(moonraker_venv
     """The installer on a copy of the real Moonraker package: after install that
     Moonraker loads the component package; uninstall restores every byte."""
     site = tmp_path / "site"
-    real = install.moonraker_components_dir(moonraker_venv.path).parent
-    shutil.copytree(real, site / "moonraker", symlinks=True,
-                    ignore=shutil.ignore_patterns("__pycache__", "flowloop",
-                                                  "flowloop.py"))
+    copy_of_moonraker(moonraker_venv, site)
 
     def snapshot():
         return {str(p.relative_to(site)): (os.readlink(p) if p.is_symlink()
@@ -127,17 +124,7 @@ def test_install_then_uninstall_in_a_moonraker_that_then_loads_it(moonraker_venv
     install.apply(install.plan_moonraker(site, stack.PROJECT))
     link = site / "moonraker" / "components" / "flowloop"
     assert os.readlink(link) == str(stack.PROJECT / "moonraker_components" / "flowloop")
-    data_dir = stack.short_tempdir("fl-inst-")
-    mr = stack.Moonraker(moonraker_venv, data_dir, moonraker_path=site)
-    try:
-        mr.wait_ready()
-        result = mr.request("GET", "/server/info")[1]["result"]
-        assert "flowloop" in result["components"], result
-        assert "flowloop" not in result["failed_components"]
-        log = (data_dir / "moonraker.log").read_text()
-        assert str(site / "moonraker") in log  # it ran the copy, not the venv's
-    finally:
-        mr.stop()
-        shutil.rmtree(data_dir, ignore_errors=True)
+    with moonraker_from(site, moonraker_venv, "fl-inst-"):
+        pass  # it started and loaded flowloop from the copy: what is checked
     install.apply(install.plan_moonraker(site, stack.PROJECT, uninstall=True))
     assert snapshot() == before
