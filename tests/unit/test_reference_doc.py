@@ -120,8 +120,12 @@ def _registrations(tree: ast.AST, method: str) -> Iterator[Tuple[ast.Call, list]
     for node in ast.walk(tree):
         if not (isinstance(node, ast.Call) and _called_name(node) == method):
             continue
-        if node.args and _str(node.args[0]) is not None:
-            yield node, [node.args]
+        args = list(node.args)
+        if method == "register_endpoint" and len(args) > 1 \
+                and _str(args[0]) is None and _str(args[1]) is not None:
+            args = args[1:]   # flowloop's helper that takes the server first
+        if args and _str(args[0]) is not None:
+            yield node, [args]
         else:
             yield node, tables
 
