@@ -1,9 +1,11 @@
 """Autotemp annotations: the flow the next seconds will demand, written into
 the G-code early enough for a hotend to heat before the flow arrives.
 
-The flow planner (planner.py) turns the file into print time. That time is
-cut into windows of `window_s`; each window's peak flow is announced by one
-command placed about `lead_s` before the window in print time:
+The flow planner (planner.py) turns the file into print time, and its flow
+into the flow the hotend has to melt (melt.py: the mean over MELT_TIME_S,
+not the spike of a move a few milliseconds long). That time is cut into
+windows of `window_s`; each window's peak of it is announced by one command
+placed about `lead_s` before the window in print time:
 
     AUTOTEMP_FLOW FLOW=<peak mm^3/s> LEAD=<s> DURATION=<s>
 
@@ -39,9 +41,12 @@ import numpy as np
 
 from ..errors import FlowloopError
 from .fastplan import Segments, plan_batches
+from .melt import MELT_TIME_S, Lines, melt_events
 from .planner import Barrier, Event, PrinterLimits
 
-FORMAT_VERSION = 1
+# v2: FLOW is the flow to melt (flowloop.gcode.melt: the mean over
+# MELT_TIME_S), no longer the peak of any move; v1 files read as before.
+FORMAT_VERSION = 2
 DEFAULT_LEAD_S = 60.0
 DEFAULT_WINDOW_S = 1.0
 # How long before its move Klipper reads a command (toolhead BUFFER_TIME_HIGH).
@@ -92,7 +97,7 @@ class Summary:
 def marker_line(settings: AnnotateSettings) -> str:
     return (f"; flowloop autotemp annotations v{FORMAT_VERSION}: {COMMAND} "
             f"FLOW=<peak mm^3/s> LEAD=<s> DURATION=<s>, lead {settings.lead_s:g} s,"
-            f" window {settings.window_s:g} s")
+            f" window {settings.window_s:g} s, melt {MELT_TIME_S:g} s")
 
 
 def is_annotated(head: bytes) -> bool:
@@ -193,24 +198,17 @@ class _Annotator:
 
     # --- windows ------------------------------------------------------------------
 
-    def segment(self, seg) -> None:
-        if self.candidates.last_offset != seg.offset:
-            self.candidates.add(seg.start_s, seg.offset)
-        self._advance_to(seg.start_s)
-        window = self.settings.window_s
-        end = seg.start_s + seg.duration_s
-        if seg.flow_mm3_s > self.peak:
-            self.peak = seg.flow_mm3_s
-        while True:
-            bin_end = self.bin_start + window
-            if seg.flow_mm3_s > self.bin_peak:
-                flow = seg.peak_flow_between(self.bin_start, bin_end)
-                if flow > self.bin_peak:
-                    self.bin_peak = flow
-            if end <= bin_end:
-                break
-            self._close_bin(bin_end)
-        self.end_s = max(self.end_s, end)
+    def lines(self, batch: Segments) -> None:
+        """The move lines of a batch of the planner's moves: where commands
+        may go (the flow comes as melt cells, flowloop.gcode.melt)."""
+        offsets = batch.offset
+        if not len(offsets):
+            return
+        new_line = np.empty(len(offsets), bool)
+        new_line[0] = offsets[0] != self.candidates.last_offset
+        new_line[1:] = offsets[1:] != offsets[:-1]
+        self.candidates.add_many(batch.start_s[new_line], offsets[new_line])
+        self.end_s = max(self.end_s, float(batch.start_s[-1] + batch.duration_s[-1]))
 
     def _advance_to(self, time_s: float) -> None:
         """Close every window that ends by time_s (the gap carries no flow)."""
@@ -241,17 +239,12 @@ class _Annotator:
         self.pending = _Window(start, end_s, flow, offset, time_s)
 
     def segments(self, batch: Segments) -> None:
-        """segment() for each of a batch of consecutive segments, at once:
-        the peak of each window they cross, then the windows closed in order."""
+        """A batch of consecutive segments of flow (melt cells), at once: the
+        peak of each window they cross, then the windows closed in order."""
         start, duration, flow = batch.start_s, batch.duration_s, batch.flow_mm3_s
         n = len(start)
         if not n:
             return
-        offsets = batch.offset
-        new_line = np.empty(n, bool)
-        new_line[0] = offsets[0] != self.candidates.last_offset
-        new_line[1:] = offsets[1:] != offsets[:-1]
-        self.candidates.add_many(start[new_line], offsets[new_line])
         self._advance_to(float(start[0]))
         end = start + duration
         window = self.settings.window_s
@@ -280,7 +273,6 @@ class _Annotator:
         raw[0] = max(raw[0], self.bin_peak)
         self._close_bins(edges[:final + 1], raw[:final])
         self.bin_start, self.bin_peak = float(edges[final]), float(raw[final])
-        self.end_s = max(self.end_s, last_end)
 
     def _close_bins(self, edges: np.ndarray, peaks: np.ndarray) -> None:
         """_close_bin for bins edges[k]..edges[k+1] with raw peaks[k], in
@@ -422,6 +414,19 @@ def _peak_flow_between(batch: Segments, seg: np.ndarray, t0: np.ndarray,
     return np.where(b < a, 0.0, out)
 
 
+def feed(annotator: _Annotator, events: Iterable[Union[Event, Segments]]) -> None:
+    """The planner's events into an annotator, as the flow to melt
+    (flowloop.gcode.melt), then its last windows closed."""
+    for event in melt_events(events):
+        if isinstance(event, Barrier):
+            annotator.barrier(event)
+        elif isinstance(event, Lines):
+            annotator.lines(event.moves)
+        else:
+            annotator.segments(event)
+    annotator.finish()
+
+
 def annotate_stream(events: Iterable[Union[Event, Segments]], src: BinaryIO,
                     out: BinaryIO,
                     settings: AnnotateSettings = AnnotateSettings(),
@@ -433,14 +438,7 @@ def annotate_stream(events: Iterable[Union[Event, Segments]], src: BinaryIO,
     a = _Annotator(settings, src, out, newline)
     a.drop_byte_order_mark()
     out.write(marker_line(settings).encode() + newline)
-    for event in events:
-        if isinstance(event, Barrier):
-            a.barrier(event)
-        elif isinstance(event, Segments):
-            a.segments(event)
-        else:
-            a.segment(event)
-    a.finish()
+    feed(a, events)
     a.copy_to(None)
     summary = Summary(True, quantise_flow(a.peak), a.windows, a.end_s)
     if a.last_byte != newline[-1:]:

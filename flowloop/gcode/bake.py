@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO, List, Optional, Tuple
 
+import numpy as np
+
 from ..control.autotemp import DEFAULT_PARAMS, GRID_S, Autotemp
 from ..control.hotend import HotendModel, HotendParams
 from ..errors import FlowloopError
@@ -47,11 +49,12 @@ from .annotate import (
     _Annotator,
     _newline_of,
     _replace_atomically,
+    feed,
     is_annotated,
     quantise_flow,
 )
-from .fastplan import plan_file
-from .planner import Barrier, PrinterLimits
+from .fastplan import Segments, plan_batches
+from .planner import PrinterLimits
 from .start import StartFix, find_start_heat, start_fix
 
 BAKE_STEP_S = 0.5
@@ -97,21 +100,35 @@ class _Recorder(_Annotator):
     def emit(self, offset: int, time_s: float, line: str) -> None:
         self.commands.append((offset, time_s, line))
 
-    def segment(self, seg) -> None:
-        if not self.moves or self.moves[-1][1] != seg.offset:
-            self.moves.append((seg.start_s, seg.offset))
-        if seg.flow_mm3_s > 0.0:
-            if self.first_extrusion is None:
-                self.first_extrusion = (seg.start_s, seg.offset)
-            first = math.floor(seg.start_s / GRID_S)
-            last = math.floor(seg.end_s / GRID_S)
-            if len(self.demand) <= last:
-                self.demand.extend([0.0] * (last + 1 - len(self.demand)))
-            for k in range(first, last + 1):
-                flow = seg.peak_flow_between(k * GRID_S, (k + 1) * GRID_S)
-                if flow > self.demand[k]:
-                    self.demand[k] = flow
-        super().segment(seg)
+    def lines(self, batch: Segments) -> None:
+        new = np.flatnonzero(np.concatenate((
+            [not self.moves or self.moves[-1][1] != batch.offset[0]],
+            batch.offset[1:] != batch.offset[:-1])))
+        self.moves.extend(zip(batch.start_s[new].tolist(),
+                              batch.offset[new].tolist()))
+        if self.first_extrusion is None:
+            flowing = np.flatnonzero(batch.flow_mm3_s > 0.0)
+            if flowing.size:
+                k = int(flowing[0])
+                self.first_extrusion = (float(batch.start_s[k]),
+                                        int(batch.offset[k]))
+        super().lines(batch)
+
+    def segments(self, batch: Segments) -> None:
+        """The melt flow's peak per GRID_S, as announced (cells of
+        flowloop.gcode.melt)."""
+        if len(batch):
+            first = np.floor(batch.start_s / GRID_S).astype(np.int64)
+            last = np.floor((batch.start_s + batch.duration_s) / GRID_S
+                            ).astype(np.int64)
+            top = int(last[-1])
+            if len(self.demand) <= top:
+                self.demand.extend([0.0] * (top + 1 - len(self.demand)))
+            demand = np.asarray(self.demand)
+            np.maximum.at(demand, first, batch.flow_mm3_s)
+            np.maximum.at(demand, last, batch.flow_mm3_s)
+            self.demand = demand.tolist()
+        super().segments(batch)
 
 
 class _Empty:
@@ -196,19 +213,15 @@ def plan_announcements(src: Path, limits: PrinterLimits,
                        settings: AnnotateSettings, newline: bytes = b"\n"
                        ) -> _Recorder:
     """The file planned and annotated in memory: `.commands` (offset, print
-    time, AUTOTEMP_FLOW line), `.moves`, `.demand` (peak flow per GRID_S),
+    time, AUTOTEMP_FLOW line), `.moves`, `.demand` (peak melt flow
+    per GRID_S, as announced),
     `.end_s`."""
     rec = _Recorder(settings, newline)
     try:
         with open(src, "rb") as lines:
-            for event in plan_file(lines, limits):
-                if isinstance(event, Barrier):
-                    rec.barrier(event)
-                else:
-                    rec.segment(event)
+            feed(rec, plan_batches(lines, limits))
     except FlowloopError as e:
         raise FlowloopError(f"{src}: {e}") from None
-    rec.finish()
     return rec
 
 

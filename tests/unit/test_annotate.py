@@ -25,6 +25,7 @@ from flowloop.gcode.annotate import (
     is_annotated,
 )
 from flowloop.gcode.fastplan import plan_batches
+from flowloop.gcode.melt import CELL_S, MELT_TIME_S
 from flowloop.gcode.planner import Barrier, Segment, plan_file
 
 pytestmark = pytest.mark.unit
@@ -80,6 +81,43 @@ def peak_between(segs, t0: float, t1: float) -> float:
                 if s.start_s < t1 and s.start_s + s.duration_s > t0), default=0.0)
 
 
+def flow_at(seg, t: float) -> float:
+    """A move's flow at print time t (its trapezoid)."""
+    u = t - seg.start_s
+    if u < 0.0 or u > seg.duration_s:
+        return 0.0
+    if u < seg.accel_s:
+        return seg.start_flow_mm3_s + (
+            seg.flow_mm3_s - seg.start_flow_mm3_s) * u / seg.accel_s
+    left = seg.duration_s - u
+    if left < seg.decel_s:
+        return seg.end_flow_mm3_s + (
+            seg.flow_mm3_s - seg.end_flow_mm3_s) * left / seg.decel_s
+    return seg.flow_mm3_s
+
+
+def melt_peak_between(events, t0: float, t1: float, step: float = 0.0005) -> float:
+    """The highest mean flow over MELT_TIME_S centred anywhere in [t0, t1],
+    integrated here on a fine grid (not melt.py's way); no flow is counted
+    across a barrier."""
+    segs = [e for e in events if isinstance(e, Segment)]
+    cuts = [e.time_s for e in events if isinstance(e, Barrier)]
+    h = MELT_TIME_S / 2
+    times = [t0 - h + i * step for i in range(int((t1 - t0 + 2 * h) / step) + 2)]
+    near = [s for s in segs if s.start_s < t1 + h and s.start_s + s.duration_s > t0 - h]
+    flows = [max((flow_at(s, t) for s in near), default=0.0) for t in times]
+    best = 0.0
+    n = int(round(2 * h / step))
+    for i in range(len(times) - n):
+        centre = times[i] + h
+        if not t0 <= centre <= t1:
+            continue
+        if any(times[i] < c < times[i + n] for c in cuts):
+            continue      # the mean across a wait is not the melt's
+        best = max(best, sum(flows[i:i + n]) * step / (2 * h))
+    return best
+
+
 def annotated(data: bytes, settings=DEFAULT) -> bytes:
     out = io.BytesIO()
     annotate_stream(plan(data), io.BytesIO(data), out, settings)
@@ -89,9 +127,11 @@ def annotated(data: bytes, settings=DEFAULT) -> bytes:
 def assert_announcements_cover_the_flow(original: bytes, result: bytes,
                                         settings=DEFAULT) -> None:
     """The one check of what annotations promise: windows tile the print from
-    the first flow on, each FLOW is its window's true peak (rounded up to 0.1),
-    and each comes at least lead - read-ahead early unless a barrier (or the
-    file's start) was closer."""
+    the first flow on, each FLOW is its window's peak of the flow to melt
+    (the mean over MELT_TIME_S: at least it, to the cell's sampling, and never
+    above the moves' own peak; rounded up to 0.1), and each comes at least
+    lead - read-ahead early unless a barrier (or the file's start) was
+    closer."""
     events = plan(original)
     segs = [e for e in events if isinstance(e, Segment)]
     barriers = [e.time_s for e in events if isinstance(e, Barrier)]
@@ -112,9 +152,12 @@ def assert_announcements_cover_the_flow(original: bytes, result: bytes,
             assert b.start_s == pytest.approx(a.end_s, abs=2 * ROUNDING_S)
     for w in windows:
         assert w.end_s - w.start_s > 0
-        inner = peak_between(segs, w.start_s + ROUNDING_S, w.end_s - ROUNDING_S)
-        outer = peak_between(segs, w.start_s - ROUNDING_S, w.end_s + ROUNDING_S)
-        assert inner <= w.flow + 1e-9
+        inner = melt_peak_between(events, w.start_s + ROUNDING_S,
+                                  w.end_s - ROUNDING_S)
+        outer = peak_between(segs, w.start_s - ROUNDING_S - MELT_TIME_S / 2,
+                             w.end_s + ROUNDING_S + MELT_TIME_S / 2)
+        # between two cell ends the mean moves by at most CELL_S / MELT_TIME_S
+        assert inner <= w.flow + outer * CELL_S / MELT_TIME_S + 1e-9
         assert w.flow <= outer + 0.1 + 1e-9
         lead = w.start_s - w.at_s
         first_possible = max([t for t in barriers if t <= w.start_s], default=0.0)
@@ -186,8 +229,8 @@ def test_the_marker_is_found_as_moonraker_looks_for_it():
     result = annotated(REAL.read_bytes())
     head = result[:1024 * 1024].decode()
     match = re.search(MARKER_REGEX, head, re.MULTILINE)
-    assert match is not None and match.group("version") == "v1"
-    assert result.splitlines()[0].startswith(b"; flowloop autotemp annotations v1")
+    assert match is not None and match.group("version") == "v2"
+    assert result.splitlines()[0].startswith(b"; flowloop autotemp annotations v2")
     assert result.splitlines()[-1].startswith(b"; flowloop autotemp summary:"
                                               b" peak_flow_mm3_s=")
     # the slicer's own header is still there for Moonraker's metadata
@@ -243,7 +286,7 @@ def test_a_linked_file_is_annotated_where_the_link_points(tmp_path):
     link.symlink_to(target)
     annotate_file(link)
     assert link.is_symlink()
-    assert target.read_bytes().startswith(b"; flowloop autotemp annotations v1")
+    assert target.read_bytes().startswith(b"; flowloop autotemp annotations v2")
 
 
 def test_a_failure_leaves_input_and_output_as_they_were(tmp_path):

@@ -125,7 +125,7 @@ def test_cli_bake_and_plot(tmp_path, capsys):
     for element in ('id="target"', 'id="nozzle"', 'id="demand"',
                     'id="capacity"'):
         assert element in svg
-    assert out.read_text().startswith("; flowloop autotemp annotations v1 baked")
+    assert out.read_text().startswith("; flowloop autotemp annotations v2 baked")
 
 
 @pytest.mark.parametrize("args, word", [
