@@ -20,7 +20,7 @@ sys.path.insert(0, str(PROJECT))
 from devtools import stack  # noqa: E402
 from devtools.klippy_test import KlippyTestFailure, run_file  # noqa: E402
 
-TIERS = ("unit", "c", "klippy", "moonraker", "bench")
+TIERS = ("unit", "c", "klippy", "moonraker", "bench", "fil")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -1,0 +1,324 @@
+"""Firmware in the loop: the patched Klipper's atmega2560 firmware on simavr.
+
+simavr (>= 1.8) comes from its source, as Klipper does: a checkout at
+SIMAVR_PATH (default ~/simavr; `git clone https://github.com/buserror/simavr`).
+It is built once into flowloop's cache, keyed on its commit, and
+fil_harness.c is linked statically against its libsimavr.a. The harness runs
+klipper.elf paced to the wall clock, with USART0 on a pty that klippy opens
+in normal mode, and a control socket for the models' grip and faults.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import shutil
+import socket
+import subprocess
+import time
+from pathlib import Path
+from typing import Dict, List, Optional
+
+from devtools import stack
+
+HERE = Path(__file__).resolve().parent
+HARNESS_SOURCE = HERE / "fil_harness.c"
+SIMAVR_URL = "https://github.com/buserror/simavr"
+MIN_VERSION = (1, 8)
+
+
+def simavr_path() -> Path:
+    return Path(os.environ.get("SIMAVR_PATH", "~/simavr")).expanduser()
+
+
+def _git(path: Path, *args: str) -> str:
+    return subprocess.run(["git", "-C", str(path), *args], capture_output=True,
+                          text=True, check=True).stdout.strip()
+
+
+def missing_simavr_reason() -> Optional[str]:
+    """Why the fil tier cannot run here, in one line, or None."""
+    path = simavr_path()
+    how = (f"Get it with 'git clone {SIMAVR_URL} ~/simavr' (v1.8 or later) or "
+           f"set SIMAVR_PATH; the build needs Debian's libelf-dev.")
+    if not (path / "simavr" / "sim" / "sim_avr.c").is_file():
+        return f"no simavr source at {path}: the fil tier is SKIPPED. {how}"
+    try:
+        described = _git(path, "describe", "--tags", "--always")
+    except (subprocess.CalledProcessError, OSError) as e:
+        return (f"simavr at {path} is not a git checkout ({e}): the fil tier "
+                f"is SKIPPED. {how}")
+    match = re.match(r"v(\d+)\.(\d+)", described)
+    if match and tuple(map(int, match.groups())) < MIN_VERSION:
+        return (f"simavr at {path} is {described}, older than v1.8 (its "
+                f"interrupts, SPI and Timer1 do not run Klipper): the fil tier "
+                f"is SKIPPED. {how}")
+    if not Path("/usr/include/libelf.h").exists() and not Path(
+            "/usr/include/gelf.h").exists():
+        return "libelf-dev is not installed: the fil tier is SKIPPED. " + how
+    return None
+
+
+def build_harness() -> Path:
+    """The fil_harness binary, built into the cache (simavr once per commit,
+    the harness once per source text)."""
+    source = simavr_path()
+    commit = _git(source, "rev-parse", "HEAD")[:12]
+    dirty = _git(source, "status", "--porcelain", "--untracked-files=no")
+    key = commit + ("-" + hashlib.sha256(dirty.encode()).hexdigest()[:8]
+                    if dirty else "")
+    root = stack.cache_dir() / f"simavr-{key}"
+    lib_dir = root / "simavr"
+    with stack._locked("simavr"):
+        if not (root / ".flowloop-ready").exists():
+            stack.log(f"building simavr {key} from {source} into {root}")
+            tmp = root.with_name(root.name + ".tmp")
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.copytree(source, tmp, symlinks=True,
+                            ignore=shutil.ignore_patterns(".git", "obj-*"))
+            # config first: a parallel build races its generated headers
+            stack._run(["make", "-C", "simavr", "config", "RELEASE=1"], cwd=tmp)
+            stack._run(["make", "-C", "simavr", "libsimavr", "RELEASE=1",
+                        f"-j{os.cpu_count() or 2}"], cwd=tmp,
+                       log_file=tmp / "build.log")
+            stack._prune(stack.cache_dir().glob("simavr-*"), keep=tmp)
+            tmp.rename(root)
+            (root / ".flowloop-ready").write_text(key)
+        libs = list(lib_dir.glob("obj-*/libsimavr.a"))
+        if not libs:
+            raise RuntimeError(f"simavr built no libsimavr.a under {lib_dir}")
+        text = HARNESS_SOURCE.read_bytes()
+        binary = root / f"fil_harness-{hashlib.sha256(text).hexdigest()[:12]}"
+        if not binary.exists():
+            stack.log(f"building {binary.name} against {libs[0]}")
+            tmp = binary.with_name(binary.name + ".tmp")
+            stack._run(["gcc", "-O2", "-Wall", "-Wextra", "-Werror",
+                        "-Wno-unused-parameter", "-o", str(tmp),
+                        str(HARNESS_SOURCE), "-I", str(lib_dir / "sim"),
+                        "-I", str(lib_dir), str(libs[0]), "-lelf", "-lm"])
+            tmp.rename(binary)
+    return binary
+
+
+def firmware_has_ems22(build: stack.KlipperBuild) -> Optional[str]:
+    """None when the atmega2560 firmware carries the EMS22 commands, else why not."""
+    config = build.dict_dir / "atmega2560.config"
+    elf = build.elf("atmega2560")
+    if not elf.exists():
+        return f"no atmega2560 firmware at {elf}"
+    if "WANT_SENSOR_EMS22=y" not in config.read_text():
+        return (f"{elf} was built without flowloop's EMS22 option "
+                f"(WANT_SENSOR_EMS22 unset in {config}): run 'flowloop install'"
+                f" and rebuild")
+    return None
+
+
+class HarnessError(RuntimeError):
+    pass
+
+
+class Simulator(stack.Process):
+    """fil_harness running klipper.elf; klippy opens `pty` as its serial port."""
+
+    def __init__(self, elf: Path, workdir: Path, *, sensor: Dict[str, str],
+                 mm_per_step: float, counts_per_mm: float,
+                 step_pin: str = "PA4", dir_pin: str = "PA6",
+                 heater_pin: Optional[str] = None,
+                 adc_channel: Optional[int] = None, adc_mv: int = 0,
+                 extra: List[str] = ()):
+        """sensor: {'cs': 'PG0'} for hardware SPI, plus {'sclk': .., 'miso': ..}
+        for software SPI."""
+        self.workdir = workdir
+        self.pty = workdir / "mcu-serial"
+        self.control_path = workdir / "fil.sock"
+        self._sock: Optional[socket.socket] = None
+        self._buffer = b""
+        cmd = [str(build_harness()), "--elf", str(elf), "--pty", str(self.pty),
+               "--control", str(self.control_path), "--cs", sensor["cs"],
+               "--step", step_pin, "--dir", dir_pin,
+               "--mm-per-step", repr(mm_per_step),
+               "--counts-per-mm", repr(counts_per_mm)]
+        if "sclk" in sensor:
+            cmd += ["--sw-spi", f"{sensor['sclk']},{sensor['miso']}"]
+        if heater_pin:
+            cmd += ["--heater", heater_pin]
+        if adc_channel is not None:
+            cmd += ["--adc-channel", str(adc_channel), "--adc-mv", str(adc_mv)]
+        cmd += list(extra)
+        super().__init__("fil_harness", cmd, workdir / "fil_harness.log")
+
+    def wait_ready(self, timeout: float = 10.0) -> None:
+        ok = stack.wait_until(lambda: not self.alive() or (
+            self.pty.exists() and self.control_path.exists()), timeout, 0.02)
+        if not ok or not self.alive():
+            output = self.log_tail(1500).strip().splitlines()
+            raise HarnessError("the simulator did not start: "
+                               + (output[-1] if output else "no output"))
+
+    def control(self, line: str, timeout: float = 5.0) -> str:
+        """Send one command, return its one-line answer."""
+        if self._sock is None:
+            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            self._sock.settimeout(timeout)
+            self._sock.connect(str(self.control_path))
+        self._sock.sendall(line.encode() + b"\n")
+        deadline = time.monotonic() + timeout
+        while b"\n" not in self._buffer:
+            if time.monotonic() > deadline or not self.alive():
+                raise HarnessError(f"no answer to {line!r} from the simulator")
+            chunk = self._sock.recv(4096)
+            if not chunk:
+                raise HarnessError(f"the simulator closed its control socket"
+                                   f" on {line!r}")
+            self._buffer += chunk
+        answer, self._buffer = self._buffer.split(b"\n", 1)
+        text = answer.decode()
+        if text.startswith("error"):
+            raise HarnessError(f"{line!r}: {text}")
+        return text
+
+    def status(self) -> Dict[str, str]:
+        return dict(part.split("=", 1) for part in self.control("status").split())
+
+    def stop(self, timeout: float = 10.0) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+        super().stop(timeout)
+
+
+class NormalKlippy(stack.Process):
+    """klippy in normal mode: its MCU is the simulator behind [mcu] serial."""
+
+    def __init__(self, build: stack.KlipperBuild, venv: stack.Venv, config: Path,
+                 workdir: Path):
+        self.api_socket = workdir / "klippy.sock"
+        cmd = [str(venv.python), str(build.klippy), str(config),
+               "-a", str(self.api_socket), "-l", str(workdir / "klippy.log")]
+        super().__init__("klippy", cmd, workdir / "klippy.log", cwd=str(build.tree))
+
+
+def build_chelper(build: stack.KlipperBuild, venv: stack.Venv) -> None:
+    # klippy compiles its C helper on first use; doing that while the
+    # simulator runs would leave the simulation behind the clock.
+    stack._run([str(venv.python), "-c", "import chelper; chelper.get_ffi()"],
+               cwd=build.tree / "klippy")
+
+
+class FilPrinter:
+    """The simulator and a klippy connected to it, with an API client."""
+
+    def __init__(self, sim: Simulator, klippy: NormalKlippy, api):
+        self.sim, self.klippy, self.api = sim, klippy, api
+        api.call("gcode/subscribe_output", response_template={})
+
+    def gcode(self, script: str):
+        return self.api.gcode(script)
+
+    def console(self) -> List[str]:
+        """Console lines (respond_info, errors) since the last call."""
+        lines = [msg["params"]["response"] for msg in self.api.remote
+                 if "response" in msg.get("params", {})]
+        self.api.remote.clear()
+        return lines
+
+    def gcode_console(self, script: str) -> List[str]:
+        """Run script; the console lines it gave."""
+        self.console()
+        self.gcode(script)
+        return self.console()
+
+    def query(self, obj: str) -> dict:
+        return self.api.query(obj)
+
+    def logs(self) -> str:
+        return self.sim.log_tail(2000) + "\n" + self.klippy.log_tail(4000)
+
+
+def start_printer(build: stack.KlipperBuild, venv: stack.Venv, config_text: str,
+                  workdir: Path, ready_timeout: float = 30.0,
+                  **sim_options) -> FilPrinter:
+    """Start the simulator, then klippy on config_text (its '{serial}' is
+    replaced by the pty); returns once klippy reports ready."""
+    from devtools.klippy_api import KlippyApi
+    reason = firmware_has_ems22(build)
+    if reason:
+        raise HarnessError(reason)
+    build_chelper(build, venv)
+    sim = Simulator(build.elf("atmega2560"), workdir, **sim_options)
+    klippy = None
+    try:
+        sim.wait_ready()
+        config = workdir / "printer.cfg"
+        config.write_text(config_text.replace("{serial}", str(sim.pty)))
+        klippy = NormalKlippy(build, venv, config, workdir)
+        if not stack.wait_until(lambda: klippy.api_socket.exists()
+                                or not klippy.alive(), ready_timeout):
+            raise HarnessError("klippy did not open its API socket")
+        api = KlippyApi(klippy.api_socket, timeout=ready_timeout)
+        info = stack.wait_until(lambda: _ready_state(api, sim, klippy),
+                                ready_timeout, 0.2)
+        if info != "ready":
+            raise HarnessError(f"klippy is not ready after {ready_timeout:.0f} s"
+                               f" (state {_state(api)!r})")
+        return FilPrinter(sim, klippy, api)
+    except Exception as e:
+        logs = sim.log_tail(1500) + (klippy.log_tail(3000) if klippy else "")
+        for proc in (klippy, sim):
+            if proc is not None:
+                proc.stop()
+        if isinstance(e, HarnessError):
+            raise HarnessError(f"{e}\n{logs}") from None
+        raise
+
+
+def _state(api) -> str:
+    try:
+        return api.call("info")["state"]
+    except (RuntimeError, OSError) as e:
+        return f"no answer: {e}"
+
+
+def _ready_state(api, sim: Simulator, klippy: NormalKlippy):
+    if not sim.alive():
+        raise HarnessError("the simulator stopped")
+    if not klippy.alive():
+        raise HarnessError("klippy stopped")
+    state = _state(api)
+    if state in ("shutdown", "error"):
+        raise HarnessError(f"klippy state {state}")
+    return "ready" if state == "ready" else None
+
+
+def stop_printer(printer: FilPrinter) -> None:
+    try:
+        printer.api.close()
+    finally:
+        printer.klippy.stop()
+        printer.sim.stop()
+
+
+def data_address(elf: Path, symbol: str) -> int:
+    """The SRAM address of a firmware variable (for the harness's peek)."""
+    out = stack._run(["avr-nm", str(elf)])
+    for line in out.splitlines():
+        parts = line.split()
+        if len(parts) == 3 and parts[2] == symbol:
+            return int(parts[0], 16) - 0x800000
+    raise HarnessError(f"no symbol {symbol} in {elf}")
+
+
+class FirmwareClock:
+    """Klipper's own AVR clock (timer_high: Timer1 overflows it counted)
+    against simulated cycles and the wall clock."""
+
+    def __init__(self, printer: FilPrinter, elf: Path):
+        self.sim = printer.sim
+        self.address = data_address(elf, "timer_high")
+
+    def read(self):
+        """(wall monotonic s, firmware clock in ticks (64k resolution), cycles)."""
+        answer = dict(p.split("=") for p in self.sim.control(
+            f"peek {self.address}").split())
+        return time.monotonic(), int(answer["value"]) << 16, int(answer["cycle"])

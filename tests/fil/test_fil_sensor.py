@@ -1,0 +1,86 @@
+"""The EMS22 on the atmega2560's hardware SPI, read by the real firmware on
+simavr and decoded by klippy in normal mode over a pty: samples arrive at the
+configured rate, QUERY_FLOW_SENSOR reports them, G1 E moves give the grip the
+model was given, and klippy's clock follows the firmware's."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from devtools import simavr
+from tests.fil.conftest import COUNTS_PER_MM, SENSOR
+
+FIL_SECTIONS = """
+[flow_sensor filament]
+sensor_type: ems22
+cs_pin: PG0
+# 10 mm windows: one count (9.7 um) is 0.1 % of a window
+grip_window: 10
+"""
+# M400 returns when the last step is due; its samples reach the host in
+# messages of up to 12 records and 100 ms batches
+SETTLE_S = 0.4
+CLOCK = {}  # the firmware clock at the module's first test
+
+
+def _status(printer) -> dict:
+    return printer.query(SENSOR)
+
+
+def test_klippy_connects_in_normal_mode(printer, fil_build):
+    CLOCK["clock"] = simavr.FirmwareClock(printer, fil_build.elf("atmega2560"))
+    CLOCK["start"] = CLOCK["clock"].read()
+    log = printer.klippy.log_path.read_text()
+    assert "Configured MCU 'mcu'" in log
+    mcu = printer.query("mcu")
+    assert mcu["mcu_constants"]["MCU"] == "atmega2560"
+    assert mcu["mcu_constants"]["CLOCK_FREQ"] == 16000000
+
+
+def test_samples_arrive_and_query_flow_sensor_reports_them(printer):
+    before = _status(printer)
+    time.sleep(1.0)
+    after = _status(printer)
+    arrived = after["samples"] - before["samples"]
+    assert 200 <= arrived <= 300, arrived  # 250 per second by default
+    assert after["errors"] == {} and after["fault"] is None
+    lines = printer.gcode_console("QUERY_FLOW_SENSOR")
+    assert any("250 samples/s" in line and "errors none, fault none" in line
+               for line in lines), lines
+
+
+@pytest.mark.parametrize("grip", [1.0, 0.9])
+def test_g1_e_moves_give_the_models_grip(printer, grip):
+    printer.sim.control(f"grip {grip}")
+    model_before = float(printer.sim.status()["filament_mm"])
+    sensor_before = _status(printer)["filament_position"]
+    printer.gcode("M83\nG1 E30 F900\nM400")
+    time.sleep(SETTLE_S)
+    model_mm = float(printer.sim.status()["filament_mm"]) - model_before
+    status = _status(printer)
+    sensor_mm = status["filament_position"] - sensor_before
+    print(f"grip {grip}: flowloop {status['grip']}, sensor {sensor_mm:.4f} mm,"
+          f" model {model_mm:.4f} mm")
+    assert abs(sensor_mm - model_mm) <= 2.5 / COUNTS_PER_MM
+    assert status["grip"] == pytest.approx(grip, rel=0.002)
+    assert status["errors"] == {}
+
+
+def test_klippys_clock_follows_the_firmwares(printer):
+    clock = CLOCK["clock"]
+    wall0, ticks0, cycles0 = CLOCK["start"]
+    wall1, ticks1, cycles1 = clock.read()
+    firmware_hz = (ticks1 - ticks0) / (wall1 - wall0)
+    cycles_hz = (cycles1 - cycles0) / (wall1 - wall0)
+    klippy_hz = printer.query("mcu")["last_stats"]["freq"]
+    status = printer.sim.status()
+    print(f"over {wall1 - wall0:.1f} s: simulated {cycles_hz:.0f} cycles/s,"
+          f" firmware clock {firmware_hz:.0f} Hz, klippy's estimate "
+          f"{klippy_hz:.0f} Hz; simulation at most {status['max_lag_ms']} ms"
+          f" behind the wall clock")
+    assert cycles_hz == pytest.approx(16e6, rel=0.001)
+    # the firmware clock is read in 4 ms (65536 tick) steps
+    resolution = 65536 / (wall1 - wall0) / 16e6
+    assert klippy_hz == pytest.approx(firmware_hz, rel=0.001 + resolution)
