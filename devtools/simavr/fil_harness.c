@@ -170,16 +170,28 @@ miso_level(void)
 {
     switch (chip.fault) {
     case F_MISO_HIGH: return 1;
-    case F_MISO_LOW: case F_ABSENT: return 0;  // absent: no pull-up, reads low
+    case F_MISO_LOW: return 0;
+    case F_ABSENT: return 0;  // hardware SPI: MISO has no pull-up there
     }
     return chip.cs_low ? chip.do_level : 1;
 }
 
+// Software SPI: a driven MISO overrides the pin's pull-up (simavr applies a
+// pull-up at every write of the port unless an external level is set); an
+// absent chip leaves it floating, to the pull-up if the firmware set one.
 static void
 drive_miso(void)
 {
-    if (chip.software)
-        avr_raise_irq(chip.miso_irq, miso_level());
+    if (!chip.software)
+        return;
+    int driven = chip.fault != F_ABSENT;
+    int level = miso_level();
+    avr_ioport_external_t ext = {
+        .name = chip.miso.port, .mask = driven ? 1 << chip.miso.bit : 0,
+        .value = driven && level ? 1 << chip.miso.bit : 0 };
+    avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL(chip.miso.port), &ext);
+    if (driven)
+        avr_raise_irq(chip.miso_irq, level);
 }
 
 static void

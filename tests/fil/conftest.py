@@ -8,8 +8,10 @@ Without simavr the tier is skipped with one loud line.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
+import time
 from pathlib import Path
 
 import pytest
@@ -48,23 +50,44 @@ def fil_build():
     return build
 
 
-@pytest.fixture(scope="module")
-def printer(request, fil_build):
-    """One simulator and one klippy for the module's tests, in order."""
-    module = request.module
+@contextlib.contextmanager
+def fil_printer(build, sections: str, sensor=None,
+                rotation_distance: float = ROTATION_DISTANCE):
+    """The simulator (its extruder moving rotation_distance per turn) and
+    klippy on fil_printer.cfg plus sections; stopped on leaving."""
     venv = stack.klippy_venv()
     workdir = stack.short_tempdir("fl-fil-")
-    mm_per_step = getattr(module, "TRUE_ROTATION_DISTANCE", ROTATION_DISTANCE) / (
-        FULL_STEPS * MICROSTEPS)
     try:
         fil = simavr.start_printer(
-            fil_build, venv, printer_config(module.FIL_SECTIONS), workdir,
-            sensor=getattr(module, "FIL_SENSOR", {"cs": "PG0"}),
-            mm_per_step=mm_per_step, counts_per_mm=COUNTS_PER_MM,
+            build, venv, printer_config(sections), workdir,
+            sensor=sensor or {"cs": "PG0"},
+            mm_per_step=rotation_distance / (FULL_STEPS * MICROSTEPS),
+            counts_per_mm=COUNTS_PER_MM,
             heater_pin="PB4", adc_channel=13, adc_mv=ROOM_TEMP_MV)
     except simavr.HarnessError as e:
         shutil.rmtree(workdir, ignore_errors=True)
         pytest.fail(f"fil printer did not start: {e}", pytrace=False)
-    yield fil
-    simavr.stop_printer(fil)
-    shutil.rmtree(workdir, ignore_errors=True)
+    try:
+        yield fil
+    finally:
+        simavr.stop_printer(fil)
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def printer(request, fil_build):
+    """One simulator and one klippy for the module's tests, in order."""
+    module = request.module
+    with fil_printer(fil_build, module.FIL_SECTIONS,
+                     getattr(module, "FIL_SENSOR", None),
+                     getattr(module, "TRUE_ROTATION_DISTANCE",
+                             ROTATION_DISTANCE)) as fil:
+        yield fil
+
+
+def settle(printer, seconds: float = 0.4) -> dict:
+    """The sensor's status once the samples of finished moves are in (M400
+    returns when the last step is due; samples reach the host in messages
+    of up to 12 records and 100 ms batches)."""
+    time.sleep(seconds)
+    return printer.query(SENSOR)
