@@ -1,7 +1,9 @@
 """The EMS22 on the atmega2560's hardware SPI, read by the real firmware on
 simavr and decoded by klippy in normal mode over a pty: samples arrive at the
 configured rate, QUERY_FLOW_SENSOR reports them, G1 E moves give the grip the
-model was given, and klippy's clock follows the firmware's."""
+model was given, klippy's clock follows the firmware's, and each fault the
+chip or its wiring can have gives its documented status and console line,
+pauses a print, and clears with the next good frame."""
 
 from __future__ import annotations
 
@@ -9,7 +11,7 @@ import time
 
 import pytest
 
-from devtools import simavr
+from devtools import simavr, stack
 from tests.fil.conftest import COUNTS_PER_MM, SENSOR
 
 FIL_SECTIONS = """
@@ -18,6 +20,7 @@ sensor_type: ems22
 cs_pin: PG0
 # 10 mm windows: one count (9.7 um) is 0.1 % of a window
 grip_window: 10
+on_fault: pause
 """
 # M400 returns when the last step is due; its samples reach the host in
 # messages of up to 12 records and 100 ms batches
@@ -84,3 +87,71 @@ def test_klippys_clock_follows_the_firmwares(printer):
     # the firmware clock is read in 4 ms (65536 tick) steps
     resolution = 65536 / (wall1 - wall0) / 16e6
     assert klippy_hz == pytest.approx(firmware_hz, rel=0.001 + resolution)
+    assert float(status["max_lag_ms"]) < 50
+
+
+# harness fault -> the fault flowloop reports
+FAULTS = {"parity": "parity", "not_ready": "not_ready",
+          "cordic": "cordic_overflow", "linearity": "linearity",
+          "magnet": "magnet", "miso_high": "missing", "miso_low": "missing",
+          "absent": "missing"}
+# fault_samples (100) at 250 samples/s, plus a batch and a margin
+FAULT_WAIT_S = 3.0
+
+
+def _wait_for_fault(printer, kind):
+    """The sensor's status once its fault is `kind`, or None at the timeout."""
+    def faulted():
+        status = _status(printer)
+        return status if status["fault"] == kind else None
+    return stack.wait_until(faulted, FAULT_WAIT_S, 0.1)
+
+
+@pytest.mark.parametrize("fault", FAULTS)
+def test_a_fault_is_reported_and_clears_with_the_next_good_frame(printer, fault):
+    kind = FAULTS[fault]
+    before = _status(printer)
+    printer.console()
+    printer.sim.control(f"fault {fault}")
+    try:
+        faulted = _wait_for_fault(printer, kind)
+        assert faulted, _status(printer)
+        lines = printer.console()
+    finally:
+        printer.sim.control("fault none")
+    assert faulted["grip"] is None
+    assert faulted["errors"].get(kind, 0) >= 100
+    assert (f"// flow_sensor filament: fault '{kind}' (100 consecutive bad samples,"
+            " or stuck windows); grip is not judged until it clears") in lines
+    # idle: warned, not paused
+    assert printer.query("pause_resume")["is_paused"] is False
+    assert _wait_for_fault(printer, None), _status(printer)
+    cleared = settle_status(printer)
+    assert cleared["samples"] > faulted["samples"]
+    # an absolute encoder loses nothing while it was not read
+    assert cleared["filament_position"] == before["filament_position"]
+
+
+def test_a_fault_while_printing_pauses(printer):
+    printer.console()
+    printer.gcode("M83\nG1 E15 F600")  # 1.5 s of extrusion, not waited for
+    time.sleep(0.3)
+    printer.sim.control("fault magnet")
+    try:
+        assert _wait_for_fault(printer, "magnet"), _status(printer)
+        assert stack.wait_until(
+            lambda: printer.query("pause_resume")["is_paused"], 2.0)
+    finally:
+        printer.sim.control("fault none")
+    lines = printer.console()
+    assert any(line.startswith("// flow_sensor filament: fault 'magnet'")
+               and line.endswith(": pausing") for line in lines), lines
+    printer.gcode("M400")
+    assert _wait_for_fault(printer, None)
+    printer.gcode("RESUME")
+    assert printer.query("pause_resume")["is_paused"] is False
+
+
+def settle_status(printer) -> dict:
+    time.sleep(SETTLE_S)
+    return _status(printer)
