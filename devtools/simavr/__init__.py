@@ -18,7 +18,7 @@ import socket
 import subprocess
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 from devtools import stack
 
@@ -118,6 +118,25 @@ class HarnessError(RuntimeError):
     pass
 
 
+def idle_loop(elf: Path) -> Tuple[int, int]:
+    """[start, end) byte addresses of Klipper's AVR idle loop (irq_wait in
+    run_tasks: sei; nop; cli; check tasks_status; branch back)."""
+    lines = stack._run(["avr-objdump", "-d", "--no-show-raw-insn", str(elf)])
+    code = []
+    for line in lines.splitlines():
+        match = re.match(r"\s+([0-9a-f]+):\s+(\w+)\s*(.*)", line)
+        if match:
+            code.append((int(match.group(1), 16), match.group(2),
+                         match.group(3)))
+    for i in range(len(code) - 2):
+        if [c[1] for c in code[i:i + 3]] == ["sei", "nop", "cli"]:
+            start = code[i][0]
+            for address, op, args in code[i + 3:i + 10]:
+                if op == "rjmp" and f"0x{start:x}" in args:
+                    return start, address + 2
+    raise HarnessError(f"no idle loop (sei; nop; cli ... rjmp back) in {elf}")
+
+
 class Simulator(stack.Process):
     """fil_harness running klipper.elf; klippy opens `pty` as its serial port."""
 
@@ -139,6 +158,11 @@ class Simulator(stack.Process):
                "--step", step_pin, "--dir", dir_pin,
                "--mm-per-step", repr(mm_per_step),
                "--counts-per-mm", repr(counts_per_mm)]
+        try:
+            start, end = idle_loop(elf)
+            cmd += ["--idle-pc", f"{start:x},{end:x}"]
+        except (HarnessError, RuntimeError):
+            pass  # not a Klipper AVR build: no profile (status idle_cycles=0)
         if "sclk" in sensor:
             cmd += ["--sw-spi", f"{sensor['sclk']},{sensor['miso']}"]
         if heater_pin:

@@ -404,6 +404,14 @@ open_pty(const char *link_path)
     return 0;
 }
 
+// --- profile: cycles spent in the firmware's idle loop ------------------------
+// Klipper's AVR idle loop (sei; nop; cli; check tasks_status; loop) spans
+// [idle_start, idle_end) in flash; every other cycle is work (interrupts too).
+static struct {
+    uint32_t idle_start, idle_end;
+    uint64_t idle_cycles;
+} prof;
+
 // --- pacing -------------------------------------------------------------------
 static struct {
     struct timespec start;
@@ -454,12 +462,12 @@ command(char *line)
         return reply("cycle=%llu sim_s=%.6f wall_s=%.6f lag_ms=%.3f"
                      " max_lag_ms=%.3f steps=%ld filament_mm=%.6f counts=%ld"
                      " grip=%.6f fault=%s frames=%lu spi_bytes=%lu"
-                     " to_host=%lu from_host=%lu dropped=%lu",
+                     " to_host=%lu from_host=%lu dropped=%lu idle_cycles=%llu",
                      (unsigned long long)avr->cycle, sim_seconds(), wall_seconds(),
                      pace.lag_s * 1e3, pace.max_lag_s * 1e3, fil.steps, fil.mm,
                      shaft_counts(), grip_now(), fault_names[chip.fault],
                      chip.frames, chip.bytes, serial.to_host, serial.from_host,
-                     serial.dropped);
+                     serial.dropped, (unsigned long long)prof.idle_cycles);
     }
     if (!strcmp(name, "grip") && n >= 2) {  // grip G [RAMP_SECONDS]
         double now = sim_seconds();
@@ -592,7 +600,8 @@ usage(void)
             "  [--freq HZ] [--cs PG0] [--sw-spi SCK,MISO] [--step PA4 --dir PA6]\n"
             "  [--dir-invert] [--both-edges] [--mm-per-step MM]"
             " [--counts-per-mm N]\n"
-            "  [--heater PB4] [--adc-channel 13] [--adc-mv MV]\n");
+            "  [--heater PB4] [--adc-channel 13] [--adc-mv MV]"
+            " [--idle-pc START,END]\n");
     exit(2);
 }
 
@@ -619,6 +628,10 @@ main(int argc, char **argv)
         else if (!strcmp(opt, "--mm-per-step")) fil.mm_per_step = atof(val);
         else if (!strcmp(opt, "--counts-per-mm")) fil.counts_per_mm = atof(val);
         else if (!strcmp(opt, "--adc-channel")) hot.adc_channel = atoi(val);
+        else if (!strcmp(opt, "--idle-pc")) {
+            if (sscanf(val, "%x,%x", &prof.idle_start, &prof.idle_end) != 2)
+                usage();
+        }
         else if (!strcmp(opt, "--adc-mv")) adc_mv = strtoul(val, NULL, 10);
         else if (!strcmp(opt, "--cs")) { if (parse_pin(val, &chip.cs)) usage(); }
         else if (!strcmp(opt, "--step")) { if (parse_pin(val, &step)) usage(); }
@@ -713,7 +726,11 @@ main(int argc, char **argv)
     // 50 ms more of lag.
     avr_cycle_count_t check_every = freq_hz / 2000, next_check = check_every;
     for (;;) {
+        uint32_t pc = avr->pc;
+        avr_cycle_count_t before = avr->cycle;
         int state = avr_run(avr);
+        if (pc >= prof.idle_start && pc < prof.idle_end)
+            prof.idle_cycles += avr->cycle - before;
         if (state == cpu_Done || state == cpu_Crashed) {
             printf("fil_harness: the AVR stopped (%s) at %.6f s\n",
                    state == cpu_Done ? "done" : "crashed", sim_seconds());

@@ -37,8 +37,8 @@ def printer_config(sections: str) -> str:
     return (HERE / "fil_printer.cfg").read_text() + "\n" + sections
 
 
-@pytest.fixture(scope="module")
-def fil_build():
+def build_or_skip() -> stack.KlipperBuild:
+    """The patched Klipper and the harness, or a skip saying what is missing."""
     reason = simavr.missing_simavr_reason()
     if reason:
         pytest.skip(reason)
@@ -48,6 +48,11 @@ def fil_build():
     build = stack.build_klipper()
     simavr.build_harness()
     return build
+
+
+@pytest.fixture(scope="module")
+def fil_build():
+    return build_or_skip()
 
 
 @contextlib.contextmanager

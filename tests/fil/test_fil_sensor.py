@@ -42,6 +42,17 @@ def test_klippy_connects_in_normal_mode(printer, fil_build):
     assert mcu["mcu_constants"]["CLOCK_FREQ"] == 16000000
 
 
+def test_the_harness_counts_the_firmwares_idle_cycles(printer, fil_build):
+    start, end = simavr.idle_loop(fil_build.elf("atmega2560"))
+    assert 0 < end - start <= 16
+    s0 = printer.sim.status()
+    time.sleep(0.5)
+    s1 = printer.sim.status()
+    idle = int(s1["idle_cycles"]) - int(s0["idle_cycles"])
+    cycles = int(s1["cycle"]) - int(s0["cycle"])
+    assert 0.5 < idle / cycles < 1.0  # the AVR mostly waits at 250 samples/s
+
+
 def test_samples_arrive_and_query_flow_sensor_reports_them(printer):
     before = _status(printer)
     time.sleep(1.0)

@@ -1,0 +1,101 @@
+"""The flow sensor's cost on the real AVR firmware (simavr counts cycles
+exactly): work cycles per sample against Klipper's own [angle] sensor (an
+as5047d on the same bus at the same 1 MHz) measured the same way, the share
+of the AVR and of the 250 kbaud link. Each configuration runs the simulator
+and a normal-mode klippy for a few seconds; work is every cycle outside the
+firmware's idle loop, and a sensor's cost per sample is what it adds to the
+same firmware idling with klippy connected and no sensor."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from devtools.klippy_api import KlippyApi
+from tests.fil.conftest import build_or_skip, fil_printer
+
+CLOCK_HZ = 16e6
+LINK_BYTES_S = 250000 / 10  # 8N1
+WARMUP_S, MEASURE_S = 1.5, 4.0
+RATES_HZ = (250, 1000, 2000)
+# chip selects per sample: the as5047d's sample is a command, then a read
+FRAMES_PER_SAMPLE = {"ems22": 1, "angle": 2}
+
+EMS22 = """
+[flow_sensor filament]
+sensor_type: ems22
+cs_pin: PG0
+spi_speed: 1000000
+sample_period: {period}
+"""
+ANGLE = """
+[angle bench]
+sensor_type: as5047d
+cs_pin: PG0
+spi_speed: 1000000
+sample_period: {period}
+"""
+
+
+def _measure(printer):
+    """(work share of the AVR, chip selects per second, link bytes per second)"""
+    time.sleep(WARMUP_S)
+    s0 = printer.sim.status()
+    time.sleep(MEASURE_S)
+    s1 = printer.sim.status()
+    cycles = int(s1["cycle"]) - int(s0["cycle"])
+    idle = int(s1["idle_cycles"]) - int(s0["idle_cycles"])
+    seconds = cycles / CLOCK_HZ
+    assert idle > 0, "no cycles counted in the idle loop: no profile"
+    return ((cycles - idle) / cycles,
+            (int(s1["frames"]) - int(s0["frames"])) / seconds,
+            (int(s1["to_host"]) - int(s0["to_host"])) / seconds)
+
+
+def _run(build, sections, angle=False):
+    with fil_printer(build, sections) as printer:
+        if not angle:
+            return _measure(printer)
+        # [angle] samples only while a client reads its dump endpoint
+        with KlippyApi(printer.klippy.api_socket) as dump:
+            dump.send("angle/dump_angle", sensor="bench",
+                      response_template={})
+            return _measure(printer)
+
+
+@pytest.fixture(scope="module")
+def fil_build():
+    return build_or_skip()
+
+
+@pytest.fixture(scope="module")
+def baseline(fil_build):
+    return _run(fil_build, "")
+
+
+@pytest.mark.parametrize("rate_hz", RATES_HZ)
+def test_cycles_per_sample_against_klippers_angle_sensor(fil_build, bench,
+                                                         baseline, rate_hz):
+    period = 1.0 / rate_hz
+    ems22 = _run(fil_build, EMS22.format(period=period))
+    angle = _run(fil_build, ANGLE.format(period=period), angle=True)
+    idle_work = baseline[0]
+    figures = {}
+    for name, (work, frames, link) in (("ems22", ems22), ("angle", angle)):
+        samples = frames / FRAMES_PER_SAMPLE[name]
+        assert samples == pytest.approx(rate_hz, rel=0.05), (name, samples)
+        figures[name] = (work - idle_work) * CLOCK_HZ / samples
+        bench.figure(f"fil {name} at {rate_hz} Hz: AVR busy", work * 100, " %",
+                     goal="<= 10 %" if name == "ems22" and rate_hz == 1000
+                     else "")
+        bench.figure(f"fil {name} at {rate_hz} Hz: link", link / LINK_BYTES_S
+                     * 100, " %", goal="<= 15 %" if name == "ems22"
+                     and rate_hz == 1000 else "")
+        bench.figure(f"fil {name} at {rate_hz} Hz: work cycles per sample",
+                     figures[name])
+    bench.figure("fil firmware idle (klippy connected, no sensor): AVR busy",
+                 idle_work * 100, " %")
+    bench.ratio(f"fil ems22 / angle cycles per sample at {rate_hz} Hz",
+                figures["ems22"], figures["angle"], goal="<= 1.0x")
+
