@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import FlowloopError
 from .fastplan import Segments, plan_batches
-from .melt import MELT_TIME_S, Lines, melt_events
+from .melt import MELT_TIME_S, Cells, Lines, melt_events
 from .planner import Barrier, Event, PrinterLimits
 
 # v2: FLOW is the flow to melt (flowloop.gcode.melt: the mean over
@@ -238,38 +238,35 @@ class _Annotator:
         offset, time_s = self._place(start)
         self.pending = _Window(start, end_s, flow, offset, time_s)
 
-    def segments(self, batch: Segments) -> None:
-        """A batch of consecutive segments of flow (melt cells), at once: the
-        peak of each window they cross, then the windows closed in order."""
-        start, duration, flow = batch.start_s, batch.duration_s, batch.flow_mm3_s
+    def cells(self, cells: Cells) -> None:
+        """Consecutive cells of constant flow (the flow to melt), at once: the
+        peak of each window they overlap, then the windows closed in order."""
+        start, flow = cells.start_s, cells.flow_mm3_s
         n = len(start)
         if not n:
             return
         self._advance_to(float(start[0]))
-        end = start + duration
         window = self.settings.window_s
-        last_end = float(end[-1])
+        last_end = cells.end_s
         count = int((last_end - self.bin_start) / window) + 3
         edges = np.cumsum(np.concatenate(([self.bin_start], np.full(count, window))))
-        while edges[-1] < last_end:     # never short of the last segment
+        while edges[-1] < last_end:     # never short of the last cell
             more = np.cumsum(np.concatenate(([edges[-1]], np.full(count, window))))
             edges = np.concatenate((edges, more[1:]))
-        first = np.maximum(np.searchsorted(edges, start, "right") - 1, 0)
-        last = np.maximum(np.searchsorted(edges, end, "left") - 1, first)
-        spans = last - first + 1
-        seg = np.repeat(np.arange(n), spans)
-        steps = np.arange(len(seg)) - np.repeat(np.cumsum(spans) - spans, spans)
-        bins = first[seg] + steps
-        peaks = _peak_flow_between(batch, seg, edges[bins], edges[bins + 1])
-        bounds = np.flatnonzero(np.concatenate(([True], bins[1:] != bins[:-1])))
-        bin_peak = np.maximum.reduceat(peaks, bounds)
-        bin_index = bins[bounds]
-        final = int(last[-1])
-        top = float(flow.max())
+        # the window last_end is in (its end included) stays open
+        final = max(int(np.searchsorted(edges, last_end, "left")) - 1, 0)
+        edges = edges[:final + 2]
+        # window m holds the cells that overlap it: from the first that ends
+        # after its start to the last that starts before its end
+        ends = np.append(start[1:], last_end)
+        lo = np.searchsorted(ends, edges[:-1], "right")
+        hi = np.searchsorted(start, edges[1:], "left")
+        bounds = np.stack((lo, np.maximum(hi, lo)), axis=1).ravel()
+        peaks = np.maximum.reduceat(np.append(flow, 0.0), bounds)[::2]
+        raw = np.where(hi > lo, peaks, 0.0)
+        top = float(raw.max())
         if top > self.peak:
             self.peak = top
-        raw = np.zeros(final + 1)
-        raw[bin_index] = bin_peak
         raw[0] = max(raw[0], self.bin_peak)
         self._close_bins(edges[:final + 1], raw[:final])
         self.bin_start, self.bin_peak = float(edges[final]), float(raw[final])
@@ -396,24 +393,6 @@ class _Annotator:
                 self.last_byte = self.block[stop - 1:stop]
 
 
-def _peak_flow_between(batch: Segments, seg: np.ndarray, t0: np.ndarray,
-                       t1: np.ndarray) -> np.ndarray:
-    """planner.Segment.peak_flow_between for segments seg over [t0, t1]."""
-    s, d = batch.start_s[seg], batch.duration_s[seg]
-    flow, accel, decel = batch.flow_mm3_s[seg], batch.accel_s[seg], batch.decel_s[seg]
-    a = np.maximum(t0, s) - s
-    b = np.minimum(t1, s + d) - s
-    cruise_end = d - decel
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rising = batch.start_flow_mm3_s[seg] + (
-            flow - batch.start_flow_mm3_s[seg]) * b / accel
-        falling = flow - (flow - batch.end_flow_mm3_s[seg]) * (
-            (a - cruise_end) / decel)
-    out = np.where(b < accel, rising, falling)
-    out = np.where((a <= cruise_end) & (b >= accel), flow, out)
-    return np.where(b < a, 0.0, out)
-
-
 def feed(annotator: _Annotator, events: Iterable[Union[Event, Segments]]) -> None:
     """The planner's events into an annotator, as the flow to melt
     (flowloop.gcode.melt), then its last windows closed."""
@@ -423,7 +402,7 @@ def feed(annotator: _Annotator, events: Iterable[Union[Event, Segments]]) -> Non
         elif isinstance(event, Lines):
             annotator.lines(event.moves)
         else:
-            annotator.segments(event)
+            annotator.cells(event)
     annotator.finish()
 
 

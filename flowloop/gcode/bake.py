@@ -54,6 +54,7 @@ from .annotate import (
     quantise_flow,
 )
 from .fastplan import Segments, plan_batches
+from .melt import Cells
 from .planner import PrinterLimits
 from .start import StartFix, find_start_heat, start_fix
 
@@ -114,21 +115,21 @@ class _Recorder(_Annotator):
                                         int(batch.offset[k]))
         super().lines(batch)
 
-    def segments(self, batch: Segments) -> None:
+    def cells(self, cells: Cells) -> None:
         """The melt flow's peak per GRID_S, as announced (cells of
         flowloop.gcode.melt)."""
-        if len(batch):
-            first = np.floor(batch.start_s / GRID_S).astype(np.int64)
-            last = np.floor((batch.start_s + batch.duration_s) / GRID_S
+        if len(cells):
+            first = np.floor(cells.start_s / GRID_S).astype(np.int64)
+            last = np.floor(np.append(cells.start_s[1:], cells.end_s) / GRID_S
                             ).astype(np.int64)
             top = int(last[-1])
             if len(self.demand) <= top:
                 self.demand.extend([0.0] * (top + 1 - len(self.demand)))
             demand = np.asarray(self.demand)
-            np.maximum.at(demand, first, batch.flow_mm3_s)
-            np.maximum.at(demand, last, batch.flow_mm3_s)
+            np.maximum.at(demand, first, cells.flow_mm3_s)
+            np.maximum.at(demand, last, cells.flow_mm3_s)
             self.demand = demand.tolist()
-        super().segments(batch)
+        super().cells(cells)
 
 
 class _Empty:

@@ -13,13 +13,17 @@ evidence for MELT_TIME_S and what a shorter burst does.
 
 `melt_events()` turns the planner's events into the flow the annotator
 announces: the move batches as they were (`Lines`: where commands may go)
-and `Segments` of constant flow, CELL_S long, each the higher of the mean
+and `Cells` of constant flow, CELL_S long, each the higher of the mean
 flow over the MELT_TIME_S centred on its start and on its end (the plastic
 volume integrated exactly from the trapezoids at those times; between them
 the mean moves by at most the flow times CELL_S / MELT_TIME_S, 2 %, and only
 where it rises or falls, which the plan's margins absorb).
 Barriers cut the average: no flow is counted across a wait the file does not
 time.
+
+It costs a few array passes per cell: the moves' trapezoids become pieces of
+constant slope, each grid time is given its piece by a repeat (no search per
+cell), and each centred mean is the difference of two volumes.
 """
 
 from __future__ import annotations
@@ -41,35 +45,63 @@ class Lines(NamedTuple):
     moves: Segments
 
 
-MeltEvent = Union[Lines, Segments, Barrier]
+class Cells(NamedTuple):
+    """Consecutive cells of the flow to melt: cell k runs from start_s[k] to
+    the next cell's start (the last one to end_s) at flow_mm3_s[k]."""
+    start_s: np.ndarray
+    end_s: float
+    flow_mm3_s: np.ndarray
+
+    def __len__(self) -> int:        # NamedTuple's would count the fields
+        return len(self.start_s)
 
 
-def volume_at(batch: Segments, volume_before: float, times: np.ndarray
-              ) -> np.ndarray:
-    """Plastic (mm^3) left through the nozzle by each of times (within or
-    after the batch, not before it), the trapezoids of flow integrated."""
-    start, duration = batch.start_s, batch.duration_s
-    i = np.clip(np.searchsorted(start, times, "right") - 1, 0, len(start) - 1)
-    volume = batch.flow_mm3_s * 0.0
+MeltEvent = Union[Lines, Cells, Barrier]
+
+
+class _Pieces(NamedTuple):
+    """A batch's flow as pieces of constant slope (each move's accel, cruise
+    and decel), with the plastic volume left through the nozzle at each start."""
+    start_s: np.ndarray
+    length_s: np.ndarray
+    volume_mm3: np.ndarray
+    flow_mm3_s: np.ndarray
+    slope_mm3_s2: np.ndarray
+    end_volume_mm3: float
+
+
+def _pieces(batch: Segments, volume_before: float) -> _Pieces:
+    start, accel, decel = batch.start_s, batch.accel_s, batch.decel_s
+    cruise = np.maximum(batch.duration_s - accel - decel, 0.0)
+    # a move that does not add plastic (travel, retraction, unretraction) melts none
     whole = batch.filament_mm > 0.0
-    # a move's plastic: its trapezoid's area (== filament * area up to rounding)
-    accel, decel = batch.accel_s, batch.decel_s
-    f0, f1, fc = batch.start_flow_mm3_s, batch.end_flow_mm3_s, batch.flow_mm3_s
-    cruise = duration - accel - decel
-    volume = np.where(whole, 0.5 * (f0 + fc) * accel + fc * cruise
-                      + 0.5 * (fc + f1) * decel, 0.0)
-    before = volume_before + np.concatenate(([0.0], np.cumsum(volume)))
-    u = np.clip(times - start[i], 0.0, duration[i])
-    a, d, c = accel[i], decel[i], cruise[i]
-    s0, s1, sc = f0[i], f1[i], fc[i]
-    ua = np.minimum(u, a)
+    f0 = np.where(whole, batch.start_flow_mm3_s, 0.0)
+    fc = np.where(whole, batch.flow_mm3_s, 0.0)
+    f1 = np.where(whole, batch.end_flow_mm3_s, 0.0)
+    length = np.stack((accel, cruise, decel), axis=1).ravel()
+    at_start = np.stack((f0, fc, fc), axis=1).ravel()
+    at_end = np.stack((fc, fc, f1), axis=1).ravel()
+    starts = np.stack((start, start + accel, start + accel + cruise), axis=1).ravel()
+    volume = 0.5 * (at_start + at_end) * length
+    total = np.cumsum(volume)
+    before = volume_before + np.concatenate(([0.0], total[:-1]))
     with np.errstate(divide="ignore", invalid="ignore"):
-        rise = np.where(a > 0.0, 0.5 * (sc - s0) * ua * ua / a, 0.0)
-        uc = np.clip(u - a, 0.0, c)
-        ud = np.clip(u - a - c, 0.0, d)
-        fall = np.where(d > 0.0, 0.5 * (sc - s1) * ud * ud / d, 0.0)
-    part = s0 * ua + rise + sc * uc + sc * ud - fall
-    return before[i] + np.where(whole[i], part, 0.0)
+        slope = np.where(length > 0.0, (at_end - at_start) / length, 0.0)
+    return _Pieces(starts, length, before, at_start, slope,
+                   volume_before + float(total[-1]))
+
+
+def volume_at(pieces: _Pieces, times: np.ndarray) -> np.ndarray:
+    """Plastic (mm^3) left through the nozzle by each of times (increasing,
+    within the batch or after it; one before it counts as at its start)."""
+    # times[first[p]:first[p + 1]] fall in piece p
+    first = np.maximum.accumulate(np.searchsorted(times, pieces.start_s, "left"))
+    first[0] = 0
+    counts = np.diff(np.append(first, len(times)))
+    i = np.repeat(np.arange(len(first)), counts)
+    u = np.clip(times - pieces.start_s[i], 0.0, pieces.length_s[i])
+    return pieces.volume_mm3[i] + u * (pieces.flow_mm3_s[i]
+                                       + 0.5 * pieces.slope_mm3_s2[i] * u)
 
 
 def _batches(events: Iterable) -> Iterator[Union[Segments, Barrier]]:
@@ -95,47 +127,46 @@ def _batches(events: Iterable) -> Iterator[Union[Segments, Barrier]]:
 
 
 class _Grid:
-    """The volume on a grid of CELL_S from an origin (0, or a barrier)."""
+    """The volume on a grid of CELL_S from an origin (0, or a barrier), and
+    the cells whose means it gives."""
 
     def __init__(self, origin_s: float, volume: float, melt_s: float,
                  cell_s: float):
         self.origin_s = origin_s
         self.cell_s = cell_s
-        self.melt_s = melt_s
         self.half = max(1, round(0.5 * melt_s / cell_s))   # cells in h
-        self.known = [np.array([volume])]   # V at grid points first.. (chunks)
-        self.first = 0                      # grid index of known[0][0]
-        self.count = 1                      # grid points known
+        # V at grid points first..: the points before the origin hold its
+        # volume, so every mean is V[j + h] - V[j - h]
+        self.first = -self.half
+        self.volume = np.full(self.half + 1, volume)
+        self.count = 1                      # grid points known from the origin
         self.next_cell = 0
 
     def extend(self, values: np.ndarray) -> None:
         if len(values):
-            self.known.append(values)
+            self.volume = np.concatenate((self.volume, values))
             self.count += len(values)
 
-    def next_time(self) -> float:
-        return self.origin_s + self.count * self.cell_s
-
-    def cells(self, until_cell: int) -> Segments:
-        """Cells next_cell..until_cell-1 whose volumes are known."""
+    def cells(self, until_cell: int, end_s: float = np.inf) -> Cells:
+        """Cells next_cell..until_cell-1 whose volumes are known; none ends
+        after end_s."""
         h = self.half
         last = min(until_cell, self.count - 1 - h)     # cell k needs V[k+1+h]
-        k = np.arange(self.next_cell, max(self.next_cell, last))
-        v = np.concatenate(self.known)
-        at_start = v[k + h - self.first] - v[np.maximum(k - h, 0) - self.first]
-        at_end = v[k + 1 + h - self.first] - v[np.maximum(k + 1 - h, 0) - self.first]
-        flow = np.maximum(at_start, at_end) / (2 * h * self.cell_s)
-        if len(k):
-            self.next_cell = int(k[-1]) + 1
-            # keep what later cells still need
-            keep = self.next_cell - h - self.first
-            if keep > 0:
-                self.known = [v[keep:]]
-                self.first += keep
-        start = self.origin_s + k * self.cell_s
-        zero = np.zeros(len(k))
-        return Segments(start, zero + self.cell_s, flow, zero, zero, flow, flow,
-                        zero, zero, zero, np.full(len(k), -1, dtype=np.int64))
+        if last <= self.next_cell:
+            return Cells(np.empty(0), 0.0, np.empty(0))
+        k0 = self.next_cell
+        v = self.volume
+        # the mean centred on grid points k0..last
+        lo, hi = k0 - h - self.first, last + h + 1 - self.first
+        mean = (v[lo + 2 * h:hi] - v[lo:hi - 2 * h]) / (2 * h * self.cell_s)
+        flow = np.maximum(mean[:-1], mean[1:])
+        start = self.origin_s + np.arange(k0, last) * self.cell_s
+        self.next_cell = last
+        keep = last - h - self.first                  # what later cells still need
+        self.volume = v[keep:]
+        self.first += keep
+        # the last cell ends where the next one starts, on the same grid
+        return Cells(start, min(self.origin_s + last * self.cell_s, end_s), flow)
 
 
 def melt_events(events: Iterable, melt_s: float = MELT_TIME_S,
@@ -154,29 +185,27 @@ def melt_events(events: Iterable, melt_s: float = MELT_TIME_S,
         if not len(event):
             continue
         yield Lines(event)
+        pieces = _pieces(event, volume)
+        end_s = float(event.start_s[-1] + event.duration_s[-1])
         first = grid.count
-        last = int(np.floor((float(event.start_s[-1] + event.duration_s[-1])
-                             - grid.origin_s) / cell_s))
+        last = int(np.floor((end_s - grid.origin_s) / cell_s))
         if last >= first:
             times = grid.origin_s + np.arange(first, last + 1) * cell_s
-            grid.extend(volume_at(event, volume, times))
-        volume = float(volume_at(event, volume, np.array(
-            [event.start_s[-1] + event.duration_s[-1]]))[0])
-        end_s = float(event.start_s[-1] + event.duration_s[-1])
+            grid.extend(volume_at(pieces, times))
+        volume = pieces.end_volume_mm3
         cells = grid.cells(grid.count)
         if len(cells):
             yield cells
     yield from _close(grid, end_s, volume)
 
 
-def _close(grid: _Grid, time_s: float, volume: float) -> Iterator[Segments]:
-    """The cells up to time_s, nothing flowing after it."""
+def _close(grid: _Grid, time_s: float, volume: float) -> Iterator[Cells]:
+    """The cells up to time_s, nothing flowing after it (the last one ends
+    with the print, or at the wait, as the moves do)."""
     last_cell = int(np.ceil((time_s - grid.origin_s) / grid.cell_s - 1e-9))
     need = last_cell + 1 + grid.half
     if need >= grid.count:
         grid.extend(np.full(need - grid.count + 1, volume))
-    cells = grid.cells(last_cell)
+    cells = grid.cells(last_cell, time_s)
     if len(cells):
-        # the last cell ends with the print (or at the wait), as the moves do
-        cells.duration_s[-1] = min(cells.duration_s[-1], time_s - cells.start_s[-1])
         yield cells
