@@ -17,16 +17,20 @@ from typing import List, Optional
 from .. import __version__
 from ..errors import FlowloopError
 
-COMMAND_MODULES = (
-    "flowloop.cli.install",
-    "flowloop.cli.info",
-    "flowloop.cli.doctor",
-    "flowloop.cli.diff_ab",
-    "flowloop.cli.profile",
-    "flowloop.cli.delta",
-    "flowloop.cli.annotate",
-    "flowloop.cli.measure",
-)
+# Each command and the module that defines it. `flowloop COMMAND` imports only
+# that module: a start-up cost Moonraker pays per upload for `annotate`.
+COMMANDS = {
+    "install": "flowloop.cli.install",
+    "info": "flowloop.cli.info",
+    "doctor": "flowloop.cli.doctor",
+    "ab-calibrate": "flowloop.cli.diff_ab",
+    "ab-pylons": "flowloop.cli.diff_ab",
+    "profile": "flowloop.cli.profile",
+    "delta-endstops": "flowloop.cli.delta",
+    "annotate": "flowloop.cli.annotate",
+    "measure-part": "flowloop.cli.measure",
+}
+COMMAND_MODULES = tuple(dict.fromkeys(COMMANDS.values()))
 
 
 _UNSIGNED = r"(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|inf|nan"
@@ -70,20 +74,23 @@ class ArgumentParser(argparse.ArgumentParser):
                                              if close else "")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: Optional[str] = None) -> argparse.ArgumentParser:
+    """The whole parser, or (command given) one with that command only."""
     parser = ArgumentParser(
         prog="flowloop",
         description="Closed-loop extrusion and precision calibration for Klipper.")
     parser.add_argument("--version", action="version",
                         version=f"flowloop {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMAND_MODULES:
+    modules = (COMMANDS[command],) if command in COMMANDS else COMMAND_MODULES
+    for name in modules:
         importlib.import_module(name).register(sub)
     return parser
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
     try:
         return args.func(args) or 0

@@ -29,6 +29,28 @@ def test_every_subcommand_has_help(name, capsys):
     assert capsys.readouterr().out.startswith("usage: flowloop " + name)
 
 
+def test_the_command_table_names_the_module_of_every_command():
+    registered = {}
+    for module in cli.COMMAND_MODULES:
+        parser = cli.ArgumentParser(prog="flowloop")
+        sub = parser.add_subparsers()
+        __import__(module, fromlist=["register"]).register(sub)
+        registered.update(dict.fromkeys(sub.choices, module))
+    assert registered == cli.COMMANDS
+
+
+def test_a_command_imports_only_its_own_module():
+    # Moonraker starts `flowloop annotate` per upload: the other commands'
+    # imports (jinja2, the sensor drivers, ...) are start-up it need not pay
+    code = ("import sys\nfrom flowloop import cli\n"
+            "try:\n    cli.main(['annotate', '--help'])\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.startswith('flowloop.cli.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True,
+                         text=True, check=True).stdout.strip().splitlines()[-1]
+    imported = set(json.loads(out.replace("'", '"')))
+    assert imported & set(cli.COMMAND_MODULES) == {"flowloop.cli.annotate"}
+
+
 def test_the_console_script_is_installed_and_reports_its_version():
     exe = str(Path(sys.executable).parent / "flowloop")
     out = subprocess.run([exe, "--version"], capture_output=True, text=True)
