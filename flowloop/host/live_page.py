@@ -201,10 +201,11 @@ def file_plan(path: Path, profile: Optional[Profile], working_point: float,
         positions = positions[::math.ceil(len(positions) / MAX_PLAN_POINTS)]
     # the file's end is the print's end: the moves after the last command
     # (its LEAD before the last window) get their time too
-    positions.append((path.stat().st_size, round(end_s, 2)))
+    end_s = round(end_s, 2)   # one figure: the plan's length and its end
+    positions.append((path.stat().st_size, end_s))
     return {
         "file": path.name,
-        "print_time_s": round(end_s, 1),
+        "print_time_s": end_s,
         "windows": len(timed),
         "time_s": [round(k * GRID_S, 2) for k in range(0, steps, size)],
         "flow_mm3_s": _buckets(flows, size),
