@@ -213,9 +213,11 @@ def printer(klipper_build, klippy_venv, moonraker_venv):
     root = stack.short_tempdir("fl-um-")
     bare, clone, pusher = root / "origin.git", root / "flowloop", root / "pusher"
     # The project as it is committed: the branch Moonraker follows is main.
+    # HEAD read before the clone: a commit made meanwhile is then in it too.
+    head = git(stack.PROJECT, "rev-parse", "HEAD")
     subprocess.run(["git", "clone", "-q", "--bare", str(stack.PROJECT), str(bare)],
                    check=True)
-    git(bare, "update-ref", "refs/heads/main", git(stack.PROJECT, "rev-parse", "HEAD"))
+    git(bare, "update-ref", "refs/heads/main", head)
     git(bare, "symbolic-ref", "HEAD", "refs/heads/main")
     # A release tag, as a published checkout has: untagged, Moonraker reads
     # `git describe`'s bare hash as a version when it looks like one
