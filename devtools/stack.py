@@ -42,8 +42,21 @@ MOONRAKER_REQUIREMENT = "moonraker==0.11.0"
 
 
 # The hosts the klippy tier runs on: Klipper, and Kalico (the Klipper fork
-# with MPC and plugins), each from its own checkout.
-HOSTS = ("klipper", "kalico")
+# with MPC and plugins), each from its own checkout. FLOWLOOP_HOSTS=klipper
+# narrows a run to one (`make test-quick` does); `make test` runs both.
+ALL_HOSTS = ("klipper", "kalico")
+
+
+def _hosts() -> tuple:
+    asked = tuple(os.environ.get("FLOWLOOP_HOSTS", " ".join(ALL_HOSTS)).split())
+    unknown = [h for h in asked if h not in ALL_HOSTS]
+    if unknown or not asked:
+        raise SystemExit(f"FLOWLOOP_HOSTS: {' '.join(unknown) or 'empty'} is not "
+                         f"one of {', '.join(ALL_HOSTS)}")
+    return asked
+
+
+HOSTS = _hosts()
 HOST_PATH_VARIABLES = {"klipper": "KLIPPER_PATH", "kalico": "KALICO_PATH"}
 HOST_URLS = {"klipper": "https://github.com/Klipper3d/klipper",
              "kalico": "https://github.com/KalicoCrew/kalico"}
@@ -215,11 +228,24 @@ def _freeze(python: Path) -> Dict[str, str]:
     return {p["name"].lower(): p["version"] for p in json.loads(out)}
 
 
+def _install_metadata() -> bytes:
+    """What of pyproject.toml shapes an installed flowloop: its build system
+    and [project] (dependencies, extras, scripts), not the tools' settings
+    (pytest's markers, ruff's rules), whose edits need no new virtualenv."""
+    text = (PROJECT / "pyproject.toml").read_bytes()
+    try:
+        import tomllib
+    except ImportError:  # Python < 3.11: the whole file
+        return text
+    data = tomllib.loads(text.decode())
+    return json.dumps({key: data.get(key) for key in ("build-system", "project")},
+                      sort_keys=True).encode()
+
+
 def _build_venv(name: str, host_install: List[str], extra: str,
                 key_parts: List[bytes]) -> Venv:
     h = hashlib.sha256()
-    for part in key_parts + [str(PROJECT).encode(),
-                             (PROJECT / "pyproject.toml").read_bytes(),
+    for part in key_parts + [str(PROJECT).encode(), _install_metadata(),
                              sys.version.encode()]:
         h.update(part)
     path = cache_dir() / f"{name}-{h.hexdigest()[:16]}"
@@ -250,8 +276,10 @@ def klippy_venv(host: str = "klipper") -> Venv:
 def moonraker_venv() -> Venv:
     venv = _build_venv("moonraker-venv", [MOONRAKER_REQUIREMENT], "[moonraker]",
                        [MOONRAKER_REQUIREMENT.encode()])
-    # Install the component exactly as `flowloop install` does (idempotent).
-    install.apply(install.plan_moonraker(venv.path, PROJECT))
+    # Install the component exactly as `flowloop install` does (idempotent;
+    # locked: pytest's workers each ask for the venv).
+    with _locked("moonraker-venv"):
+        install.apply(install.plan_moonraker(venv.path, PROJECT))
     return venv
 
 
@@ -343,10 +371,23 @@ class Klippy(Process):
         super().__init__("klippy", cmd, workdir / "klippy.log", cwd=str(build.tree))
 
     def wait_ready(self, timeout: float = 30.0) -> None:
-        if not wait_until(lambda: self.api_socket.exists() or not self.alive(),
+        """Until klippy accepts a connection on its API socket: the file
+        appears at bind(), a moment before listen() (a connect between the
+        two is refused; on a loaded machine the moment grows)."""
+        if not wait_until(lambda: self._accepts() or not self.alive(),
                           timeout) or not self.alive():
             raise RuntimeError("klippy did not open its API socket:\n"
                                + self.log_tail())
+
+    def _accepts(self) -> bool:
+        if not self.api_socket.exists():
+            return False
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+            try:
+                probe.connect(str(self.api_socket))
+            except OSError:
+                return False
+        return True
 
 
 MOONRAKER_CONF = """\
