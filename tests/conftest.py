@@ -17,17 +17,26 @@ import pytest
 PROJECT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(PROJECT))
 
-from devtools import stack  # noqa: E402
+from devtools import pytest_schedule, stack  # noqa: E402
 from devtools.klippy_test import KlippyTestFailure, run_file  # noqa: E402
 
 TIERS = ("unit", "c", "klippy", "moonraker", "bench", "fil")
 
 
-def pytest_collection_modifyitems(config, items):
+# Tiers that only run alone under `make test`'s scheduler: they run paced to
+# the wall clock from start to end (devtools/pytest_schedule.py).
+ALONE_TIERS = ("fil",)
+# The order groups are handed to workers in when the last run's durations
+# are not in pytest's cache (a fresh clone): the slowest tiers first.
+TIER_ORDER = ("moonraker", "klippy", "fil", "", "c", "unit", "bench")
+
+
+@pytest.hookimpl(trylast=True)  # the last word on the order (pytest's own
+def pytest_collection_modifyitems(config, items):  # sorts by fixture params)
     for item in items:
-        parts = Path(str(item.fspath)).relative_to(PROJECT).parts
-        if len(parts) > 2 and parts[0] == "tests" and parts[1] in TIERS:
-            item.add_marker(getattr(pytest.mark, parts[1]))
+        tier = _tier(item.path)
+        if tier:
+            item.add_marker(getattr(pytest.mark, tier))
         # Skipped here, not in a fixture: a module-scoped fixture that runs
         # klippy would otherwise run (and fail) first.
         callspec = getattr(item, "callspec", None)
@@ -37,6 +46,83 @@ def pytest_collection_modifyitems(config, items):
                 host, f"{item.path.name}::{item.originalname}")
             if reason:
                 item.add_marker(pytest.mark.skip(reason=reason))
+    groups = _xdist_groups(items)
+    pytest_schedule.order(config, items, groups.get,
+                          lambda item: TIER_ORDER.index(_tier(item.path)))
+    pytest_schedule.publish(config, items, groups.get)
+
+
+def pytest_configure(config):
+    pytest_schedule.configure(config)
+
+
+def _tier(path) -> str:
+    parts = Path(str(path)).relative_to(PROJECT).parts
+    if len(parts) > 2 and parts[0] == "tests" and parts[1] in TIERS:
+        return parts[1]
+    return ""
+
+
+def _alone(item, tier: str) -> bool:
+    return tier in ALONE_TIERS or item.get_closest_marker("alone") is not None
+
+
+# Tiers whose tests start hosts: tests that share a module-scoped fixture (a
+# stack started once) run on one worker. unit and c tests, and tests that
+# share nothing, are spread one by one.
+GROUPED_TIERS = ("klippy", "moonraker", "fil", "")
+SHARED_SCOPES = ("class", "module", "package")
+
+
+def _xdist_groups(items) -> dict:
+    """{item: group}: under `make test` the items of one group run on one
+    worker, in order (devtools/pytest_schedule.py). Two tests of a module
+    on one host are in one group when they share a module-scoped fixture,
+    directly or through a third test; a klippy .test file is one test per
+    host and needs none."""
+    groups, parent = {}, {}
+
+    def find(key):
+        while parent.setdefault(key, key) != key:
+            key = parent[key]
+        return key
+
+    keyed = []
+    for item in items:
+        tier = _tier(item.path)
+        callspec = getattr(item, "callspec", None)
+        host = callspec.params.get("host") if callspec else None
+        if isinstance(item, KlippyTestItem):
+            module = f"{item.path.name}::{item.host}"
+        else:
+            module = f"{Path(str(item.path)).relative_to(PROJECT)}::{host or ''}"
+        shared = [] if isinstance(item, KlippyTestItem) else _shared_fixtures(item)
+        if _alone(item, tier):
+            shared = ["(alone)"]    # a module's alone tests: one group
+        elif tier not in GROUPED_TIERS:
+            shared = []
+        nodes = [f"{module}::{name}" for name in shared]
+        for other in nodes[1:]:
+            parent[find(other)] = find(nodes[0])
+        keyed.append((item, nodes, _alone(item, tier)))
+    for item, nodes, alone in keyed:
+        if nodes:
+            root = find(nodes[0])
+            groups[item] = (pytest_schedule.ALONE if alone else "") + root
+    return groups
+
+
+def _shared_fixtures(item) -> list:
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return []
+    return sorted(name for name, defs in info.name2fixturedefs.items()
+                  if defs and defs[-1].scope in SHARED_SCOPES)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    return pytest_schedule.AloneLastScheduling(config, log)
 
 
 def pytest_report_header(config):
@@ -104,14 +190,9 @@ NOT_ON_HOST = {
 }
 
 
-def _klippy_tier(path) -> bool:
-    parts = Path(str(path)).relative_to(PROJECT).parts
-    return len(parts) > 2 and parts[:2] == ("tests", "klippy")
-
-
 def pytest_generate_tests(metafunc):
-    if "klipper_build" in metafunc.fixturenames and _klippy_tier(
-            metafunc.definition.fspath):
+    if "klipper_build" in metafunc.fixturenames and _tier(
+            metafunc.definition.fspath) == "klippy":
         metafunc.parametrize("host", stack.HOSTS, indirect=True, scope="session")
 
 

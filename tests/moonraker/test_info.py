@@ -48,6 +48,7 @@ def test_info_reports_what_klippy_loaded(full_stack):
     assert declared and info["sections"] == declared
 
 
+@pytest.mark.alone  # measures how long the answer takes
 def test_info_answers_in_bounded_time_while_klippy_does_not(full_stack):
     def info(timeout=10.0):
         status, body = full_stack.moonraker.request("GET", "/server/flowloop/info",

@@ -483,6 +483,7 @@ def live_printer(klipper_build, klippy_venv, moonraker_venv):
         shutil.rmtree(cfg_dir, ignore_errors=True)
 
 
+@pytest.mark.alone  # paced to the wall clock
 def test_the_page_moves_while_a_print_runs_in_real_time(browser, live_printer):
     ps = live_printer
     activate_profile(ps)

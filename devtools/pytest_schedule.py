@@ -1,0 +1,186 @@
+"""How `make test` spreads the tests over pytest-xdist workers.
+
+Most of the suite waits on something other than the CPU (a Moonraker or
+klippy starting, a klippy paced to the clock, a browser), so it runs on more
+workers than the machine has cores. Two rules keep that honest:
+
+- A group (one test module on one host, chosen in tests/conftest.py) runs
+  whole on one worker, so a stack a module starts once serves all of its
+  tests there, as in a serial run.
+- A group named ``alone:...`` (tests that measure time or run paced to the
+  wall clock) waits until every other test has finished, and then runs with
+  no other test beside it.
+
+The groups travel from the workers (which collect) to the scheduler (which
+does not) in a file named after xdist's test run id, not as the ``@group``
+suffix of ``--dist loadgroup``: pytest 9.2 builds node ids in a way xdist
+3.8's suffix no longer reaches, and a suffix would show in every report.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import uuid
+from pathlib import Path
+from typing import Callable, Dict, Optional
+
+try:
+    from xdist.scheduler.loadscope import LoadScopeScheduling
+except ImportError:  # without pytest-xdist pytest runs serially: no scheduler
+    LoadScopeScheduling = object
+
+ALONE = "alone:"
+
+
+def is_alone(scope: str) -> bool:
+    return scope.startswith(ALONE)
+
+
+def _groups_path(testrunuid: str) -> Path:
+    return Path(tempfile.gettempdir()) / f"flowloop-xdist-groups-{testrunuid}.json"
+
+
+DURATIONS_KEY = "flowloop/test-durations"
+
+
+def order(config, items, group_of: Callable[[object], Optional[str]],
+          fallback: Callable[[object], int]) -> None:
+    """Sort items in place for the workers: the groups that took longest in
+    the last run first (so that no long group starts last), alone groups
+    last; tests never timed (a fresh clone) by fallback(item) after the
+    timed ones. Within a group, tests keep their order."""
+    cache = getattr(config, "cache", None)
+    took = cache.get(DURATIONS_KEY, {}) if cache is not None else {}
+    total: Dict[str, float] = {}
+    for item in items:
+        key = group_of(item) or item.nodeid
+        total[key] = total.get(key, 0.0) + took.get(item.nodeid, 0.0)
+
+    def rank(item):
+        key = group_of(item) or item.nodeid
+        return (is_alone(key), -total[key] if total[key] else 0.0,
+                fallback(item))
+    items.sort(key=rank)
+
+
+class DurationRecorder:
+    """In the controller (or a serial run): each test's setup, call and
+    teardown time, kept in pytest's cache for order() in the next run."""
+
+    def __init__(self) -> None:
+        self.took: Dict[str, float] = {}
+
+    def pytest_runtest_logreport(self, report) -> None:
+        self.took[report.nodeid] = self.took.get(report.nodeid, 0.0) + report.duration
+
+    def pytest_sessionfinish(self, session) -> None:
+        cache = getattr(session.config, "cache", None)
+        if cache is None or not self.took:
+            return
+        cache.set(DURATIONS_KEY, {**cache.get(DURATIONS_KEY, {}), **self.took})
+
+
+def configure(config) -> None:
+    """In the controller, before the workers start: fix the run id both
+    sides name the groups file after, and time the tests for order()."""
+    if getattr(config, "workerinput", None) is not None:
+        return
+    if config.getoption("testrunuid", default=None) is None:
+        config.option.testrunuid = uuid.uuid4().hex
+    config.pluginmanager.register(DurationRecorder(), "flowloop-durations")
+
+
+def publish(config, items, group_of: Callable[[object], Optional[str]]) -> None:
+    """In a worker, after collection: write {node id: group} for the
+    scheduler (every worker collects the same items and writes the same)."""
+    workerinput = getattr(config, "workerinput", None)
+    if workerinput is None:
+        return
+    groups = {item.nodeid: group for item in items
+              if (group := group_of(item)) is not None}
+    path = _groups_path(workerinput["testrunuid"])
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name)
+    with os.fdopen(fd, "w") as out:
+        json.dump(groups, out)
+    os.replace(tmp, path)
+
+
+class AloneLastScheduling(LoadScopeScheduling):
+    """xdist's loadscope over the published groups, with the ``alone:``
+    groups last and on one worker alone.
+
+    The test's conftest sorts the alone groups to the end of the collection,
+    so they are the last units of the work queue. Once they are all that is
+    left, the first worker to ask for more becomes their runner and every
+    other worker is told to finish what it holds and stop. (An xdist worker
+    keeps its last test until it gets more work or is told to stop: it needs
+    the next test to know which fixtures to tear down; so idle workers
+    cannot just wait.) The runner gets the alone groups when no other worker
+    has a test left, and runs them after its own, one test at a time.
+    """
+
+    def __init__(self, config, log=None) -> None:
+        super().__init__(config, log)
+        # the collection's order is the plan (longest first, alone last):
+        # not xdist's reordering by the number of tests in a group
+        config.option.loadscopereorder = False
+        self.runner = None
+        self._groups: Optional[Dict[str, str]] = None
+
+    def _split_scope(self, nodeid: str) -> str:
+        if self._groups is None:   # asked once collection is complete
+            path = _groups_path(self.config.getoption("testrunuid"))
+            self._groups = json.loads(path.read_text()) if path.exists() else {}
+            path.unlink(missing_ok=True)
+        return self._groups.get(nodeid, nodeid)
+
+    def _alone_next(self) -> bool:
+        return bool(self.workqueue) and is_alone(next(iter(self.workqueue)))
+
+    def _others_done(self) -> bool:
+        return not any(self._pending_of(work)
+                       for node, work in self.assigned_work.items()
+                       if node is not self.runner)
+
+    def _reschedule(self, node) -> None:
+        if node.shutting_down or not self._alone_next():
+            super()._reschedule(node)
+            return
+        if self.runner is None:
+            self.runner = node
+        elif node is not self.runner:
+            node.shutdown()
+        self._hand_alone_to_runner()
+
+    def _assign_work_unit(self, node) -> None:
+        # xdist's first distribution assigns directly: guard it here too
+        if self._alone_next():
+            if self.runner is None:
+                self.runner = node
+            if node is not self.runner or not self._others_done():
+                return
+        super()._assign_work_unit(node)
+
+    def _hand_alone_to_runner(self) -> None:
+        if self.runner is None or not self._alone_next() or not self._others_done():
+            return
+        if self.runner not in self.assigned_work:   # the runner went away
+            self.runner = None
+            return
+        while self.workqueue:
+            self._assign_work_unit(self.runner)
+
+    def mark_test_complete(self, node, item_index: int, duration: float = 0) -> None:
+        super().mark_test_complete(node, item_index, duration)
+        # a stopping worker's last test does not reschedule it: look here
+        self._hand_alone_to_runner()
+
+    def remove_node(self, node):
+        crashed = super().remove_node(node)
+        if node is self.runner:
+            self.runner = None
+            for other in self.nodes:
+                self._reschedule(other)
+        return crashed

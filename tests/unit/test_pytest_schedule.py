@@ -1,0 +1,153 @@
+"""`make test`'s scheduler (devtools/pytest_schedule.py), run by pytest-xdist
+on a small suite whose tests write down when they ran: the alone groups run
+with no other test beside them, the rest in parallel, and nothing hangs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("xdist")
+
+PROJECT = Path(__file__).resolve().parents[2]
+
+CONFTEST = """
+import json, os, time
+import pytest
+from devtools import pytest_schedule
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    return pytest_schedule.AloneLastScheduling(config, log)
+
+def pytest_configure(config):
+    pytest_schedule.configure(config)
+
+def pytest_collection_modifyitems(config, items):
+    def group(item):
+        mark = item.get_closest_marker("group")
+        return mark.args[0] if mark else None
+    pytest_schedule.publish(config, items, group)
+
+@pytest.fixture(autouse=True)
+def record(request):
+    start = time.monotonic()
+    yield
+    with open(os.environ["RUNS"], "a") as out:
+        out.write(json.dumps([request.node.name, start, time.monotonic()]) + "\\n")
+"""
+
+SUITE = """
+import time
+import pytest
+
+@pytest.mark.parametrize("n", range({normal})){group}
+def test_normal(n):
+    time.sleep(0.3)
+
+@pytest.mark.parametrize("n", range({alone}))
+@pytest.mark.group("alone:paced")
+def test_alone(n):
+    time.sleep(0.3)
+
+@pytest.mark.parametrize("n", range({alone}))
+@pytest.mark.group("alone:other")
+def test_alone_too(n):
+    time.sleep(0.3)
+"""
+
+
+def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=False):
+    (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers = group\n")
+    (tmp_path / "conftest.py").write_text(CONFTEST)
+    # ungrouped, each test its own unit (the klippy .test files), or one group
+    group = "" if per_test_group else '\n@pytest.mark.group("module")'
+    suite = SUITE.format(normal=normal, alone=alone, group=group)
+    (tmp_path / "test_suite.py").write_text(textwrap.dedent(suite))
+    runs = tmp_path / "runs.jsonl"
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+         "-n", str(workers), "test_suite.py"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(PROJECT), "RUNS": str(runs)})
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return [json.loads(line) for line in runs.read_text().splitlines()]
+
+
+def overlaps(a, b) -> bool:
+    return a[1] < b[2] and b[1] < a[2]
+
+
+@pytest.mark.parametrize("per_test_group", [False, True])
+def test_alone_groups_run_after_the_rest_with_nothing_beside_them(
+        tmp_path, per_test_group):
+    runs = run_suite(tmp_path, normal=9, alone=2, workers=3,
+                     per_test_group=per_test_group)
+    alone = [r for r in runs if r[0].startswith("test_alone")]
+    normal = [r for r in runs if r[0].startswith("test_normal")]
+    assert len(alone) == 4 and len(normal) == 9
+    for a in alone:
+        assert not [r[0] for r in runs if r is not a and overlaps(a, r)], a
+    if per_test_group:
+        # the rest did run side by side
+        assert any(overlaps(a, b) for a in normal for b in normal if a is not b)
+    assert min(a[1] for a in alone) >= max(n[2] for n in normal)
+
+
+def test_a_run_of_alone_tests_only_runs_them_one_at_a_time(tmp_path):
+    runs = run_suite(tmp_path, normal=0, alone=3, workers=3)
+    assert len(runs) == 6
+    assert not any(overlaps(a, b) for a in runs for b in runs if a is not b)
+
+
+def test_without_alone_tests_the_run_ends(tmp_path):
+    assert len(run_suite(tmp_path, normal=5, alone=0, workers=2,
+                         per_test_group=True)) == 5
+
+
+ORDERED = """
+import time
+
+def test_quick():
+    pass
+
+def test_slow():
+    time.sleep(0.4)
+
+def test_also_quick():
+    pass
+"""
+
+
+def test_the_next_run_starts_with_what_took_longest_in_the_last(tmp_path):
+    (tmp_path / "pytest.ini").write_text("[pytest]\n")
+    (tmp_path / "conftest.py").write_text(textwrap.dedent("""
+        from devtools import pytest_schedule
+
+        def pytest_configure(config):
+            pytest_schedule.configure(config)
+
+        def pytest_collection_modifyitems(config, items):
+            pytest_schedule.order(config, items, lambda item: None,
+                                  lambda item: 0)
+    """))
+    (tmp_path / "test_order.py").write_text(ORDERED)
+
+    def collected():
+        proc = subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "--collect-only", "test_order.py"],
+            cwd=tmp_path, capture_output=True, text=True, timeout=60,
+            env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(PROJECT)})
+        return [line.split("::")[1] for line in proc.stdout.splitlines()
+                if "::" in line]
+    # never timed: the file's order
+    assert collected() == ["test_quick", "test_slow", "test_also_quick"]
+    subprocess.run([sys.executable, "-m", "pytest", "-q", "test_order.py"],
+                   cwd=tmp_path, check=True, capture_output=True, timeout=60,
+                   env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(PROJECT)})
+    assert collected()[0] == "test_slow"
