@@ -11,11 +11,13 @@ in normal mode, and a control socket for the models' grip and faults.
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import re
 import shutil
 import socket
 import subprocess
+import threading
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -153,6 +155,7 @@ class Simulator(stack.Process):
         self.control_path = workdir / "fil.sock"
         self._sock: Optional[socket.socket] = None
         self._buffer = b""
+        self._lock = threading.Lock()  # the hotend thread shares the socket
         cmd = [str(build_harness()), "--elf", str(elf), "--pty", str(self.pty),
                "--control", str(self.control_path), "--cs", sensor["cs"],
                "--step", step_pin, "--dir", dir_pin,
@@ -182,6 +185,10 @@ class Simulator(stack.Process):
 
     def control(self, line: str, timeout: float = 5.0) -> str:
         """Send one command, return its one-line answer."""
+        with self._lock:
+            return self._control(line, timeout)
+
+    def _control(self, line: str, timeout: float) -> str:
         if self._sock is None:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             self._sock.settimeout(timeout)
@@ -346,3 +353,76 @@ class FirmwareClock:
         answer = dict(p.split("=") for p in self.sim.control(
             f"peek {self.address}").split())
         return time.monotonic(), int(answer["value"]) << 16, int(answer["cycle"])
+
+
+# The fil printer's thermistor (tests/fil/fil_printer.cfg): a beta curve,
+# so the voltage the harness puts on the pin is what klippy converts back.
+THERMISTOR_R25_OHM, THERMISTOR_BETA = 100000., 3950.
+PULLUP_OHM, ADC_VREF_MV = 4700., 5000.
+
+
+def thermistor_mv(temp_c: float) -> float:
+    """The thermistor pin's voltage (pull-up to 5 V) at temp_c."""
+    kelvin = temp_c + 273.15
+    r = THERMISTOR_R25_OHM * math.exp(THERMISTOR_BETA * (1 / kelvin - 1 / 298.15))
+    return ADC_VREF_MV * r / (r + PULLUP_OHM)
+
+
+class HotendDriver:
+    """flowloop's hotend model between the heater pin and the thermistor pin,
+    and its melt line as the filament's grip, stepped every `period_s` in a
+    thread: the heater's duty (from the pin) is the model's power, the model's
+    temperature goes back to the ADC pin, and the grip the harness applies to
+    the shaft is what the melt line lets through at the extruder's demand."""
+
+    def __init__(self, sim: Simulator, model, melt_line, mm_per_step: float,
+                 filament_area_mm2: float, period_s: float = 0.1,
+                 melt_time_s: float = 0.3):
+        self.sim, self.model, self.melt_line = sim, model, melt_line
+        self.mm_per_step, self.area = mm_per_step, filament_area_mm2
+        self.period_s, self.melt_time_s = period_s, melt_time_s
+        self.demand_mm3_s = 0.0
+        self.grip = 1.0
+        self.duty = 0.0
+        self.error: Optional[BaseException] = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def start(self) -> None:
+        self._last = self._read()
+        self.sim.control("heater")  # start the duty window now
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+    def _read(self):
+        status = self.sim.status()
+        return float(status["sim_s"]), int(status["steps"])
+
+    def _run(self) -> None:
+        from flowloop.sensor.twin import melt_grip
+        try:
+            while not self._stop.wait(self.period_s):
+                sim_s, steps = self._read()
+                duty = float(self.sim.control("heater").split()[0].split("=")[1])
+                dt = sim_s - self._last[0]
+                if dt <= 0:
+                    continue
+                flow = max(0, steps - self._last[1]) * self.mm_per_step \
+                    * self.area / dt
+                self._last = (sim_s, steps)
+                alpha = 1.0 - math.exp(-dt / self.melt_time_s)
+                self.demand_mm3_s += alpha * (flow - self.demand_mm3_s)
+                grip = (melt_grip(self.melt_line, self.demand_mm3_s,
+                                  self.model.temp_c) if flow > 0 else 1.0)
+                if abs(grip - self.grip) > 0.001:
+                    self.sim.control(f"grip {grip:.4f}")
+                    self.grip = grip
+                self.duty = duty
+                self.model.fixed_power_w = duty * self.model.params.max_power_w
+                self.model.advance(self.model.time_s + dt, flow * grip)
+                self.sim.control(f"adc {thermistor_mv(self.model.temp_c):.0f}")
+        except BaseException as e:  # reported by the test that reads .error
+            self.error = e

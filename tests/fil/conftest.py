@@ -23,7 +23,6 @@ MICROSTEPS = 16
 FULL_STEPS = 200
 ROTATION_DISTANCE = 7.71
 COUNTS_PER_MM = 1024 / (math.pi * 3.17)
-ROOM_TEMP_MV = 4775  # EPCOS 100K at 25 C behind a 4.7k pull-up on 5 V
 SENSOR = "flow_sensor filament"
 
 
@@ -57,9 +56,11 @@ def fil_build():
 
 @contextlib.contextmanager
 def fil_printer(build, sections: str, sensor=None,
-                rotation_distance: float = ROTATION_DISTANCE):
-    """The simulator (its extruder moving rotation_distance per turn) and
-    klippy on fil_printer.cfg plus sections; stopped on leaving."""
+                rotation_distance: float = ROTATION_DISTANCE,
+                hotend_temp_c: float = 25.0):
+    """The simulator (its extruder moving rotation_distance per turn, its
+    thermistor pin at hotend_temp_c) and klippy on fil_printer.cfg plus
+    sections; stopped on leaving."""
     venv = stack.klippy_venv()
     workdir = stack.short_tempdir("fl-fil-")
     try:
@@ -68,7 +69,8 @@ def fil_printer(build, sections: str, sensor=None,
             sensor=sensor or {"cs": "PG0"},
             mm_per_step=rotation_distance / (FULL_STEPS * MICROSTEPS),
             counts_per_mm=COUNTS_PER_MM,
-            heater_pin="PB4", adc_channel=13, adc_mv=ROOM_TEMP_MV)
+            heater_pin="PB4", adc_channel=13,
+            adc_mv=round(simavr.thermistor_mv(hotend_temp_c)))
     except simavr.HarnessError as e:
         shutil.rmtree(workdir, ignore_errors=True)
         pytest.fail(f"fil printer did not start: {e}", pytrace=False)

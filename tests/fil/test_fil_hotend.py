@@ -1,0 +1,111 @@
+"""The hotend through the real firmware: the heater pin's PWM (Klipper's
+software PWM on PB4) drives flowloop's hotend model, whose temperature goes
+back to the thermistor's ADC pin, and whose melt line sets how much of the
+commanded filament the model's shaft sees. Klipper's PID holds a target
+through it, and a short MEASURE_MATERIAL_PROFILE (fixed heater power per
+level, flow ramps until grip drops) stores a profile near the model's line."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+
+from devtools import simavr, stack
+from devtools.klippy_api import KlippyApi
+from flowloop.control.hotend import HotendModel, HotendParams
+from flowloop.material.profile import FlowLine, profile_from_dict
+from tests.fil.conftest import FULL_STEPS, MICROSTEPS, ROTATION_DISTANCE, fil_printer
+
+SECTIONS = """
+[flow_sensor filament]
+sensor_type: ems22
+cs_pin: PG0
+
+[measure_profile]
+step_time: 1
+settle_time: 2
+"""
+# The model melts this (the profile the run starts from says the same)
+SLOPE, TEMP, FLOW = 0.12, 210.0, 6.0
+MELT = FlowLine(slope_mm3_s_per_c=SLOPE, temp_c=TEMP, flow_mm3_s=FLOW)
+KNOWN = {
+    "identity": {"name": "known", "nozzle_diameter_mm": 0.4},
+    "lines": {"into_air": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
+                           "flow_mm3_s": FLOW},
+              "real_print": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
+                             "flow_mm3_s": FLOW}},
+    "bounds": {"min_temp_c": 185.0, "recommended_temp_c": 210.0,
+               "max_temp_c": 250.0},
+    "provenance": {"method": "manual"},
+}
+START_C = 200.0  # the hotend starts hot: heating from the room takes minutes
+HOTEND = HotendParams()  # flowloop's default: 40 W into a V6-like block
+TARGET_C = 205.0
+
+
+@pytest.fixture(scope="module")
+def hot(fil_build):
+    with fil_printer(fil_build, SECTIONS, hotend_temp_c=START_C) as printer:
+        model = HotendModel(HOTEND, temp_c=START_C)
+        driver = simavr.HotendDriver(
+            printer.sim, model, MELT.line(),
+            ROTATION_DISTANCE / (FULL_STEPS * MICROSTEPS), math.pi * 1.75 ** 2 / 4)
+        driver.start()
+        try:
+            yield printer, driver
+        finally:
+            driver.stop()
+        assert driver.error is None, driver.error
+
+
+def _extruder_temp(printer) -> float:
+    return printer.query("extruder")["temperature"]
+
+
+def test_klippys_pid_holds_a_target_through_the_firmwares_pwm(hot):
+    printer, driver = hot
+    printer.gcode(f"SET_HEATER_TEMPERATURE HEATER=extruder TARGET={TARGET_C}")
+    reached = stack.wait_until(
+        lambda: abs(_extruder_temp(printer) - TARGET_C) < 1.0, 45, 0.2)
+    assert reached, (_extruder_temp(printer), driver.model.temp_c, driver.error)
+    readings = []
+    for _ in range(6):  # held for 3 s
+        readings.append((_extruder_temp(printer), driver.model.temp_c,
+                         driver.duty))
+        time.sleep(0.5)
+    print("klippy's reading, the model's temperature, heater duty:", readings)
+    for klippy_c, model_c, duty in readings:
+        assert klippy_c == pytest.approx(TARGET_C, abs=1.5)
+        # 10-bit ADC, oversampled: within about a count (1.3 C at 205 C)
+        assert klippy_c == pytest.approx(model_c, abs=1.5)
+        assert 0.05 < duty < 0.95
+    assert driver.error is None
+
+
+def test_a_short_measure_material_profile_stores_a_profile(hot):
+    printer, driver = hot
+    with KlippyApi(printer.klippy.api_socket, timeout=30) as store:
+        store.call("register_remote_method", response_template={"method": "store"},
+                   remote_method="flowloop_store_profile")
+        store.call("flowloop/set_active_profile", extruder="extruder",
+                   profile=KNOWN, working_point=0.5)
+        printer.gcode("MEASURE_MATERIAL_PROFILE NAME=fil TEMPS=205,212"
+                      " STEP=0.5 MAX_FLOW=10")
+        status = stack.wait_until(
+            lambda: (s := printer.query("measure_profile"))["state"]
+            != "running" and s, 150, 0.5)
+        store.call("info")  # reads what klippy sent meanwhile
+        calls = [m for m in store.remote if m.get("method") == "store"]
+    print(status)
+    assert status and status["state"] == "stored", (status, printer.console())
+    assert len(calls) == 1
+    line = profile_from_dict(calls[0]["params"]["profile"]).lines.into_air
+    print(f"measured into_air line: {line.flow_mm3_s:.2f} mm^3/s at "
+          f"{line.temp_c:.0f} C, slope {line.slope_mm3_s_per_c:.3f}; the model:"
+          f" {MELT.flow_mm3_s} at {MELT.temp_c:.0f}, slope {SLOPE}")
+    assert line.flow_mm3_s + (TEMP - line.temp_c) * line.slope_mm3_s_per_c \
+        == pytest.approx(FLOW, rel=0.15)
+    assert line.slope_mm3_s_per_c > 0
+    assert driver.error is None
