@@ -72,10 +72,11 @@ def print_with_autotemp(enable: int, build=None, venv=None,
             for i in range(0, len(lines), CHUNK_LINES):
                 chunk = lines[i:i + CHUNK_LINES]
                 api.gcode("\n".join(chunk + ["M400"]))
+                now = api.status("toolhead", "autotemp", "extruder")
                 records.append({
-                    "print_time": api.query("toolhead")["print_time"],
-                    "autotemp": api.query("autotemp"),
-                    "heater_target": api.query("extruder")["target"],
+                    "print_time": now["toolhead"]["print_time"],
+                    "autotemp": now["autotemp"],
+                    "heater_target": now["extruder"]["target"],
                     "lines": chunk})
             moved = api.query("flow_sensor sim")["filament_position"] - before
             api.gcode("QUERY_AUTOTEMP")

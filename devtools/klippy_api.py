@@ -66,7 +66,14 @@ class KlippyApi:
         return self.call("gcode/script", script=script)
 
     def query(self, obj: str) -> dict:
-        return self.call("objects/query", objects={obj: None})["status"][obj]
+        return self.status(obj)[obj]
+
+    def status(self, *objects: str) -> dict:
+        """{object: its status} in one request. Ask for what you need at
+        once: klippy answers a query on its status timer's next tick, up to
+        0.25 s after the last one, so each request in a loop costs that."""
+        return self.call("objects/query",
+                         objects={obj: None for obj in objects})["status"]
 
     def close(self) -> None:
         self.sock.close()
