@@ -4,13 +4,28 @@ weak profile whose peak need lies above its max_temp_c."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 
 from devtools import stack
 from devtools.demo_autotemp import PROFILE, annotated, print_with_autotemp
 from flowloop.control.autotemp import TemperaturePlan, TempLimits
+from flowloop.gcode.fastplan import plan_batches
+from flowloop.gcode.melt import CELL_S, MELT_TIME_S, Cells, melt_events
+from flowloop.gcode.planner import Segment, limits_from_config, plan_file
+from flowloop.host.klipper_config import read_config
 from flowloop.material.profile import profile_from_dict, profile_line
-from tests.klippy.test_flowrate_limiter import GCODE, gcode_extrusion
+from tests.klippy.flowrate_limiter_steps import stepper_steps
+from tests.klippy.test_flowrate_limiter import (
+    AREA,
+    CLOCK_HZ,
+    GCODE,
+    MM_PER_STEP,
+    gcode_extrusion,
+    run,
+)
 from tests.klippy.test_harness import check_host_status
 
 LIMITS = TempLimits.of(profile_from_dict(PROFILE), 260.0)   # heater max_temp
@@ -126,3 +141,93 @@ def test_a_start_macro_waits_at_its_temperature_then_the_plan_takes_over(
     assert after, "autotemp drove the heater in none of the first chunks"
     assert after[0]["autotemp"]["source"] == "annotation"
     assert after[0]["heater_target"] >= 220.0
+
+
+HERE = Path(__file__).resolve().parent
+SHORT_SEGMENTS = HERE.parent / "data" / "gcode" / "curves_0.6mm_layers_1_8.gcode"
+
+
+def _move_plastic(s: Segment, u: float) -> float:
+    """Plastic a move has left u s after its start: its flow trapezoid
+    integrated (none for a move that adds no plastic)."""
+    if s.filament_mm <= 0.0:
+        return 0.0
+    a, d, top = s.accel_s, s.decel_s, s.flow_mm3_s
+    c = max(0.0, s.duration_s - a - d)
+    u = min(max(u, 0.0), s.duration_s)
+    ua, uc, ud = min(u, a), min(max(u - a, 0.0), c), max(u - a - c, 0.0)
+    rise = (top - s.start_flow_mm3_s) * ua * ua / (2 * a) if a > 0 else 0.0
+    fall = (top - s.end_flow_mm3_s) * ud * ud / (2 * d) if d > 0 else 0.0
+    return s.start_flow_mm3_s * ua + rise + top * (uc + ud) - fall
+
+
+def _planned_plastic(segs, times: np.ndarray) -> np.ndarray:
+    """Plastic left by each of times (increasing)."""
+    start = np.array([s.start_s for s in segs])
+    before = np.concatenate(([0.0], np.cumsum([_move_plastic(s, s.duration_s)
+                                               for s in segs])))
+    k = np.searchsorted(start, times, "right") - 1
+    return np.array([before[j] + _move_plastic(segs[j], t - segs[j].start_s)
+                     if j >= 0 else 0.0 for t, j in zip(times.tolist(), k.tolist())])
+
+
+def test_the_planners_half_second_mean_is_the_one_klippers_steps_give(
+        klipper_build, klippy_venv, tmp_path):
+    """The flow to melt the annotation announces (the planner's trapezoids,
+    averaged over MELT_TIME_S) against the same mean rebuilt from the steps
+    Klipper sends the extruder, on the file of short segments and bursts."""
+    config = HERE / "autotemp_steps.cfg"
+    _, lines = run(klipper_build, klippy_venv, tmp_path, "G28\n",
+                   SHORT_SEGMENTS, config)
+    clocks, dirs = stepper_steps(lines, "PA4")
+    step_s = clocks / CLOCK_HZ
+    # plastic: filament beyond the furthest it has been (an unretraction
+    # refills the nozzle, as the planner counts it)
+    plastic = np.maximum.accumulate(np.cumsum(dirs) * MM_PER_STEP) * AREA
+
+    limits = limits_from_config(read_config(config))
+    # the file as klippy printed it (run() wrote it there)
+    with open(tmp_path / "print.gcode", "rb") as f:
+        segs = [e for e in plan_file(f, limits) if isinstance(e, Segment)]
+    # Klipper's print time starts elsewhere: the offset that puts the
+    # planner's plastic on the steps' at each tenth of the print
+    share = np.arange(1, 10) / 10
+    at_steps = np.interp(share * plastic[-1], plastic, step_s)
+    grid = np.arange(0.0, segs[-1].start_s + segs[-1].duration_s, 0.001)
+    planned_volume = _planned_plastic(segs, grid)
+    offsets = at_steps - np.interp(share * planned_volume[-1], planned_volume, grid)
+    offset = float(np.median(offsets))
+    with open(tmp_path / "print.gcode", "rb") as f:
+        cells = [e for e in melt_events(plan_batches(f, limits))
+                 if isinstance(e, Cells)]
+    start = np.concatenate([c.start_s for c in cells])
+    planned = np.concatenate([c.flow_mm3_s for c in cells])
+
+    def steps_mean(t):
+        h = MELT_TIME_S / 2
+        at = np.searchsorted(step_s, [t + offset + h, t + offset - h], "right") - 1
+        v = np.where(at >= 0, plastic[np.maximum(at, 0)], 0.0)
+        return (v[0] - v[1]) / MELT_TIME_S
+
+    stepped = np.maximum(steps_mean(start), steps_mean(start + CELL_S))
+    window = np.floor(start).astype(int)           # 1 s windows of print time
+    peaks_planned = np.zeros(window[-1] + 1)
+    peaks_stepped = np.zeros(window[-1] + 1)
+    np.maximum.at(peaks_planned, window, planned)
+    np.maximum.at(peaks_stepped, window, stepped)
+    flowing = peaks_planned > 0.5
+    difference = np.abs(peaks_planned - peaks_stepped)[flowing]
+    # the steps' shortest bursts: the highest 20 ms of the print
+    counts = np.histogram(step_s[dirs > 0], np.arange(step_s[0], step_s[-1], 0.02))[0]
+    print(f"1 s windows {flowing.sum()}: planner's 0.5 s mean peak"
+          f" {peaks_planned.max():.2f}, from Klipper's steps {peaks_stepped.max():.2f}"
+          f" mm^3/s; per window |difference| median {np.median(difference):.3f},"
+          f" max {difference.max():.3f}; the steps' highest 20 ms"
+          f" {counts.max() * MM_PER_STEP * AREA / 0.02:.1f} mm^3/s;"
+          f" time offset {offset:.3f} s, spread {np.ptp(offsets) * 1000:.1f} ms")
+    # one timeline: the planner's print time is Klipper's, to a millisecond
+    assert np.ptp(offsets) < 0.001
+    assert flowing.sum() > 100
+    assert peaks_stepped.max() == pytest.approx(peaks_planned.max(), rel=0.01)
+    # to a step's volume over the mean (0.012 mm^3/s), far below FLOW's 0.1
+    assert difference.max() < 0.03

@@ -49,12 +49,15 @@ def gcode_extrusion(path: Path) -> float:
     return total + e
 
 
-def run(klipper_build, klippy_venv, tmp, first_lines=""):
+def run(klipper_build, klippy_venv, tmp, first_lines="", source=GCODE,
+        config=HERE / "flowrate_limiter_file.cfg"):
+    """klippy's log and its MCU output decoded, for source printed in batch
+    mode after first_lines."""
     gcode = tmp / "print.gcode"
-    gcode.write_text(first_lines + GCODE.read_text())
+    gcode.write_text(first_lines + source.read_text())
     test = tmp / "file.test"
     test.write_text(f"DICTIONARY atmega2560.dict\n"
-                    f"CONFIG {HERE / 'flowrate_limiter_file.cfg'}\n"
+                    f"CONFIG {config}\n"
                     f"GCODE {gcode}\n")
     # A busy machine can cost the output its tail (output_is_whole): run
     # again then, and fail if that keeps happening
