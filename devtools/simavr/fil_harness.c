@@ -41,6 +41,8 @@
 #include "avr_adc.h"
 
 #define SPCR_ADDR 0x4c  // atmega2560 SPCR in data space (I/O 0x2c)
+#define SPSR_ADDR 0x4d
+#define SPSR_SPIF 0x80
 #define SPCR_DORD 0x20
 #define SPCR_CPOL 0x08
 #define SPCR_CPHA 0x04
@@ -138,6 +140,9 @@ static struct {
     uint16_t frame;
     int fault;
     unsigned long frames, bytes;
+    // A stall: the next hardware SPI byte completes this many cycles late,
+    // holding the firmware's sensor task in its transfer (a bus held up)
+    avr_cycle_count_t stall_cycles;
 } chip = { .cs_low = 0, .do_level = 1 };
 
 static int
@@ -225,6 +230,13 @@ spi_irq(int which)
     return irq ? irq : avr_io_getirq(avr, AVR_IOCTL_SPI_GETIRQ(0), which);
 }
 
+static avr_cycle_count_t
+spi_stall_end(avr_t *a, avr_cycle_count_t when, void *param)
+{
+    avr->data[SPSR_ADDR] |= SPSR_SPIF;
+    return 0;
+}
+
 // Hardware SPI: simavr hands over each byte the AVR sent when it is done; the
 // byte the chip returns follows the clock edges of the mode in SPCR.
 static void
@@ -251,6 +263,11 @@ on_spi_byte(avr_irq_t *irq, uint32_t value, void *param)
         in = r;
     }
     avr_raise_irq(spi_irq(SPI_IRQ_INPUT), in);
+    if (chip.stall_cycles) {
+        avr->data[SPSR_ADDR] &= ~SPSR_SPIF;
+        avr_cycle_timer_register(avr, chip.stall_cycles, spi_stall_end, NULL);
+        chip.stall_cycles = 0;
+    }
 }
 
 static avr_cycle_count_t
@@ -487,6 +504,12 @@ command(char *line)
                 return reply("ok fault=%s at sim_s=%.6f", which, sim_seconds());
             }
         return reply("error unknown fault '%s'", which);
+    }
+    if (!strcmp(name, "stall") && n >= 2) {  // stall MS: the next SPI byte
+        if (chip.software)
+            return reply("error stall needs hardware SPI");
+        chip.stall_cycles = (avr_cycle_count_t)(a * freq_hz / 1000.);
+        return reply("ok stall_ms=%.3f", a);
     }
     if (!strcmp(name, "heater")) {  // the heater's duty since the last ask
         double duty = heater_duty();

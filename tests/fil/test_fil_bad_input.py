@@ -65,3 +65,15 @@ def test_klippy_shuts_down_when_the_pty_closes(fil_build):
     print(info["state_message"])
     assert info["state"] == "shutdown"
     assert "Lost communication with MCU 'mcu'" in info["state_message"]
+
+
+def test_a_sensor_task_held_past_the_watchdog_shuts_the_mcu_down(fil_build):
+    sections = "[flow_sensor filament]\nsensor_type: ems22\ncs_pin: PG0\n"
+    with fil_printer(fil_build, sections) as printer:
+        printer.sim.control("stall 600")  # the next SPI byte, 600 ms late
+        state = stack.wait_until(
+            lambda: printer.api.call("info")["state"] != "ready", 10, 0.2)
+        info = printer.api.call("info")
+    assert state, "klippy still ready 10 s after a 600 ms stall"
+    assert info["state"] == "shutdown"
+    assert "MCU 'mcu' shutdown: Watchdog timer!" in info["state_message"]
