@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 
 from devtools.klippy_api import KlippyApi
@@ -99,3 +100,41 @@ def test_cycles_per_sample_against_klippers_angle_sensor(fil_build, bench,
     bench.ratio(f"fil ems22 / angle cycles per sample at {rate_hz} Hz",
                 figures["ems22"], figures["angle"], goal="<= 1.0x")
 
+
+
+def _print_time_offset(api) -> float:
+    """klippy's estimated print time minus time.monotonic() (both clocks
+    of this machine; the estimate goes through the MCU's clock sync)."""
+    before = time.monotonic()
+    print_time = api.query("toolhead")["estimated_print_time"]
+    return print_time - (before + time.monotonic()) / 2
+
+
+@pytest.mark.parametrize("rate_hz", (250, 1000))
+def test_sample_age_at_the_host(fil_build, bench, rate_hz):
+    """Age of the newest sample in each flow_sensor/dump_flow message when it
+    reaches a client: the MCU filling a message, the link, klippy's 100 ms
+    decode batches and the endpoint's 100 ms dump batches (the last two not
+    in step, so the smallest ages show the MCU and the link)."""
+    ages = []
+    with fil_printer(fil_build, EMS22.format(period=1.0 / rate_hz)) as printer:
+        offset = _print_time_offset(printer.api)
+        with KlippyApi(printer.klippy.api_socket, timeout=0.2) as dump:
+            dump.send("flow_sensor/dump_flow", sensor="filament",
+                      response_template={})
+            for msg in dump.messages(MEASURE_S):
+                rows = msg.get("params", {}).get("data")
+                if rows:
+                    ages.append(time.monotonic() + offset - rows[-1][0])
+        drift = _print_time_offset(printer.api) - offset
+    assert len(ages) > 10, ages
+    ages = np.array(ages) * 1e3
+    bench.figure(f"fil ems22 at {rate_hz} Hz: newest sample's age at a dump"
+                 " client, smallest", ages.min(), " ms")
+    bench.figure(f"fil ems22 at {rate_hz} Hz: newest sample's age at a dump"
+                 " client, median", float(np.median(ages)), " ms",
+                 goal="<= 30 ms (at the host)" if rate_hz == 1000 else "")
+    bench.figure(f"fil ems22 at {rate_hz} Hz: newest sample's age at a dump"
+                 " client, largest", ages.max(), " ms")
+    bench.figure(f"fil ems22 at {rate_hz} Hz: print time estimate drift over"
+                 " the run", drift * 1e3, " ms")
