@@ -36,15 +36,16 @@ def printer_config(sections: str) -> str:
     return (HERE / "fil_printer.cfg").read_text() + "\n" + sections
 
 
-def build_or_skip() -> stack.KlipperBuild:
-    """The patched Klipper and the harness, or a skip saying what is missing."""
+def build_or_skip(host: str = "klipper") -> stack.KlipperBuild:
+    """The patched Klipper (or Kalico) and the harness, or a skip saying what
+    is missing."""
     reason = simavr.missing_simavr_reason()
     if reason:
         pytest.skip(reason)
-    missing = stack.missing_klipper_reason()
+    missing = stack.missing_klipper_reason(host)
     if missing:
         pytest.skip(missing)
-    build = stack.build_klipper()
+    build = stack.build_klipper(host=host)
     simavr.build_harness()
     return build
 
@@ -61,7 +62,7 @@ def fil_printer(build, sections: str, sensor=None,
     """The simulator (its extruder moving rotation_distance per turn, its
     thermistor pin at hotend_temp_c) and klippy on fil_printer.cfg plus
     sections; stopped on leaving."""
-    venv = stack.klippy_venv()
+    venv = stack.klippy_venv(build.host)
     workdir = stack.short_tempdir("fl-fil-")
     try:
         fil = simavr.start_printer(
