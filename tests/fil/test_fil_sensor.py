@@ -82,6 +82,23 @@ def test_g1_e_moves_give_the_models_grip(printer, grip):
     assert status["errors"] == {}
 
 
+def test_the_sensor_follows_a_grip_ramp(printer):
+    # grip 1.0 -> 0.9 over the 3 s of G1 E30 F600: the shaft slows step by step
+    model0 = float(printer.sim.status()["filament_mm"])
+    sensor0 = _status(printer)["filament_position"]
+    printer.sim.control("grip 1.0")
+    printer.sim.control("grip 0.9 3.0")
+    printer.gcode("M83\nG1 E30 F600\nM400")
+    time.sleep(SETTLE_S)
+    status = _status(printer)
+    model_mm = float(printer.sim.status()["filament_mm"]) - model0
+    printer.sim.control("grip 1.0")
+    assert 28.0 < model_mm < 29.0  # about the ramp's mean, 0.95
+    assert abs(status["filament_position"] - sensor0 - model_mm) \
+        <= 2.5 / COUNTS_PER_MM
+    assert 0.9 < status["grip"] < 0.95  # the last 10 mm, late in the ramp
+
+
 def test_klippys_clock_follows_the_firmwares(printer):
     clock = CLOCK["clock"]
     wall0, ticks0, cycles0 = CLOCK["start"]
