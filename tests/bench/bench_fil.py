@@ -138,3 +138,50 @@ def test_sample_age_at_the_host(fil_build, bench, rate_hz):
                  " client, largest", ages.max(), " ms")
     bench.figure(f"fil ems22 at {rate_hz} Hz: print time estimate drift over"
                  " the run", drift * 1e3, " ms")
+
+
+# --- the highest step rate Klipper sustains, with and without the sensor -------
+STEPS_PER_MM = 200 * 16 / 7.71
+STEP_RATES = (100000, 110000, 120000, 125000, 130000, 135000, 140000, 145000,
+              150000)
+FAST_EXTRUDER = """
+[extruder]
+max_extrude_only_velocity: 2000
+max_extrude_only_accel: 100000
+max_extrude_only_distance: 1000
+"""
+
+
+def _sustains(build, sections, rate):
+    """(klippy still ready and every step at the pin, why not)"""
+    speed = rate / STEPS_PER_MM
+    distance = round(speed * 1.0, 2)  # about a second at full rate
+    with fil_printer(build, FAST_EXTRUDER + sections) as printer:
+        time.sleep(0.5)
+        steps0 = int(printer.sim.status()["steps"])
+        try:
+            printer.gcode(f"M83\nG1 E{distance} F{speed * 60:.0f}\nM400")
+        except RuntimeError as e:
+            return False, str(e)
+        info = printer.api.call("info")
+        steps = int(printer.sim.status()["steps"]) - steps0
+    expected = round(distance * STEPS_PER_MM)
+    if info["state"] != "ready":
+        return False, info["state_message"].splitlines()[0]
+    if abs(steps - expected) > 1:
+        return False, f"{steps} steps at the pin, {expected} commanded"
+    return True, ""
+
+
+@pytest.mark.parametrize("sensor", ["none", "ems22 at 1 kHz"])
+def test_highest_extruder_step_rate(fil_build, bench, sensor):
+    sections = "" if sensor == "none" else EMS22.format(period=0.001)
+    highest, why = 0, "every rate tried ran"
+    for rate in STEP_RATES:
+        ok, reason = _sustains(fil_build, sections, rate)
+        if not ok:
+            why = f"{rate} steps/s: {reason}"
+            break
+        highest = rate
+    bench.figure(f"fil highest extruder step rate sustained for 1 s (sensor:"
+                 f" {sensor}; first failure: {why})", highest, " steps/s")
