@@ -31,21 +31,24 @@ ALONE_TIERS = ("fil",)
 TIER_ORDER = ("moonraker", "klippy", "fil", "", "c", "unit", "bench")
 
 
+def pytest_itemcollected(item):
+    # Before -m selects (pytest_collection_modifyitems): the tier markers.
+    tier = _tier(item.path)
+    if tier:
+        item.add_marker(getattr(pytest.mark, tier))
+    # Skipped here, not in a fixture: a module-scoped fixture that runs
+    # klippy would otherwise run (and fail) first.
+    callspec = getattr(item, "callspec", None)
+    host = callspec.params.get("host") if callspec else None
+    if host:
+        reason = _not_on_host_reason(
+            host, f"{item.path.name}::{item.originalname}")
+        if reason:
+            item.add_marker(pytest.mark.skip(reason=reason))
+
+
 @pytest.hookimpl(trylast=True)  # the last word on the order (pytest's own
 def pytest_collection_modifyitems(config, items):  # sorts by fixture params)
-    for item in items:
-        tier = _tier(item.path)
-        if tier:
-            item.add_marker(getattr(pytest.mark, tier))
-        # Skipped here, not in a fixture: a module-scoped fixture that runs
-        # klippy would otherwise run (and fail) first.
-        callspec = getattr(item, "callspec", None)
-        host = callspec.params.get("host") if callspec else None
-        if host:
-            reason = _not_on_host_reason(
-                host, f"{item.path.name}::{item.originalname}")
-            if reason:
-                item.add_marker(pytest.mark.skip(reason=reason))
     groups = _xdist_groups(items)
     pytest_schedule.order(config, items, groups.get,
                           lambda item: TIER_ORDER.index(_tier(item.path)))
