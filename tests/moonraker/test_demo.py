@@ -34,7 +34,8 @@ def assert_all_stopped(out):
 def test_demo_runs_its_steps_with_klippy_and_stops_every_process(moonraker_venv):
     if stack.missing_klipper_reason():
         pytest.skip("no Klipper checkout")
-    code, out = run_demo({})
+    # the live step's report: two lines of it, not the 30 s a user watches
+    code, out = run_demo({"FLOWLOOP_DEMO_LIVE_S": "6"})
     assert code == 0, out[-5000:]
     assert "Moonraker: http://127.0.0.1:" in out
     assert "klippy: flowloop" in out and "demo step" not in out
@@ -51,6 +52,7 @@ def test_demo_runs_its_steps_with_klippy_and_stops_every_process(moonraker_venv)
     live = re.findall(r"  live page: (http://\S+)", out)
     if "=== live ===" in out and "No klippy" not in out:
         assert out.index(f"Live page: {live[-1]}") > out.index("flowloop doctor")
+        assert "printing it through Moonraker; a line every 3 s for 6 s" in out
     assert_all_stopped(out)
 
 
