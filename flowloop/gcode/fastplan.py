@@ -40,7 +40,9 @@ from .planner import (
     _Move,
 )
 
-CHUNK_BYTES = 1 << 20
+# half a MB: a chunk's arrays stay within a core's L2 cache (2 MB here);
+# 1 MB chunks planned the 25 MB bench file 15 % slower
+CHUNK_BYTES = 1 << 19
 # Longest number word the bulk parser reads ("X-123.45678" is 11); longer ones
 # go to the reference planner.
 _WORD_BYTES = 24
