@@ -3,7 +3,8 @@ software PWM on PB4) drives flowloop's hotend model, whose temperature goes
 back to the thermistor's ADC pin, and whose melt line sets how much of the
 commanded filament the model's shaft sees. Klipper's PID holds a target
 through it, and a short MEASURE_MATERIAL_PROFILE (fixed heater power per
-level, flow ramps until grip drops) stores a profile near the model's line."""
+level, flow ramps until grip drops) stores a profile near the model's line,
+and autotemp heats ahead of an announced flow so that the model melts it."""
 
 from __future__ import annotations
 
@@ -26,6 +27,12 @@ cs_pin: PG0
 [measure_profile]
 step_time: 1
 settle_time: 2
+
+[autotemp]
+heater_power: 40
+# "about a third of the time a 10 degC step takes to settle": this PID on
+# this hotend takes about 27 s
+time_constant: 9
 """
 # The model melts this (the profile the run starts from says the same)
 SLOPE, TEMP, FLOW = 0.12, 210.0, 6.0
@@ -108,4 +115,53 @@ def test_a_short_measure_material_profile_stores_a_profile(hot):
     assert line.flow_mm3_s + (TEMP - line.temp_c) * line.slope_mm3_s_per_c \
         == pytest.approx(FLOW, rel=0.15)
     assert line.slope_mm3_s_per_c > 0
+    assert driver.error is None
+
+
+FLOW_AHEAD, LEAD_S, WINDOW_S = 8.0, 20.0, 4.0
+SLOW_FLOW = 1.0  # the print before the window: autotemp acts as motion flushes
+
+
+def test_autotemp_heats_ahead_so_the_model_melts_an_announced_flow(hot):
+    printer, driver = hot
+    printer.api.call("flowloop/set_active_profile", extruder="extruder",
+                     profile=KNOWN, working_point=0.5)
+    printer.gcode(f"SET_HEATER_TEMPERATURE HEATER=extruder TARGET={TARGET_C}")
+    # where the hotend is now, the model would slip at this flow
+    start_c = driver.model.temp_c
+    assert MELT.line().flow_mm3_s(start_c) < 0.85 * FLOW_AHEAD, start_c
+    area = math.pi * 1.75 ** 2 / 4
+    mm_per_step = ROTATION_DISTANCE / (FULL_STEPS * MICROSTEPS)
+    script = "\n".join([
+        # M400: after idle, toolhead.print_time (where autotemp counts LEAD
+        # from) is stale until a move is flushed (see the docs)
+        "M83", f"G1 E0.05 F{SLOW_FLOW / area * 60:.2f}", "M400",
+        f"AUTOTEMP_FLOW FLOW={FLOW_AHEAD} LEAD={LEAD_S} DURATION={WINDOW_S}",
+        f"G1 E{SLOW_FLOW / area * LEAD_S:.3f} F{SLOW_FLOW / area * 60:.2f}",
+        f"G1 E{FLOW_AHEAD / area * WINDOW_S:.3f} F{FLOW_AHEAD / area * 60:.2f}",
+        "M400"])
+    rows = []  # (s since the announcement, target, model C, steps, model mm)
+    with KlippyApi(printer.klippy.api_socket, timeout=LEAD_S + WINDOW_S + 20) \
+            as printing:
+        printing.send("gcode/script", script=script)
+        announced = time.monotonic()
+        while time.monotonic() < announced + LEAD_S + WINDOW_S + 2:
+            status = printer.sim.status()
+            rows.append((time.monotonic() - announced,
+                         printer.query("extruder")["target"], driver.model.temp_c,
+                         int(status["steps"]), float(status["filament_mm"])))
+            time.sleep(0.2)
+        printing.call("info")  # after the script's answer
+    raised = [r for r in rows if r[1] > TARGET_C + 5]
+    assert raised, rows[-1]
+    window = [r for r in rows if LEAD_S + 0.5 <= r[0] <= LEAD_S + WINDOW_S - 0.5]
+    first, last = window[0], window[-1]
+    grip = (last[4] - first[4]) / ((last[3] - first[3]) * mm_per_step)
+    print(f"from {start_c:.1f} C autotemp raised the target {raised[0][0]:.1f} s"
+          f" after the announcement, to {max(r[1] for r in rows):.1f} C; the model at"
+          f" {first[2]:.1f} C as the window starts, {last[2]:.1f} C near its"
+          f" end; the model fed {grip:.3f} of the commanded filament there")
+    assert raised[0][0] < LEAD_S
+    assert MELT.line().flow_mm3_s(first[2]) >= 0.9 * FLOW_AHEAD
+    assert grip >= 0.97
     assert driver.error is None
