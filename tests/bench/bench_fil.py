@@ -8,6 +8,7 @@ same firmware idling with klippy connected and no sensor."""
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -185,3 +186,33 @@ def test_highest_extruder_step_rate(fil_build, bench, sensor):
         highest = rate
     bench.figure(f"fil highest extruder step rate sustained for 1 s (sensor:"
                  f" {sensor}; first failure: {why})", highest, " steps/s")
+
+
+# --- a long run: the sensor at 1 kHz while the extruder moves ---------------
+LONG_RUN_S = float(os.environ.get("FLOWLOOP_FIL_LONG_S", "600"))
+
+
+def test_a_long_run_at_1_khz_with_the_extruder_moving(fil_build, bench):
+    """FLOWLOOP_FIL_LONG_S (600) seconds of 10 mm moves forward and back at
+    20 mm/s with the sensor polling at 1 kHz: errors by kind, the MCU and
+    klippy still running, the simulation's worst lag behind the clock."""
+    with fil_printer(fil_build, EMS22.format(period=0.001)) as printer:
+        printer.sim.control("reset_lag")
+        start = time.monotonic()
+        printer.gcode("M83")
+        while time.monotonic() < start + LONG_RUN_S:
+            # returns once klippy has queued them (about 1 s of motion ahead)
+            printer.gcode("G1 E10 F1200\nG1 E-10 F1200")
+        printer.gcode("M400")
+        status = printer.query("flow_sensor filament")
+        sim = printer.sim.status()
+        state = printer.api.call("info")["state"]
+    minutes = (time.monotonic() - start) / 60
+    bench.figure(f"fil long run at 1 kHz, extruder moving: klippy state"
+                 f" '{state}', sensor fault {status['fault']}, errors"
+                 f" {status['errors'] or 'none'}; minutes run", minutes,
+                 goal=">= 10 with no error")
+    bench.figure("fil long run: samples", status["samples"])
+    bench.figure("fil long run: the simulation's worst lag behind the wall"
+                 " clock", float(sim["max_lag_ms"]), " ms")
+    assert state == "ready", state
