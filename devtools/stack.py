@@ -305,6 +305,19 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def accepts(unix_socket: Path) -> bool:
+    """A server listens on unix_socket (its file appears at bind(), a moment
+    before listen(): a connect between the two is refused)."""
+    if not unix_socket.exists():
+        return False
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        try:
+            probe.connect(str(unix_socket))
+        except OSError:
+            return False
+    return True
+
+
 def short_tempdir(prefix: str) -> Path:
     # Unix socket paths must stay under ~100 bytes: keep these out of pytest's tmp.
     return Path(tempfile.mkdtemp(prefix=prefix, dir="/tmp"))
@@ -374,20 +387,10 @@ class Klippy(Process):
         """Until klippy accepts a connection on its API socket: the file
         appears at bind(), a moment before listen() (a connect between the
         two is refused; on a loaded machine the moment grows)."""
-        if not wait_until(lambda: self._accepts() or not self.alive(),
+        if not wait_until(lambda: accepts(self.api_socket) or not self.alive(),
                           timeout) or not self.alive():
             raise RuntimeError("klippy did not open its API socket:\n"
                                + self.log_tail())
-
-    def _accepts(self) -> bool:
-        if not self.api_socket.exists():
-            return False
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
-            try:
-                probe.connect(str(self.api_socket))
-            except OSError:
-                return False
-        return True
 
 
 MOONRAKER_CONF = """\

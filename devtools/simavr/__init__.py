@@ -284,7 +284,7 @@ def start_printer(build: stack.KlipperBuild, venv: stack.Venv, config_text: str,
         config = workdir / "printer.cfg"
         config.write_text(config_text.replace("{serial}", str(sim.pty)))
         klippy = NormalKlippy(build, venv, config, workdir)
-        if not stack.wait_until(lambda: klippy.api_socket.exists()
+        if not stack.wait_until(lambda: stack.accepts(klippy.api_socket)
                                 or not klippy.alive(), ready_timeout):
             raise HarnessError("klippy did not open its API socket")
         api = KlippyApi(klippy.api_socket, timeout=ready_timeout)
