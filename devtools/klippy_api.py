@@ -66,9 +66,9 @@ class KlippyApi:
         return self.call("gcode/script", script=script)
 
     def query(self, obj: str) -> dict:
-        return self.status(obj)[obj]
+        return self.query_many(obj)[obj]
 
-    def status(self, *objects: str) -> dict:
+    def query_many(self, *objects: str) -> dict:
         """{object: its status} in one request. Ask for what you need at
         once: klippy answers a query on its status timer's next tick, up to
         0.25 s after the last one, so each request in a loop costs that."""
