@@ -18,6 +18,7 @@ from devtools.klippy_api import KlippyApi
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.material.profile import FlowLine, profile_from_dict
 from tests.fil.conftest import FULL_STEPS, MICROSTEPS, ROTATION_DISTANCE, fil_printer
+from tests.klippy.test_measure_profile import FLOW, KNOWN, SLOPE, TEMP
 
 SECTIONS = """
 [flow_sensor filament]
@@ -34,19 +35,9 @@ heater_power: 40
 # this hotend takes about 27 s
 time_constant: 9
 """
-# The model melts this (the profile the run starts from says the same)
-SLOPE, TEMP, FLOW = 0.12, 210.0, 6.0
+# The model melts the line the twin melts in the klippy tier's measurement
+# (the profile the run starts from says the same)
 MELT = FlowLine(slope_mm3_s_per_c=SLOPE, temp_c=TEMP, flow_mm3_s=FLOW)
-KNOWN = {
-    "identity": {"name": "known", "nozzle_diameter_mm": 0.4},
-    "lines": {"into_air": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
-                           "flow_mm3_s": FLOW},
-              "real_print": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
-                             "flow_mm3_s": FLOW}},
-    "bounds": {"min_temp_c": 185.0, "recommended_temp_c": 210.0,
-               "max_temp_c": 250.0},
-    "provenance": {"method": "manual"},
-}
 START_C = 200.0  # the hotend starts hot: heating from the room takes minutes
 HOTEND = HotendParams()  # flowloop's default: 40 W into a V6-like block
 TARGET_C = 205.0
