@@ -359,6 +359,19 @@ class Process:
 REALTIME_KLIPPY = PROJECT / "devtools" / "realtime_klippy.py"
 
 
+def build_chelper(build: KlipperBuild, venv: Venv) -> None:
+    """Compile klippy's C helper into the build, once: klippy does it on
+    first use, and two klippy processes starting at once on a fresh build
+    race on renaming the result (the second fails: FileNotFoundError on
+    _temp_c_helper.so). Later calls find it built and return at once (the
+    build's C sources never change: a new patch is a new build)."""
+    if (build.tree / "klippy" / "chelper" / "c_helper.so").exists():
+        return
+    with _locked(f"{build.host}-chelper"):
+        _run([str(venv.python), "-c", "import chelper; chelper.get_ffi()"],
+             cwd=build.tree / "klippy")
+
+
 class Klippy(Process):
     """klippy in batch mode (MCU output to a file) with an API socket and a pty.
 
@@ -372,6 +385,7 @@ class Klippy(Process):
         self.workdir = workdir
         self.api_socket = api_socket or workdir / "klippy.sock"
         self.pty = workdir / "printer"
+        build_chelper(build, venv)
         self.realtime = realtime
         dictionaries = dictionaries or {"mcu": "linuxprocess"}
         launcher = [str(REALTIME_KLIPPY)] if realtime else []

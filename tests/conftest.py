@@ -228,7 +228,9 @@ def klipper_build(host):
 
 @pytest.fixture(scope="session")
 def klippy_venv(klipper_build):
-    return stack.klippy_venv(klipper_build.host)
+    venv = stack.klippy_venv(klipper_build.host)
+    stack.build_chelper(klipper_build, venv)
+    return venv
 
 
 @pytest.fixture(scope="session")
@@ -288,5 +290,7 @@ _BUILDS: dict = {}
 def _session_build(host: str = "klipper"):
     skip_without_klipper(host)
     if host not in _BUILDS:
-        _BUILDS[host] = (stack.build_klipper(host=host), stack.klippy_venv(host))
+        build, venv = stack.build_klipper(host=host), stack.klippy_venv(host)
+        stack.build_chelper(build, venv)
+        _BUILDS[host] = (build, venv)
     return _BUILDS[host]

@@ -230,13 +230,6 @@ class NormalKlippy(stack.Process):
         super().__init__("klippy", cmd, workdir / "klippy.log", cwd=str(build.tree))
 
 
-def build_chelper(build: stack.KlipperBuild, venv: stack.Venv) -> None:
-    # klippy compiles its C helper on first use; doing that while the
-    # simulator runs would leave the simulation behind the clock.
-    stack._run([str(venv.python), "-c", "import chelper; chelper.get_ffi()"],
-               cwd=build.tree / "klippy")
-
-
 class FilPrinter:
     """The simulator and a klippy connected to it, with an API client."""
 
@@ -276,7 +269,9 @@ def start_printer(build: stack.KlipperBuild, venv: stack.Venv, config_text: str,
     reason = firmware_has_ems22(build)
     if reason:
         raise HarnessError(reason)
-    build_chelper(build, venv)
+    # klippy compiles its C helper on first use; doing that while the
+    # simulator runs would leave the simulation behind the clock.
+    stack.build_chelper(build, venv)
     sim = Simulator(build.elf("atmega2560"), workdir, **sim_options)
     klippy = None
     try:
