@@ -336,6 +336,10 @@ class FlowSensor:
         pos = toolhead.get_position()
         pos[3] += length
         toolhead.move(pos, speed)
+        # G-code's idea of where the extruder is follows the move: else the
+        # next G1 E starts from before it (found on the simulated MCU: after
+        # a calibration, M83 G1 E10 fed nothing)
+        self.printer.lookup_object("gcode_move").reset_last_position()
         end = toolhead.get_last_move_time()
         toolhead.wait_moves()
         sensor1 = self._wait_for_samples(end)

@@ -47,7 +47,8 @@ def test_calibrate_flow_sensor_finds_what_the_extruder_really_feeds(printer):
     assert settle(printer)["calibration"] == pytest.approx(1.05, rel=0.002)
     # The sensor's position restarts at its first sample after a new
     # calibration; the calibration moved the toolhead, not G-code's position
-    # (see the xfail below): measure against the toolhead's E.
+    # (test_a_g1_e_after_a_calibration_feeds_what_it_says checks that G-code
+    # follows): measure against the toolhead's E.
     printer.gcode("M83\nG1 E1 F3000\nM400")
     before, after, moved, _ = _extrude(printer, "G1 E15 F600")
     assert moved > 10
@@ -67,19 +68,13 @@ def test_calibrate_extruder_rotation_distance_recovers_the_true_one(printer):
     assert float(found.group(2)) == pytest.approx(TRUE_ROTATION_DISTANCE,
                                                   rel=0.002)
     assert settle(printer)["calibration"] == 1.0
-    printer.gcode("M83\nG1 E20 F1200\nM400")  # see the xfail below
+    printer.gcode("M83\nG1 E20 F1200\nM400")
     _, after, moved, fed = _extrude(printer, "G1 E20 F1200")
     assert moved > 10
     assert fed / moved == pytest.approx(1.0, rel=0.002)
     assert after["grip"] == pytest.approx(1.0, abs=0.012)  # 1.25 mm windows
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "flowloop bug found here: the calibration commands move the toolhead "
-    "directly (toolhead.move in flow_sensor._measure_extrusion) without "
-    "gcode_move.reset_last_position(), so the next G-code E move starts from "
-    "where G-code thinks the extruder was: after CALIBRATE_EXTRUDER_ROTATION_"
-    "DISTANCE LENGTH=10, M83 G1 E10 feeds nothing"))
 def test_a_g1_e_after_a_calibration_feeds_what_it_says(printer):
     printer.gcode("CALIBRATE_EXTRUDER_ROTATION_DISTANCE LENGTH=10 SPEED=5")
     _, _, moved, fed = _extrude(printer, "M83\nG1 E10 F1200")
