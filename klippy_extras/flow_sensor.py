@@ -463,6 +463,11 @@ class Ems22Source:
                                        minval=ems22.MIN_SPI_HZ,
                                        maxval=ems22.MAX_SPI_HZ)
         self.software_spi = config.get('spi_software_sclk_pin', None) is not None
+        problem = (ems22.software_spi_mode_problem(sensor.spi_mode)
+                   if self.software_spi else None)
+        if problem:
+            raise config.error(f"Section [{sensor.section}], options spi_mode and"
+                               f" spi_software_sclk_pin: {problem}")
         self.spi = bus.MCU_SPI_from_config(config, sensor.spi_mode,
                                            default_speed=self.spi_speed)
         self.mcu = mcu = self.spi.get_mcu()

@@ -173,6 +173,24 @@ def spi_read_model(frame: int, spi_mode: int, nbytes: int = READ_BYTES,
     return value.to_bytes(nbytes, "big")
 
 
+# The modes in which Klipper's software SPI (src/spi_software.c) reads the
+# frame where flowloop decodes it: it samples MISO half a clock after the
+# leading edge (modes 0, 2) or just after the trailing edge (1, 3), so in
+# mode 0 it reads the bit the chip drives on that same rising edge and in
+# mode 3 the next one. Those two fault as `misaligned` (never a wrong
+# position), shown on the simulated firmware (tests/fil/test_fil_spi_modes.py).
+SOFTWARE_SPI_MODES = (1, 2)
+
+
+def software_spi_mode_problem(spi_mode: int) -> Optional[str]:
+    """Why spi_mode cannot read an EMS22 on Klipper's software SPI, or None."""
+    if spi_mode in SOFTWARE_SPI_MODES:
+        return None
+    return (f"spi_mode {spi_mode} cannot read an EMS22 on software SPI (Klipper's "
+            f"software SPI samples MISO on another edge than the hardware bus); "
+            f"use spi_mode 2 (the default) or 1")
+
+
 def bit_offset_for_mode(spi_mode: int) -> int:
     """Where the frame starts in a read, per the model above."""
     probe = make_frame(0x2A5)

@@ -367,3 +367,13 @@ def test_an_overflow_record_of_254_reads_loses_time():
     decoder = ems22.Decoder()
     s = decoder.decode(list(enumerate(ems22.pack_messages(0, records))))
     assert decoder.time_lost and s.status[-1] == ems22.TIME_LOST
+
+
+def test_software_spi_refuses_the_modes_it_cannot_read_in():
+    from flowloop.sensor.ems22 import SOFTWARE_SPI_MODES, software_spi_mode_problem
+    assert SOFTWARE_SPI_MODES == (1, 2)
+    assert software_spi_mode_problem(ems22.DEFAULT_SPI_MODE) is None
+    assert software_spi_mode_problem(1) is None
+    for mode in (0, 3):
+        problem = software_spi_mode_problem(mode)
+        assert f"spi_mode {mode} cannot read" in problem and "use spi_mode 2" in problem
