@@ -313,7 +313,13 @@ def _ready_state(api, sim: Simulator, klippy: NormalKlippy):
         raise HarnessError("klippy stopped")
     state = _state(api)
     if state in ("shutdown", "error"):
-        raise HarnessError(f"klippy state {state}")
+        # its message from klippy itself: the log is written by a thread and
+        # may not hold it yet
+        try:
+            message = api.call("info").get("state_message", "")
+        except (RuntimeError, OSError) as e:
+            message = f"no answer: {e}"
+        raise HarnessError(f"klippy state {state}: {message.strip()}")
     return "ready" if state == "ready" else None
 
 
