@@ -60,8 +60,7 @@ def order(config, items, group_of: Callable[[object], Optional[str]],
 
     def rank(item):
         key = group_of(item) or item.nodeid
-        return (is_alone(key), -total[key] if total[key] else 0.0,
-                fallback(item))
+        return (is_alone(key), -total[key], fallback(item))
     items.sort(key=rank)
 
 
