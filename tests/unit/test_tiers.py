@@ -22,6 +22,32 @@ def collected(*args):
 
 @pytest.mark.parametrize("tier", ["bench", "c", "klippy"])
 def test_a_tier_marker_selects_that_folder_and_nothing_else(tier):
-    ids = collected("-m", tier, f"tests/{tier}", "tests/c")
+    # another tier's file beside it: -m must leave that one out
+    ids = collected("-m", tier, f"tests/{tier}", "tests/unit/test_numbers.py")
     assert ids, f"-m {tier} selected nothing"
     assert all(i.startswith(f"tests/{tier}/") for i in ids), ids[:3]
+
+
+def test_host_venvs_are_keyed_on_the_package_not_on_the_tools_settings(
+        tmp_path, monkeypatch):
+    from devtools import stack
+    text = (PROJECT / "pyproject.toml").read_text()
+    monkeypatch.setattr(stack, "PROJECT", tmp_path)
+    (tmp_path / "pyproject.toml").write_text(text)
+    before = stack._install_metadata()
+    (tmp_path / "pyproject.toml").write_text(
+        text.replace('markers = [', 'markers = [\n    "new: a marker",'))
+    assert stack._install_metadata() == before
+    (tmp_path / "pyproject.toml").write_text(
+        text.replace('"numpy>=1.20"', '"numpy>=1.21"'))
+    assert stack._install_metadata() != before
+
+
+def test_an_unknown_host_is_refused_in_one_line():
+    proc = subprocess.run(
+        [sys.executable, "-c", "import devtools.stack"], cwd=PROJECT,
+        capture_output=True, text=True, timeout=60,
+        env={"PATH": "/usr/bin:/bin", "FLOWLOOP_HOSTS": "klipper marlin"})
+    assert proc.returncode != 0
+    assert proc.stderr.strip().splitlines()[-1] == (
+        "FLOWLOOP_HOSTS: marlin is not one of klipper, kalico")
