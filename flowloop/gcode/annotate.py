@@ -62,6 +62,8 @@ _MARKER = re.compile(MARKER_REGEX.encode(), re.MULTILINE)
 _MARKER_TEXT = b"; flowloop autotemp annotations v"
 SUMMARY_PREFIX = "; flowloop autotemp summary:"
 FLOW_STEP_MM3_S = 0.1
+# Commands kept before they are written out with the file between them.
+_INSERTS_HELD = 1024
 
 
 @dataclass(frozen=True)
@@ -140,8 +142,8 @@ class _Candidates:
     time order; the ones before the last useful one are dropped."""
 
     def __init__(self, time_s: float, offset: int):
-        self.times: List[float] = [time_s]
-        self.offsets: List[int] = [offset]
+        self.times = np.array([time_s], float)
+        self.offsets = np.array([offset], np.int64)
         self.head = 0
 
     def reset(self, time_s: float, offset: int) -> None:
@@ -149,27 +151,31 @@ class _Candidates:
 
     @property
     def last_offset(self) -> int:
-        return self.offsets[-1]
-
-    def add(self, time_s: float, offset: int) -> None:
-        self.times.append(time_s)
-        self.offsets.append(offset)
+        return int(self.offsets[-1])
 
     def add_many(self, times: np.ndarray, offsets: np.ndarray) -> None:
-        self.times.extend(times.tolist())
-        self.offsets.extend(offsets.tolist())
+        head = self.head
+        self.times = np.concatenate((self.times[head:], times))
+        self.offsets = np.concatenate((self.offsets[head:], offsets))
+        self.head = 0
 
     def first(self) -> Tuple[float, int]:
-        return self.times[self.head], self.offsets[self.head]
+        return float(self.times[self.head]), int(self.offsets[self.head])
 
     def prune(self, target_s: float) -> None:
         """Keep from the last line at or before target_s (at least one)."""
-        last = bisect.bisect_right(self.times, target_s, self.head) - 1
+        # the times never decrease: a search of all of them finds the last
+        # at or before target_s, or one before head (then head stays)
+        last = int(np.searchsorted(self.times, target_s, "right")) - 1
         if last > self.head:
             self.head = last
-        if self.head > 256 and self.head * 2 > len(self.times):
-            del self.times[:self.head], self.offsets[:self.head]
-            self.head = 0
+
+    def place(self, targets: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """prune(t), first() for each of targets (increasing), at once."""
+        at = np.searchsorted(self.times, targets, "right") - 1
+        np.maximum(at, self.head, out=at)
+        self.head = int(at[-1])
+        return self.times[at], self.offsets[at]
 
 
 class _Annotator:
@@ -195,6 +201,7 @@ class _Annotator:
         self.peak = 0.0
         self.end_s = 0.0
         self.last_byte = newline[-1:]    # of what was copied last
+        self.inserts: List[Tuple[int, bytes]] = []   # commands not written yet
 
     # --- windows ------------------------------------------------------------------
 
@@ -273,22 +280,108 @@ class _Annotator:
 
     def _close_bins(self, edges: np.ndarray, peaks: np.ndarray) -> None:
         """_close_bin for bins edges[k]..edges[k+1] with raw peaks[k], in
-        order: a run of bins that only lengthens the pending window is
-        taken at once."""
+        order, at once: the bins are cut into windows (a run of equal flows
+        is one window, or several where it outlasts the lead), the windows
+        placed with one search and all but the last written out."""
         count = len(peaks)
         if not count:
             return
         steps = np.ceil(peaks / FLOW_STEP_MM3_S - 1e-6)
-        flows = np.maximum(steps, 0.0) * FLOW_STEP_MM3_S
+        # quantise_flow's values (+ 0.0: never -0.0)
+        flows = np.maximum(steps, 0.0) * FLOW_STEP_MM3_S + 0.0
+        if not (edges[1:] > edges[:-1]).all():
+            self._close_bins_one_by_one(edges, peaks, flows)
+            return
         lead = self.settings.lead_s
+        edge_list = edges.tolist()
+        k = 0
+        if not self.started:
+            nonzero = np.flatnonzero(flows != 0.0)
+            lead_in = int(nonzero[0]) if nonzero.size else count
+            if lead_in:
+                self._prune(edge_list[lead_in] - self.settings.placement_s)
+                k = lead_in
+        self.bin_start, self.bin_peak = edge_list[count], 0.0
+        if k == count:
+            return
+        self.started = True
+        # runs of equal flow from bin k: run_start[r]..run_start[r + 1]
+        change = np.flatnonzero(flows[k + 1:] != flows[k:-1]) + (k + 1)
+        run_start = np.concatenate(([k], change, [count]))
+        flow_list = flows.tolist()
+        # the bins where a new window starts
+        new: List[int] = []
+        p = self.pending
+        first_end = int(run_start[1])
+        if p is not None and p.flow == flow_list[k] and p.end_s == edge_list[k]:
+            # the pending window takes the first bins of the first run
+            stop = self._absorb(edge_list, k, first_end, p.start_s)
+            p.end_s = edge_list[stop]
+        else:
+            stop = k
+        while stop < first_end:
+            new.append(stop)
+            stop = self._absorb(edge_list, stop + 1, first_end, edge_list[stop])
+        starts = run_start[1:-1]
+        if starts.size:
+            ends = run_start[2:]
+            long_runs = np.flatnonzero(edges[ends] - edges[starts] > lead)
+            if not long_runs.size:
+                new.extend(starts.tolist())
+            else:
+                at = 0
+                start_list, end_list = starts.tolist(), ends.tolist()
+                for r in long_runs.tolist():
+                    new.extend(start_list[at:r])
+                    stop, end = start_list[r], end_list[r]
+                    while stop < end:
+                        new.append(stop)
+                        stop = self._absorb(edge_list, stop + 1, end, edge_list[stop])
+                    at = r + 1
+                new.extend(start_list[at:])
+        if not new:
+            return
+        first = np.array(new)
+        start_s = edges[first]
+        end_s = edges[np.append(first[1:], count)]
+        insert_s, insert_at = self.candidates.place(start_s - self.settings.placement_s)
+        self._finish_pending()
+        self._write_windows(start_s[:-1], end_s[:-1], flows[first[:-1]],
+                            insert_s[:-1], insert_at[:-1])
+        self.pending = _Window(float(start_s[-1]), float(end_s[-1]),
+                               flow_list[new[-1]], int(insert_at[-1]),
+                               float(insert_s[-1]))
+
+    def _absorb(self, edge_list: List[float], k: int, stop: int,
+                start_s: float) -> int:
+        """The first of bins k..stop-1 a window from start_s cannot take
+        (it takes bins while it stays within the lead; stop: all)."""
+        lead = self.settings.lead_s
+        if edge_list[stop] - start_s <= lead:
+            return stop
+        lo, hi = k, stop
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if edge_list[mid + 1] - start_s <= lead:
+                lo = mid + 1
+            else:
+                hi = mid
+        return lo
+
+    def _close_bins_one_by_one(self, edges: np.ndarray, peaks: np.ndarray,
+                               flows: np.ndarray) -> None:
+        """_close_bins a bin at a time (where bins of no length are among
+        them): a run of bins that only lengthens the pending window is
+        taken at once."""
+        count = len(peaks)
         # where the flow changes: a run of equal flows ends before it
         change = np.flatnonzero(flows[1:] != flows[:-1]) + 1
         run_end = np.append(change, count).tolist()
         flow_list, edge_list = flows.tolist(), edges.tolist()
         k = 0
         if not self.started:
-            zeros = np.flatnonzero(flows != 0.0)
-            lead_in = int(zeros[0]) if zeros.size else count
+            nonzero = np.flatnonzero(flows != 0.0)
+            lead_in = int(nonzero[0]) if nonzero.size else count
             if lead_in:
                 self._prune(edge_list[lead_in] - self.settings.placement_s)
                 k = lead_in
@@ -298,16 +391,7 @@ class _Annotator:
             if p is not None and p.flow == flow_list[k] \
                     and p.end_s == edge_list[k]:
                 stop = run_end[bisect.bisect_right(run_end, k)]
-                # bins k.. while the window stays within the lead (end - start
-                # grows with the end: the ones that fit come first)
-                lo, hi = k, stop
-                while lo < hi:
-                    mid = (lo + hi) // 2
-                    if edge_list[mid + 1] - p.start_s <= lead:
-                        lo = mid + 1
-                    else:
-                        hi = mid
-                n = lo - k
+                n = self._absorb(edge_list, k, stop, p.start_s) - k
                 if n:
                     p.end_s = edge_list[k + n]
                     k += n
@@ -316,6 +400,36 @@ class _Annotator:
             self._close_bin(edge_list[k + 1])
             k += 1
         self.bin_start, self.bin_peak = edge_list[count], 0.0
+
+    def _write_windows(self, start_s, end_s, flow, insert_s, insert_at) -> None:
+        """_finish_pending for windows that are over, given as arrays."""
+        if not len(start_s):
+            return
+        start = np.maximum(start_s, insert_s)
+        keep = end_s > start
+        if not keep.all():
+            start, end_s, flow = start[keep], end_s[keep], flow[keep]
+            insert_s, insert_at = insert_s[keep], insert_at[keep]
+        lead_s = start - insert_s
+        duration_s = end_s - start
+        # command_line's rounding
+        lead = np.floor(lead_s * 100 + 1e-6) / 100
+        duration = np.ceil((duration_s + lead_s - lead) * 100 - 1e-6) / 100
+        lines = [f"{COMMAND} FLOW={f:.1f} LEAD={ld:.2f} DURATION={d:.2f}"
+                 for f, ld, d in zip(flow.tolist(), lead.tolist(),
+                                     duration.tolist())]
+        self.windows += len(lines)
+        if type(self).emit is _Annotator.emit:
+            # emit's work for them all
+            newline = self.newline
+            self.inserts.extend(zip(insert_at.tolist(),
+                                    [line.encode() + newline for line in lines]))
+            if len(self.inserts) >= _INSERTS_HELD:
+                self._write_inserts()
+            return
+        for offset, time_s, line in zip(insert_at.tolist(), insert_s.tolist(),
+                                        lines):
+            self.emit(offset, time_s, line)
 
     def _place(self, window_start_s: float) -> Tuple[int, float]:
         """The last line at least placement_s before the window (or the first
@@ -358,8 +472,43 @@ class _Annotator:
 
     def emit(self, offset: int, time_s: float, line: str) -> None:
         """Write a command before the line at byte offset (print time time_s)."""
-        self.copy_to(offset)
-        self.out.write(line.encode() + self.newline)
+        # kept, then written a thousand at a time (_write_inserts)
+        self.inserts.append((offset, line.encode() + self.newline))
+        if len(self.inserts) >= _INSERTS_HELD:
+            self._write_inserts()
+
+    def _write_inserts(self) -> None:
+        """Copy the source up to each command kept, then the command, in
+        one write: copy_to and a write for each."""
+        inserts, self.inserts = self.inserts, []
+        parts: List[Union[bytes, memoryview]] = []
+        append = parts.append
+        block, block_start, copied = self.block, self.block_start, self.copied
+        end = block_start + len(block)
+        piece = None                    # the last one copied
+        for offset, line in inserts:
+            if copied < offset <= end:   # within the block read
+                piece = block[copied - block_start:offset - block_start]
+                append(piece)
+                copied = offset
+            while copied < offset:
+                at = copied - block_start
+                if at >= len(block):
+                    block_start += len(block)
+                    block = memoryview(self.src.read(1 << 20))
+                    end = block_start + len(block)
+                    if not block:
+                        break
+                    at = 0
+                stop = min(len(block), offset - block_start)
+                piece = block[at:stop]
+                append(piece)
+                copied += stop - at
+            append(line)
+        if piece is not None:
+            self.last_byte = piece[-1:]
+        self.block, self.block_start, self.copied = block, block_start, copied
+        self.out.write(b"".join(parts))
 
     def drop_byte_order_mark(self) -> None:
         """A UTF-8 byte-order mark is left out: the marker must be the file's
@@ -377,6 +526,8 @@ class _Annotator:
     def copy_to(self, offset: Optional[int]) -> None:
         """Copy the source up to byte offset (None: to its end), read in
         blocks of a MB."""
+        if self.inserts:
+            self._write_inserts()
         while offset is None or self.copied < offset:
             at = self.copied - self.block_start
             if at >= len(self.block):
