@@ -218,13 +218,17 @@ class FastPlanner:
     def _plan_chunk(self, data: bytes, offset: int) -> None:
         buf = np.frombuffer(data + b"\0" * _WORD_BYTES, np.uint8)
         size = len(data)
-        nl = np.flatnonzero(buf[:size] == 10)
+        # the bytes that end a word, at once: newline, space, ';', CR
+        body = buf[:size]
+        sep = np.flatnonzero((body == 10) | (body == 32) | (body == 59) | (body == 13))
+        sep_byte = buf[sep]
+        nl = sep[sep_byte == 10]
         starts = np.concatenate(([0], nl + 1))
         ends = np.concatenate((nl, [size]))
         if starts[-1] == size:          # data ends with its newline
             starts, ends = starts[:-1], ends[:-1]
         kinds = self._kinds(data, buf, starts, ends)
-        words = self._words(buf, size, starts, ends, kinds)
+        words = self._words(buf, size, starts, ends, kinds, sep, sep_byte)
         first_line = self.lines
         self.lines += len(starts)
         other = np.flatnonzero(kinds == _OTHER)
@@ -270,44 +274,43 @@ class FastPlanner:
             kinds[odd_lines] = _OTHER
         return kinds
 
-    def _words(self, buf, size, starts, ends, kinds):
+    def _words(self, buf, size, starts, ends, kinds, sep, sep_byte):
         """Per line: X Y Z E F values (NaN: absent) of move and G92 lines;
-        a line whose words do not read as simple numbers becomes other."""
+        a line whose words do not read as simple numbers becomes other.
+        sep: where the bytes that end words are (newline, space, ';', CR),
+        sep_byte: which."""
         n = len(starts)
         values = np.full((n, 5), np.nan)
         code = (kinds == _MOVE) | (kinds == _G92)
         if not code.any():
             return values
-        spaces = np.flatnonzero(buf[:size] == 32)
-        semis = np.flatnonzero(buf[:size] == 59)
-        crs = np.flatnonzero(buf[:size] == 13)
-        word_start = spaces + 1
-        # a word ends at the next space at the latest
-        next_space = np.append(spaces[1:], size)
-        line = np.searchsorted(starts, word_start, "right") - 1
-        keep = code[line]
-        word_start, line, next_space = word_start[keep], line[keep], next_space[keep]
+        # the line each of them is on: the newlines before it
+        is_nl = sep_byte == 10
+        sep_line = np.cumsum(is_nl)
+        sep_line -= is_nl
         # the code part of a line ends at its comment
-        k = np.searchsorted(semis, starts)
         code_end = ends.copy()
-        has_semi = k < len(semis)
-        semi_at = semis[np.minimum(k, len(semis) - 1)] if len(semis) else ends
-        code_end[has_semi] = np.minimum(ends[has_semi], semi_at[has_semi])
-        keep = word_start < code_end[line]
-        word_start, line, next_space = word_start[keep], line[keep], next_space[keep]
-        word_end = np.minimum(code_end[line], next_space)
-        if len(crs):
-            nxt = np.searchsorted(crs, word_start)
-            at = crs[np.minimum(nxt, len(crs) - 1)]
-            word_end = np.where(nxt < len(crs), np.minimum(word_end, at), word_end)
-        length = word_end - word_start
-        real = length > 0                       # not a double space
-        word_start, line, length = word_start[real], line[real], length[real]
+        semi = np.flatnonzero(sep_byte == 59)
+        if semi.size:
+            semi_line = sep_line[semi]
+            first = np.ones(len(semi), bool)
+            first[1:] = semi_line[1:] != semi_line[:-1]
+            code_end[semi_line[first]] = sep[semi[first]]
+        # a word starts after a space and ends at the next of them (a CR
+        # ends it too: one at its line's end is not part of the number)
+        after = np.flatnonzero(sep_byte == 32)
+        line = sep_line[after]
+        word_start = sep[after] + 1
+        word_end = np.append(sep, size)[after + 1]
+        keep = code[line] & (word_start < code_end[line]) & (word_end > word_start)
+        word_start, line = word_start[keep], line[keep]
+        length = word_end[keep] - word_start
         bad_lines = []
-        if len(crs):
+        cr = np.flatnonzero(sep_byte == 13)
+        if cr.size:
             # a CR anywhere but at the end of its line
-            cr_line = np.searchsorted(starts, crs, "right") - 1
-            bad_lines.append(cr_line[crs != ends[cr_line] - 1])
+            cr_line = sep_line[cr]
+            bad_lines.append(cr_line[sep[cr] != ends[cr_line] - 1])
         too_long = length > _WORD_BYTES
         bad_lines.append(line[too_long])
         length = np.minimum(length, _WORD_BYTES)
@@ -317,21 +320,26 @@ class FastPlanner:
         ok &= (letter >= 0) & (length >= 2)
         ok &= np.where(kinds[line] == _G92, letter < 4, True)
         bad_lines.append(line[~ok])
-        # one word per axis and line (Klipper keeps the last, numpy may not)
-        key = line.astype(np.int64) * 5 + np.where(ok, letter, 0)
-        counts = np.bincount(key[ok], minlength=5 * n)
-        bad_lines.append(np.flatnonzero(counts > 1) // 5)
         absurd = ~(np.abs(numbers) <= MAX_ABS_VALUE)
         bad_lines.append(line[ok & absurd])
         feed = ok & (letter == 4)
         bad_lines.append(line[feed & (numbers <= 0.0)])
         good = ok & ~absurd
-        values[line[good], letter[good]] = numbers[good]
+        key = line[good] * 5 + letter[good]
+        values.reshape(-1)[key] = numbers[good]
+        # one word per axis and line (Klipper keeps the last, numpy may not):
+        # as many values as words unless two share a place (a line with an
+        # absurd word among its doubles is bad already)
+        if np.count_nonzero(~np.isnan(values)) != len(key):
+            counts = np.bincount(key, minlength=5 * n)
+            bad_lines.append(np.flatnonzero(counts > 1) // 5)
         bad = np.concatenate(bad_lines)
         kinds[bad] = _OTHER
         values[bad] = np.nan
         # a G92 without an axis sets them all: the reference does that
-        kinds[(kinds == _G92) & np.isnan(values[:, :4]).all(axis=1)] = _OTHER
+        g92 = np.flatnonzero(kinds == _G92)
+        if g92.size:
+            kinds[g92[np.isnan(values[g92, :4]).all(axis=1)]] = _OTHER
         return values
 
     def _scalar_line(self, data, starts, ends, i, offset, first_line) -> None:
