@@ -8,8 +8,8 @@ exit status 2.
 from __future__ import annotations
 
 import argparse
-import difflib
 import importlib
+import os
 import re
 import sys
 from typing import List, Optional
@@ -67,6 +67,8 @@ class ArgumentParser(argparse.ArgumentParser):
         option = next((e for e in extras if e.startswith("-")), None)
         if option is None:
             return f"unrecognized arguments: {' '.join(extras)}"
+        # imported here: only a mistyped option needs it
+        import difflib
         option = option.split("=", 1)[0]
         known = [o for action in self._actions for o in action.option_strings]
         close = difflib.get_close_matches(option, known, n=1)
@@ -89,7 +91,12 @@ def build_parser(command: Optional[str] = None) -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    if argv is None:
+        argv = sys.argv[1:]
+        if argv[:1] == ["annotate"]:
+            # a process per upload (Moonraker's processor): the BLAS threads
+            # numpy starts at import would only spin, the annotator uses none
+            os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
     try:

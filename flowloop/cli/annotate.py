@@ -16,12 +16,14 @@ from ..gcode.annotate import (
     annotate_file,
 )
 from ..gcode.planner import PrinterLimits, limits_from_config
-from ..host.klipper_config import read_config
-from ..material.profile import DEFAULT_WORKING_POINT
 from .flags import with_flags
 from .paths import refuse_overwriting
 
 DEFAULT_HOTEND = HotendParams()
+# material.profile.DEFAULT_WORKING_POINT, for --working-point's help: that
+# module (and msgspec) is imported only for --bake, not at every upload's
+# start-up (tests/unit/test_annotate.py checks that they agree)
+DEFAULT_WORKING_POINT = 0.5
 # --bake's hotend options: (flag, HotendParams field)
 HOTEND_FLAGS = (("time-constant", "time_constant_s"), ("dead-time", "dead_time_s"),
                 ("heater-power", "max_power_w"))
@@ -79,8 +81,11 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     settings = AnnotateSettings(lead_s=args.lead, window_s=args.window)
-    limits = (limits_from_config(read_config(args.printer_cfg))
-              if args.printer_cfg else PrinterLimits())
+    if args.printer_cfg:
+        from ..host.klipper_config import read_config
+        limits = limits_from_config(read_config(args.printer_cfg))
+    else:
+        limits = PrinterLimits()
     if args.bake is not None:
         return run_bake(args, settings, limits)
     if args.plot is not None or args.working_point is not None:
@@ -117,6 +122,7 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
     from ..cli.profile import load
     from ..gcode.bake import bake_file, timeline_svg
     from ..material.active import working_point_arg
+    from ..material.profile import DEFAULT_WORKING_POINT
     if args.output is None:
         raise FlowloopError("--bake needs -o OUT.gcode (a baked file is for one"
                             " profile; the slicer's file stays as it is)")

@@ -351,6 +351,14 @@ def test_bad_input_is_one_line_and_no_output(tmp_path, capsys, content, message)
     assert src.read_bytes() == content
 
 
+def test_the_command_help_gives_the_profiles_default_working_point():
+    # flowloop.cli.annotate keeps its own copy (material.profile and msgspec
+    # are not imported at every upload's start-up)
+    from flowloop.cli import annotate as command
+    from flowloop.material.profile import DEFAULT_WORKING_POINT
+    assert command.DEFAULT_WORKING_POINT == DEFAULT_WORKING_POINT
+
+
 def test_an_unreadable_file_is_one_line(tmp_path, capsys):
     assert cli.main(["annotate", str(tmp_path / "missing.gcode")]) == 2
     err = capsys.readouterr().err
