@@ -94,12 +94,21 @@ def _pieces(batch: Segments, volume_before: float) -> _Pieces:
 def volume_at(pieces: _Pieces, times: np.ndarray) -> np.ndarray:
     """Plastic (mm^3) left through the nozzle by each of times (increasing,
     within the batch or after it; one before it counts as at its start)."""
-    # times[first[p]:first[p + 1]] fall in piece p
-    first = np.maximum.accumulate(np.searchsorted(times, pieces.start_s, "left"))
+    # times[first[p]:first[p + 1]] fall in piece p. A piece of no length
+    # that the next one starts with gets none (nor does it change where the
+    # others start): only the others are searched for (the first and last
+    # are kept: one before the batch counts as at its start)
+    start, length = pieces.start_s, pieces.length_s
+    keep = np.empty(len(start), bool)
+    keep[0] = keep[-1] = True
+    np.not_equal(length[1:-1], 0.0, out=keep[1:-1])
+    keep[1:-1] |= start[2:] != start[1:-1]
+    kept = np.flatnonzero(keep)
+    first = np.maximum.accumulate(np.searchsorted(times, start[kept], "left"))
     first[0] = 0
     counts = np.diff(np.append(first, len(times)))
-    i = np.repeat(np.arange(len(first)), counts)
-    u = np.clip(times - pieces.start_s[i], 0.0, pieces.length_s[i])
+    i = np.repeat(kept, counts)
+    u = np.clip(times - start[i], 0.0, length[i])
     return pieces.volume_mm3[i] + u * (pieces.flow_mm3_s[i]
                                        + 0.5 * pieces.slope_mm3_s2[i] * u)
 
