@@ -97,11 +97,15 @@ def min_plus(a: np.ndarray, add: np.ndarray, x0: float) -> np.ndarray:
     if n == 0:
         return a.astype(float)
     prefix = np.cumsum(add)
-    x = prefix + np.minimum(np.minimum.accumulate(a - prefix), x0)
-    prev = np.empty(n)
-    prev[0] = x0
-    prev[1:] = x[:-1]
-    new = np.minimum(a, prev + add)
+    x = a - prefix
+    np.minimum.accumulate(x, out=x)
+    np.minimum(x, x0, out=x)
+    x += prefix
+    # one sequential step from x: min(a, x[i-1] + add[i])
+    new = np.empty(n)
+    new[0] = x0 + add[0]
+    np.add(x[:-1], add[1:], out=new[1:])
+    np.minimum(a, new, out=new)
     changed = np.flatnonzero(new != x)
     x = new
     while changed.size:
@@ -531,42 +535,43 @@ class FastPlanner:
         if joined == n:
             return q
         st = self.state
-        rows = np.arange(joined, n)
-        # a junction needs a move before, and both kinematic; else 0
-        has = (rows >= 1) & q.kinematic[rows] & q.kinematic[np.maximum(rows - 1, 0)]
+        # row r against row r - 1, for the rows from joined that have one:
+        # as slices (whole arrays, masked at the end, not gathered)
+        lo = max(joined, 1)
+        cur, pr = slice(lo, n), slice(lo - 1, n - 1)
         a = np.zeros(n - joined)
-        cur = rows[has]
-        if cur.size:
-            pr = cur - 1
-            diff_r = q.ae[cur] - q.ae[pr]
-            v2 = np.minimum(q.max_cruise_v2[cur], q.max_cruise_v2[pr])
-            with np.errstate(divide="ignore"):
+        add = np.zeros(n - joined)
+        add_mcr = np.zeros(n - joined)
+        if lo < n:
+            # a junction needs both moves kinematic; else 0
+            has = q.kinematic[cur] & q.kinematic[pr]
+            with np.errstate(all="ignore"):     # rows without a junction
+                diff_r = q.ae[cur] - q.ae[pr]
+                v2 = np.minimum(q.max_cruise_v2[cur], q.max_cruise_v2[pr])
                 ea_v2 = np.where(diff_r != 0.0,
                                  (st.instant_corner_v / diff_r) ** 2, np.inf)
-            v2 = np.minimum(np.minimum(v2, ea_v2), 999999999.9)
-            cos = -(q.ax[cur] * q.ax[pr] + q.ay[cur] * q.ay[pr]
-                    + q.az[cur] * q.az[pr])
-            sin_d2 = np.sqrt(np.maximum(0.5 * (1.0 - cos), 0.0))
-            cos_d2 = np.sqrt(np.maximum(0.5 * (1.0 + cos), 0.0))
-            one_minus = 1.0 - sin_d2
-            corner = (one_minus > 0.0) & (cos_d2 > 0.0)
-            if corner.any():
-                c, p = cur[corner], pr[corner]
-                s, cd = sin_d2[corner], cos_d2[corner]
-                r_jd = s / one_minus[corner]
-                quarter_tan = 0.25 * s / cd
-                lim = np.minimum(
-                    np.minimum(r_jd * q.junction_deviation[c] * q.accel[c],
-                               r_jd * q.junction_deviation[p] * q.accel[p]),
-                    np.minimum(q.delta_v2[c] * quarter_tan,
-                               q.delta_v2[p] * quarter_tan))
-                v2[corner] = np.minimum(v2[corner], lim)
-            a[has] = v2
-        # the reach from the move before, x[i] = min(a, x[i-1] + delta[i-1]);
-        # a row without a junction is 0 and so starts the chain again
-        before = np.maximum(rows - 1, 0)
-        add = np.where(rows >= 1, q.delta_v2[before], 0.0)
-        add_mcr = np.where(rows >= 1, q.mcr_delta_v2[before], 0.0)
+                v2 = np.minimum(np.minimum(v2, ea_v2), 999999999.9)
+                cos = -(q.ax[cur] * q.ax[pr] + q.ay[cur] * q.ay[pr]
+                        + q.az[cur] * q.az[pr])
+                sin_d2 = np.sqrt(np.maximum(0.5 * (1.0 - cos), 0.0))
+                cos_d2 = np.sqrt(np.maximum(0.5 * (1.0 + cos), 0.0))
+                one_minus = 1.0 - sin_d2
+                corner = (one_minus > 0.0) & (cos_d2 > 0.0) & has
+                if corner.any():
+                    r_jd = sin_d2 / one_minus
+                    quarter_tan = 0.25 * sin_d2 / cos_d2
+                    lim = np.minimum(
+                        np.minimum(r_jd * q.junction_deviation[cur] * q.accel[cur],
+                                   r_jd * q.junction_deviation[pr] * q.accel[pr]),
+                        np.minimum(q.delta_v2[cur] * quarter_tan,
+                                   q.delta_v2[pr] * quarter_tan))
+                    v2 = np.where(corner, np.minimum(v2, lim), v2)
+            a[lo - joined:] = np.where(has, v2, 0.0)
+            # the reach from the move before, x[i] = min(a, x[i-1] +
+            # delta[i-1]); a row without a junction is 0 and so starts the
+            # chain again
+            add[lo - joined:] = q.delta_v2[pr]
+            add_mcr[lo - joined:] = q.mcr_delta_v2[pr]
         x0 = q.max_start_v2[joined - 1] if joined else 0.0
         x0_mcr = q.max_mcr_start_v2[joined - 1] if joined else 0.0
         max_start = q.max_start_v2.copy()
@@ -668,9 +673,12 @@ def _limit_speed(mask, speed, accel, move_d, max_cruise_v2, accel_arr,
 def _ffill(values: np.ndarray, first: float) -> np.ndarray:
     """NaN replaced by the last value before it (first before any)."""
     filled = np.concatenate(([first], values))
-    idx = np.where(np.isnan(filled), 0, np.arange(len(filled)))
-    np.maximum.accumulate(idx, out=idx)
-    return filled[idx][1:]
+    # each value given (and first) repeated up to the next one
+    given = np.flatnonzero(~np.isnan(values))
+    given += 1
+    starts = np.concatenate(([0], given))
+    counts = np.diff(np.append(starts, len(filled)))
+    return np.repeat(filled[starts], counts)[1:]
 
 
 def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
@@ -705,21 +713,31 @@ def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
     last_move = np.full(len(special), -1)
     if move_rows.size:
         last_move = np.where(before >= 0, move_rows[np.maximum(before, 0)], -1)
-    for i, k, v in zip(special.tolist(), last_move.tolist(),
-                       vals[np.maximum(last_move, 0)].tolist()):
-        if k > prev:
-            cur_last = v + cur_base
-        if stepping[i]:
-            new_last = cur_last + float(steps[i])
-            cur_base = cur_base + (new_last - cur_last)
-            cur_last = new_last
-            at_step[i] = cur_last
-        else:
-            cur_base = cur_last - float(vals[i])
-        bases.append(cur_base)
-        prev = i
+    zero = vals[special]
+    if not stepping.any() and last_move[0] >= 0 \
+            and (last_move[1:] > special[:-1]).all() \
+            and ((zero == 0.0) & ~np.signbit(zero)).all():
+        # only G92 to 0 (`G92 E0`), each after a move: the loop below makes
+        # each origin (move + origin) - 0, the one before plus the move's
+        # value, which is a running sum, rounded as the loop rounds it
+        bases = np.cumsum(np.concatenate(([base0], vals[last_move])))
+        cur_base = float(bases[-1])
+    else:
+        for i, k, v in zip(special.tolist(), last_move.tolist(),
+                           vals[np.maximum(last_move, 0)].tolist()):
+            if k > prev:
+                cur_last = v + cur_base
+            if stepping[i]:
+                new_last = cur_last + float(steps[i])
+                cur_base = cur_base + (new_last - cur_last)
+                cur_last = new_last
+                at_step[i] = cur_last
+            else:
+                cur_base = cur_last - float(vals[i])
+            bases.append(cur_base)
+            prev = i
     epoch = np.searchsorted(special, np.arange(len(vals)), "right")
-    base_of_row = np.array(bases)[epoch]
+    base_of_row = np.asarray(bases)[epoch]
     known = np.where(moves, vals + base_of_row, at_step)
     return _ffill(known, last0), cur_base
 
