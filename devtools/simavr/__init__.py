@@ -62,14 +62,51 @@ def missing_simavr_reason() -> Optional[str]:
     return None
 
 
+# One fix flowloop makes to its build copy of simavr (never to SIMAVR_PATH,
+# never committed as simavr's code): a timer overflow that simavr handles a
+# few cycles late (the overflow falls inside a multi-cycle instruction or an
+# interrupt entry) skipped every compare match due in those cycles for a
+# whole period. Klipper's AVR timer sets OCR1A to 0x0000 for the wrap timer
+# that counts Timer1 overflows into timer_high; once every few seconds the
+# match was skipped, two overflows set one flag, and the firmware's clock
+# fell 65536 ticks (4.1 ms) behind for good, which skews klippy's clock
+# estimate ("Timer too close"). The patch makes such a match fire at once,
+# as the hardware's would have fired during the instruction.
+TIMER_PATCH_FROM = """\
+			} else if (p->tov_cycles == p->comp[compi].comp_cycles && !start)
+				dispatch[compi](avr, when, param);"""
+TIMER_PATCH_TO = """\
+			} else if (!start && p->comp[compi].comp_cycles < p->tov_cycles) {
+				/* flowloop: the overflow was handled after this match was
+				 * due; match now instead of a period late */
+				avr_timer_comp_on_tov(p, when, compi);
+				avr_cycle_timer_register(avr, 1, dispatch[compi], p);
+			} else if (p->tov_cycles == p->comp[compi].comp_cycles && !start)
+				dispatch[compi](avr, when, param);"""
+PATCH_KEY = hashlib.sha256(TIMER_PATCH_TO.encode()).hexdigest()[:6]
+
+
+def patch_simavr_copy(tree: Path) -> None:
+    """Apply flowloop's timer fix to a copy of simavr's source."""
+    path = tree / "simavr" / "sim" / "avr_timer.c"
+    text = path.read_text()
+    if TIMER_PATCH_FROM not in text:
+        raise HarnessError(
+            f"simavr's {path.name} no longer has the overflow handling"
+            f" flowloop fixes (devtools/simavr TIMER_PATCH_FROM): check"
+            f" whether this simavr still skips a compare match after a late"
+            f" overflow, then update or drop the patch")
+    path.write_text(text.replace(TIMER_PATCH_FROM, TIMER_PATCH_TO, 1))
+
+
 def build_harness() -> Path:
     """The fil_harness binary, built into the cache (simavr once per commit,
-    the harness once per source text)."""
+    with flowloop's timer fix, the harness once per source text)."""
     source = simavr_path()
     commit = _git(source, "rev-parse", "HEAD")[:12]
     dirty = _git(source, "status", "--porcelain", "--untracked-files=no")
     key = commit + ("-" + hashlib.sha256(dirty.encode()).hexdigest()[:8]
-                    if dirty else "")
+                    if dirty else "") + "-p" + PATCH_KEY
     root = stack.cache_dir() / f"simavr-{key}"
     lib_dir = root / "simavr"
     with stack._locked("simavr"):
@@ -79,6 +116,7 @@ def build_harness() -> Path:
             shutil.rmtree(tmp, ignore_errors=True)
             shutil.copytree(source, tmp, symlinks=True,
                             ignore=shutil.ignore_patterns(".git", "obj-*"))
+            patch_simavr_copy(tmp)
             # config first: a parallel build races its generated headers
             stack._run(["make", "-C", "simavr", "config", "RELEASE=1"], cwd=tmp)
             stack._run(["make", "-C", "simavr", "libsimavr", "RELEASE=1",
@@ -163,7 +201,8 @@ class Simulator(stack.Process):
                "--counts-per-mm", repr(counts_per_mm)]
         try:
             start, end = idle_loop(elf)
-            cmd += ["--idle-pc", f"{start:x},{end:x}"]
+            cmd += ["--idle-pc", f"{start:x},{end:x}",
+                    "--clock-high", f"{data_address(elf, 'timer_high'):x}"]
         except (HarnessError, RuntimeError):
             pass  # not a Klipper AVR build: no profile (status idle_cycles=0)
         if "sclk" in sensor:
@@ -245,6 +284,20 @@ class FilPrinter:
         lines = [msg["params"]["response"] for msg in self.api.remote
                  if "response" in msg.get("params", {})]
         self.api.remote.clear()
+        return lines
+
+    def console_until(self, match, timeout: float = 2.0) -> List[str]:
+        """Console lines since the last call, read until one of them
+        satisfies match(line) or timeout passes. klippy sends a line a
+        module registers as a reactor callback after the status that
+        reports its cause can already have been answered."""
+        lines: List[str] = []
+
+        def arrived():
+            self.api.call("info")   # reads what klippy sent before answering
+            lines.extend(self.console())
+            return any(match(line) for line in lines)
+        stack.wait_until(arrived, timeout, 0.05)
         return lines
 
     def gcode_console(self, script: str) -> List[str]:

@@ -334,23 +334,54 @@ set_adc_mv(uint32_t mv)
 }
 
 // --- USART0 <-> pty ----------------------------------------------------------
+// A byte from the host reaches the UART at exactly INPUT_DELAY_S of simulated
+// time after the wall time it was read from the pty. The simulation runs at
+// most one pacing step (0.5 ms) ahead of the wall clock, so that moment is
+// still to come; when the simulation has fallen behind (this process woke
+// late: up to several ms at times on a VM) it catches up before the MCU sees
+// the byte, as a real MCU's crystal would have. Fed at once instead, a klippy
+// `get_clock` answered while the simulation lagged read a clock that much
+// early, and the clock samples klippy estimates the MCU's frequency from
+// scattered by the lag instead of by the pty's latency.
+#define INPUT_DELAY_S 0.0006
+
 static struct {
     int master, slave;
     int xon;
     uint8_t in[4096];
+    avr_cycle_count_t in_release[4096];   // the cycle each byte is due
     int in_head, in_tail;
+    int release_pending;
     unsigned long to_host, from_host, dropped;
 } serial = { .master = -1, .slave = -1 };
+
+static avr_cycle_count_t release_input(avr_t *a, avr_cycle_count_t when, void *param);
 
 static void
 push_input(void)
 {
     avr_irq_t *dst = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
-    while (serial.xon && serial.in_head != serial.in_tail) {
+    while (serial.xon && serial.in_head != serial.in_tail
+           && serial.in_release[serial.in_tail] <= avr->cycle) {
         uint8_t b = serial.in[serial.in_tail];
         serial.in_tail = (serial.in_tail + 1) % sizeof(serial.in);
         avr_raise_irq(dst, b);
     }
+    // the next byte's moment (a byte due but held by xoff waits for on_xon)
+    if (!serial.release_pending && serial.in_head != serial.in_tail
+        && serial.in_release[serial.in_tail] > avr->cycle) {
+        serial.release_pending = 1;
+        avr_cycle_timer_register(avr, serial.in_release[serial.in_tail] - avr->cycle,
+                                 release_input, NULL);
+    }
+}
+
+static avr_cycle_count_t
+release_input(avr_t *a, avr_cycle_count_t when, void *param)
+{
+    serial.release_pending = 0;
+    push_input();
+    return 0;
 }
 
 static void
@@ -375,6 +406,8 @@ on_xoff(avr_irq_t *irq, uint32_t value, void *param)
     serial.xon = 0;
 }
 
+static double wall_seconds(void);
+
 static void
 read_pty(void)
 {
@@ -387,8 +420,11 @@ read_pty(void)
         int n = read(serial.master, buf, space < 256 ? space : 256);
         if (n <= 0)
             break;
+        avr_cycle_count_t due = (avr_cycle_count_t)(
+            (wall_seconds() + INPUT_DELAY_S) * freq_hz);
         for (int i = 0; i < n; i++) {
             serial.in[serial.in_head] = buf[i];
+            serial.in_release[serial.in_head] = due;
             serial.in_head = (serial.in_head + 1) % sizeof(serial.in);
         }
         serial.from_host += n;
@@ -428,6 +464,42 @@ static struct {
     uint32_t idle_start, idle_end;
     uint64_t idle_cycles;
 } prof;
+
+// --- the firmware's clock: no Timer1 overflow lost -----------------------------
+// Klipper's AVR clock is timer_high:TCNT1; a wrap timer adds each overflow
+// to timer_high at TCNT1 0x0000 or, late, at 0x8000, so its steps come 32768
+// to 98304 cycles apart. A gap of two periods is an overflow the firmware
+// never counted: its clock fell 65536 ticks behind for good (what a late
+// simulated compare match did before flowloop's simavr timer fix).
+#define LOST_OVERFLOW_GAP 0x1c000
+static struct {
+    uint16_t address;     // timer_high's data address, or 0: not watched
+    uint16_t last_high;
+    avr_cycle_count_t last_change;
+    unsigned long lost;
+} fwclock;
+
+static void
+watch_firmware_clock(void)
+{
+    uint16_t a = fwclock.address;
+    uint16_t high = avr->data[a] | (avr->data[a + 1] << 8);
+    if (high == fwclock.last_high)
+        return;
+    if (high != (uint16_t)(fwclock.last_high + 1)) {
+        // first sight, or the MCU reset (watchdog): count from its next step
+        fwclock.last_high = high;
+        fwclock.last_change = 0;
+        return;
+    }
+    if (fwclock.last_change && avr->cycle - fwclock.last_change > LOST_OVERFLOW_GAP) {
+        fwclock.lost++;
+        printf("fil_harness: the firmware's clock missed a Timer1 overflow"
+               " at %.6f s (timer_high %u)\n", sim_seconds(), high);
+    }
+    fwclock.last_high = high;
+    fwclock.last_change = avr->cycle;
+}
 
 // --- pacing -------------------------------------------------------------------
 static struct {
@@ -479,12 +551,14 @@ command(char *line)
         return reply("cycle=%llu sim_s=%.6f wall_s=%.6f lag_ms=%.3f"
                      " max_lag_ms=%.3f steps=%ld filament_mm=%.6f counts=%ld"
                      " grip=%.6f fault=%s frames=%lu spi_bytes=%lu"
-                     " to_host=%lu from_host=%lu dropped=%lu idle_cycles=%llu",
+                     " to_host=%lu from_host=%lu dropped=%lu idle_cycles=%llu"
+                     " lost_overflows=%lu",
                      (unsigned long long)avr->cycle, sim_seconds(), wall_seconds(),
                      pace.lag_s * 1e3, pace.max_lag_s * 1e3, fil.steps, fil.mm,
                      shaft_counts(), grip_now(), fault_names[chip.fault],
                      chip.frames, chip.bytes, serial.to_host, serial.from_host,
-                     serial.dropped, (unsigned long long)prof.idle_cycles);
+                     serial.dropped, (unsigned long long)prof.idle_cycles,
+                     fwclock.lost);
     }
     if (!strcmp(name, "grip") && n >= 2) {  // grip G [RAMP_SECONDS]
         double now = sim_seconds();
@@ -624,7 +698,7 @@ usage(void)
             "  [--dir-invert] [--both-edges] [--mm-per-step MM]"
             " [--counts-per-mm N]\n"
             "  [--heater PB4] [--adc-channel 13] [--adc-mv MV]"
-            " [--idle-pc START,END]\n");
+            " [--idle-pc START,END] [--clock-high ADDR]\n");
     exit(2);
 }
 
@@ -655,6 +729,8 @@ main(int argc, char **argv)
             if (sscanf(val, "%x,%x", &prof.idle_start, &prof.idle_end) != 2)
                 usage();
         }
+        else if (!strcmp(opt, "--clock-high"))
+            fwclock.address = strtoul(val, NULL, 16);
         else if (!strcmp(opt, "--adc-mv")) adc_mv = strtoul(val, NULL, 10);
         else if (!strcmp(opt, "--cs")) { if (parse_pin(val, &chip.cs)) usage(); }
         else if (!strcmp(opt, "--step")) { if (parse_pin(val, &step)) usage(); }
@@ -762,6 +838,8 @@ main(int argc, char **argv)
         if (avr->cycle < next_check)
             continue;
         next_check = avr->cycle + check_every;
+        if (fwclock.address)
+            watch_firmware_clock();
         wait_and_serve(sim_seconds());
         if (pace.lag_s > pace.reported_lag_s + 0.05) {
             printf("fil_harness: simulation behind the wall clock by %.0f ms"

@@ -77,6 +77,10 @@ def fil_printer(build, sections: str, sensor=None,
         pytest.fail(f"fil printer did not start: {e}", pytrace=False)
     try:
         yield fil
+        # a simulator fault no test asked for (a test may stop it)
+        lost = fil.sim.status()["lost_overflows"] if fil.sim.alive() else "0"
+        assert lost == "0", (f"the simulated firmware's clock missed {lost}"
+                             f" Timer1 overflow(s): {fil.sim.log_tail(600)}")
     finally:
         simavr.stop_printer(fil)
         shutil.rmtree(workdir, ignore_errors=True)
