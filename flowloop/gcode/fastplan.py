@@ -279,12 +279,12 @@ class FastPlanner:
         return kinds
 
     def _words(self, buf, size, starts, ends, kinds, sep, sep_byte):
-        """Per line: X Y Z E F values (NaN: absent) of move and G92 lines;
-        a line whose words do not read as simple numbers becomes other.
+        """X Y Z E F values (NaN: absent) of move and G92 lines, one row per
+        axis; a line whose words do not read as simple numbers becomes other.
         sep: where the bytes that end words are (newline, space, ';', CR),
         sep_byte: which."""
         n = len(starts)
-        values = np.full((n, 5), np.nan)
+        values = np.full((5, n), np.nan)
         code = (kinds == _MOVE) | (kinds == _G92)
         if not code.any():
             return values
@@ -329,21 +329,21 @@ class FastPlanner:
         feed = ok & (letter == 4)
         bad_lines.append(line[feed & (numbers <= 0.0)])
         good = ok & ~absurd
-        key = line[good] * 5 + letter[good]
+        key = line[good] + letter[good].astype(np.int64) * n
         values.reshape(-1)[key] = numbers[good]
         # one word per axis and line (Klipper keeps the last, numpy may not):
         # as many values as words unless two share a place (a line with an
         # absurd word among its doubles is bad already)
         if np.count_nonzero(~np.isnan(values)) != len(key):
             counts = np.bincount(key, minlength=5 * n)
-            bad_lines.append(np.flatnonzero(counts > 1) // 5)
+            bad_lines.append(np.flatnonzero(counts > 1) % n)
         bad = np.concatenate(bad_lines)
         kinds[bad] = _OTHER
-        values[bad] = np.nan
+        values[:, bad] = np.nan
         # a G92 without an axis sets them all: the reference does that
         g92 = np.flatnonzero(kinds == _G92)
         if g92.size:
-            kinds[g92[np.isnan(values[g92, :4]).all(axis=1)]] = _OTHER
+            kinds[g92[np.isnan(values[:4, g92]).all(axis=0)]] = _OTHER
         return values
 
     def _scalar_line(self, data, starts, ends, i, offset, first_line) -> None:
@@ -394,18 +394,18 @@ class FastPlanner:
                 st.is_retracted = retracted
                 return
         kind = kinds[rows]
-        vals = words[rows]
+        vals = words[:, rows]
         is_move = kind == _MOVE
-        vals[:, 3] *= ef
-        last = np.empty((len(rows), 4))
+        vals[3] *= ef
+        last = [None] * 4
         base_out = list(st.base_position)
         for axis in range(4):
             absolute = st.absolute_coord and (axis < 3 or st.absolute_extrude)
-            last[:, axis], base_out[axis] = _axis_positions(
-                vals[:, axis], is_move, st.last_position[axis],
+            last[axis], base_out[axis] = _axis_positions(
+                vals[axis], is_move, st.last_position[axis],
                 st.base_position[axis], absolute, step_e if axis == 3 else None)
         # the feed rate each move runs at (a retraction's own, not kept)
-        feed = vals[:, 4]
+        feed = vals[4]
         speeds = np.where(np.isnan(feed), np.nan, feed * st.speed_factor)
         speeds = _ffill(speeds, st.speed)
         move_speeds = speeds
@@ -413,34 +413,36 @@ class FastPlanner:
             stepping = ~np.isnan(step_e)
             is_move = is_move | stepping
             move_speeds = np.where(stepping, step_speed, speeds)
-        pos = last[is_move]
-        if not len(pos):
+        moving = np.flatnonzero(is_move)
+        if not moving.size:
             self._set_state(last, base_out, speeds)
             st.is_retracted = retracted
             return
-        start = np.vstack((np.array(st.commanded_pos)[None, :], pos[:-1]))
-        d = pos - start
-        moves = self._moves(d, move_speeds[is_move],
-                            offset + starts[rows[is_move]])
+        # each axis's position after each move, and its change from the one
+        # before (the first from where the last run left it)
+        pos = [axis[moving] for axis in last]
+        d = [np.diff(p, prepend=c) for p, c in zip(pos, st.commanded_pos)]
+        moves = self._moves(d, move_speeds[moving],
+                            offset + starts[rows[moving]])
         if moves is None:               # an error or an odd move: the slow way
             for i in range(lo, hi):
                 self._scalar_line(data, starts, ends, i, offset, first_line)
             return
         self._set_state(last, base_out, speeds)
         st.is_retracted = retracted
-        st.commanded_pos = list(pos[-1])
+        st.commanded_pos = [p[-1] for p in pos]
         self.parts.append(moves)
 
     def _set_state(self, last, base, speeds) -> None:
         st = self.state
-        st.last_position = [float(v) for v in last[-1]]
+        st.last_position = [float(axis[-1]) for axis in last]
         st.base_position = [float(v) for v in base]
         st.speed = float(speeds[-1])
 
     def _moves(self, d, speed, offsets) -> Optional[_Queue]:
         """toolhead.Move and extruder.check_move for each row that moves."""
         st = self.state
-        dx, dy, dz, de = d[:, 0], d[:, 1], d[:, 2], d[:, 3]
+        dx, dy, dz, de = d
         move_d = np.sqrt(dx * dx + dy * dy + dz * dz)
         still = move_d < 0.000000001
         if (still & ((dx != 0.0) | (dy != 0.0) | (dz != 0.0))).any():
@@ -491,6 +493,20 @@ class FastPlanner:
         negative = np.flatnonzero(de < 0.0)
         if not negative.size and retracted == 0.0:
             return filament
+        if retracted == 0.0:
+            # as slicers retract: the next move of E after each retraction
+            # pushes back at least as much; it refills the nozzle and
+            # nothing is retracted after it (what the loop below does then)
+            moving = np.flatnonzero(de != 0.0)
+            e = de[moving]
+            back = np.flatnonzero(e < 0.0)
+            refill = back + 1
+            if refill[-1] < len(e):
+                retraction = 0.0 - e[back]
+                pushed = e[refill]
+                if ((pushed > 0.0) & (pushed >= retraction)).all():
+                    filament[moving[refill]] = pushed - retraction
+                    return filament
         values = de.tolist()
         stops = negative.tolist() + [len(values)]
         i = 0 if retracted > 0.0 else stops[0]
