@@ -72,17 +72,15 @@ def missing_simavr_reason() -> Optional[str]:
 # fell 65536 ticks (4.1 ms) behind for good, which skews klippy's clock
 # estimate ("Timer too close"). The patch makes such a match fire at once,
 # as the hardware's would have fired during the instruction.
-TIMER_PATCH_FROM = """\
-			} else if (p->tov_cycles == p->comp[compi].comp_cycles && !start)
-				dispatch[compi](avr, when, param);"""
-TIMER_PATCH_TO = """\
-			} else if (!start && p->comp[compi].comp_cycles < p->tov_cycles) {
-				/* flowloop: the overflow was handled after this match was
-				 * due; match now instead of a period late */
-				avr_timer_comp_on_tov(p, when, compi);
-				avr_cycle_timer_register(avr, 1, dispatch[compi], p);
-			} else if (p->tov_cycles == p->comp[compi].comp_cycles && !start)
-				dispatch[compi](avr, when, param);"""
+TIMER_PATCH_FROM = (
+    "\t\t\t} else if (p->tov_cycles == p->comp[compi].comp_cycles && !start)\n"
+    "\t\t\t\tdispatch[compi](avr, when, param);")
+TIMER_PATCH_TO = (
+    "\t\t\t} else if (!start && p->comp[compi].comp_cycles < p->tov_cycles) {\n"
+    "\t\t\t\t// flowloop: the overflow was handled after this match was due\n"
+    "\t\t\t\tavr_timer_comp_on_tov(p, when, compi);\n"
+    "\t\t\t\tavr_cycle_timer_register(avr, 1, dispatch[compi], p);\n"
+    + TIMER_PATCH_FROM)
 PATCH_KEY = hashlib.sha256(TIMER_PATCH_TO.encode()).hexdigest()[:6]
 
 
