@@ -271,7 +271,7 @@ class FastPlanner:
             if cmd[1:].isdigit() and cmd not in _M_HANDLED:
                 kinds[i] = _SKIP
         if b"\0" in data or b"\t" in data or not data.isascii() \
-                or data.count(b"\r") > len(starts):
+                or (b"\r" in data and data.count(b"\r") > len(starts)):
             # binary, tabs, non-ASCII, stray CRs: such lines the slow way
             odd = ~_ascii_plain(buf[:len(data)])
             odd_lines = np.searchsorted(starts, np.flatnonzero(odd), "right") - 1
