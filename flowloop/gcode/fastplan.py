@@ -203,13 +203,17 @@ class FastPlanner:
         self.scalar_moves: List[_Move] = []
         self.queue: Optional[_Queue] = None     # joined, not yet flushed
         self.lines = 0                          # lines read so far
+        self._size = 0                          # of the chunk planned
 
     # --- reading ------------------------------------------------------------
-    def chunk(self, data: bytes, offset: int) -> List[Batch]:
+    def chunk(self, data: bytes, offset: int,
+              size: Optional[int] = None) -> List[Batch]:
         """Plan whole lines (data ends at a line end, or the file's end) that
-        start at byte offset of the file; returns the batches completed."""
-        if data:
-            self._plan_chunk(data, offset)
+        start at byte offset of the file; returns the batches completed.
+        With size, the lines are data[:size] and at least _WORD_BYTES bytes
+        follow them (read, not copied, past the lines' end)."""
+        if data and size != 0:
+            self._plan_chunk(data, offset, size)
         self.flush(lazy=True)
         out, self.out = self.out, []
         return out
@@ -219,9 +223,14 @@ class FastPlanner:
         out, self.out = self.out, []
         return out
 
-    def _plan_chunk(self, data: bytes, offset: int) -> None:
-        buf = np.frombuffer(data + b"\0" * _WORD_BYTES, np.uint8)
-        size = len(data)
+    def _plan_chunk(self, data: bytes, offset: int,
+                    size: Optional[int] = None) -> None:
+        if size is None:
+            size = len(data)
+            buf = np.frombuffer(data + b"\0" * _WORD_BYTES, np.uint8)
+        else:
+            buf = np.frombuffer(data, np.uint8)
+        self._size = size
         # the bytes that end a word, at once: newline, space, ';', CR
         body = buf[:size]
         sep = np.flatnonzero((body == 10) | (body == 32) | (body == 59) | (body == 13))
@@ -273,7 +282,7 @@ class FastPlanner:
         if b"\0" in data or b"\t" in data or not data.isascii() \
                 or (b"\r" in data and data.count(b"\r") > len(starts)):
             # binary, tabs, non-ASCII, stray CRs: such lines the slow way
-            odd = ~_ascii_plain(buf[:len(data)])
+            odd = ~_ascii_plain(buf[:self._size])
             odd_lines = np.searchsorted(starts, np.flatnonzero(odd), "right") - 1
             kinds[odd_lines] = _OTHER
         return kinds
@@ -347,7 +356,7 @@ class FastPlanner:
         return values
 
     def _scalar_line(self, data, starts, ends, i, offset, first_line) -> None:
-        end = ends[i] + 1 if ends[i] < len(data) else ends[i]
+        end = ends[i] + 1 if ends[i] < self._size else ends[i]
         raw = data[starts[i]:end]
         events = self.state.line(raw, offset + int(starts[i]),
                                  first_line + int(i) + 1)
@@ -814,7 +823,23 @@ def plan_batches(f: BinaryIO, limits: Optional[PrinterLimits] = None,
     """Segments (as arrays) and barriers of a G-code file opened in binary."""
     planner = FastPlanner(limits)
     offset, rest = 0, b""
+    # A file that can seek is read from each chunk's first line on, a little
+    # past chunk_bytes: the lines are planned where they were read (no
+    # copy), and a line cut at the end is read again with the next chunk.
+    seekable = f.seekable()
+    base = f.tell() if seekable else 0
     while True:
+        if seekable and not rest:
+            data = f.read(chunk_bytes + _WORD_BYTES)
+            if not data:
+                break
+            cut = data.rfind(b"\n", 0, chunk_bytes) + 1
+            if cut and len(data) >= cut + _WORD_BYTES:
+                yield from planner.chunk(data, offset, cut)
+                offset += cut
+                f.seek(base + offset)
+                continue
+            f.seek(base + offset)       # the end, or a line longer than a chunk
         data = f.read(chunk_bytes)
         if not data:
             break
@@ -826,6 +851,9 @@ def plan_batches(f: BinaryIO, limits: Optional[PrinterLimits] = None,
         rest = data[cut:]
         yield from planner.chunk(data[:cut], offset)
         offset += cut
+        if seekable:
+            f.seek(base + offset)
+            rest = b""
     if rest:
         yield from planner.chunk(rest, offset)
     yield from planner.finish()
