@@ -283,6 +283,9 @@ class FlowSensor:
         self.dump_samples = None
 
     def _dump_batch(self, eventtime):
+        # what has arrived since the last decode batch too: a client's newest
+        # sample is then as old as the MCU's message and the link make it
+        self.source.catch_up()
         if not self.dump_samples:
             return {}
         data, self.dump_samples = self.dump_samples, []

@@ -114,9 +114,9 @@ def _print_time_offset(api) -> float:
 @pytest.mark.parametrize("rate_hz", (250, 1000))
 def test_sample_age_at_the_host(fil_build, bench, rate_hz):
     """Age of the newest sample in each flow_sensor/dump_flow message when it
-    reaches a client: the MCU filling a message, the link, klippy's 100 ms
-    decode batches and the endpoint's 100 ms dump batches (the last two not
-    in step, so the smallest ages show the MCU and the link)."""
+    reaches a client: the MCU filling a message, the link, and the
+    endpoint's 100 ms dump batches, each of which decodes what has arrived
+    first (so the newest sample is as old as the MCU and the link make it)."""
     ages = []
     with fil_printer(fil_build, EMS22.format(period=1.0 / rate_hz)) as printer:
         offset = _print_time_offset(printer.api)

@@ -18,4 +18,5 @@ void sched_del_timer(struct timer *);
 void sched_wake_task(struct task_wake *w);
 uint8_t sched_check_wake(struct task_wake *w);
 #define DECL_TASK(FUNC) extern int decl_task_unused
+#define DECL_SHUTDOWN(FUNC) extern int decl_shutdown_unused
 #endif
