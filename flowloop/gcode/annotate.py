@@ -62,8 +62,10 @@ _MARKER = re.compile(MARKER_REGEX.encode(), re.MULTILINE)
 _MARKER_TEXT = b"; flowloop autotemp annotations v"
 SUMMARY_PREFIX = "; flowloop autotemp summary:"
 FLOW_STEP_MM3_S = 0.1
-# Commands kept before they are written out with the file between them.
+# Commands kept before they are written out with the file between them,
+# which is read at once up to this much.
 _INSERTS_HELD = 1024
+_READ_AT_ONCE = 1 << 23
 
 
 @dataclass(frozen=True)
@@ -201,7 +203,9 @@ class _Annotator:
         self.peak = 0.0
         self.end_s = 0.0
         self.last_byte = newline[-1:]    # of what was copied last
-        self.inserts: List[Tuple[int, bytes]] = []   # commands not written yet
+        # commands not written yet: their places and lines
+        self.insert_at: List[int] = []
+        self.insert_lines: List[bytes] = []
 
     # --- windows ------------------------------------------------------------------
 
@@ -415,21 +419,21 @@ class _Annotator:
         # command_line's rounding
         lead = np.floor(lead_s * 100 + 1e-6) / 100
         duration = np.ceil((duration_s + lead_s - lead) * 100 - 1e-6) / 100
-        lines = [f"{COMMAND} FLOW={f:.1f} LEAD={ld:.2f} DURATION={d:.2f}"
-                 for f, ld, d in zip(flow.tolist(), lead.tolist(),
-                                     duration.tolist())]
-        self.windows += len(lines)
+        numbers = zip(flow.tolist(), lead.tolist(), duration.tolist())
+        self.windows += len(start)
         if type(self).emit is _Annotator.emit:
-            # emit's work for them all
-            newline = self.newline
-            self.inserts.extend(zip(insert_at.tolist(),
-                                    [line.encode() + newline for line in lines]))
-            if len(self.inserts) >= _INSERTS_HELD:
+            # emit's work for them all (command_line's text, as bytes)
+            line = (f"{COMMAND} FLOW=%.1f LEAD=%.2f DURATION=%.2f".encode()
+                    + self.newline)
+            self.insert_at += insert_at.tolist()
+            self.insert_lines += [line % n for n in numbers]
+            if len(self.insert_at) >= _INSERTS_HELD:
                 self._write_inserts()
             return
-        for offset, time_s, line in zip(insert_at.tolist(), insert_s.tolist(),
-                                        lines):
-            self.emit(offset, time_s, line)
+        for offset, time_s, (f, ld, d) in zip(insert_at.tolist(),
+                                              insert_s.tolist(), numbers):
+            self.emit(offset, time_s,
+                      f"{COMMAND} FLOW={f:.1f} LEAD={ld:.2f} DURATION={d:.2f}")
 
     def _place(self, window_start_s: float) -> Tuple[int, float]:
         """The last line at least placement_s before the window (or the first
@@ -473,20 +477,45 @@ class _Annotator:
     def emit(self, offset: int, time_s: float, line: str) -> None:
         """Write a command before the line at byte offset (print time time_s)."""
         # kept, then written a thousand at a time (_write_inserts)
-        self.inserts.append((offset, line.encode() + self.newline))
-        if len(self.inserts) >= _INSERTS_HELD:
+        self.insert_at.append(offset)
+        self.insert_lines.append(line.encode() + self.newline)
+        if len(self.insert_at) >= _INSERTS_HELD:
             self._write_inserts()
 
     def _write_inserts(self) -> None:
         """Copy the source up to each command kept, then the command, in
         one write: copy_to and a write for each."""
-        inserts, self.inserts = self.inserts, []
-        parts: List[Union[bytes, memoryview]] = []
-        append = parts.append
+        offsets, lines = self.insert_at, self.insert_lines
+        self.insert_at, self.insert_lines = [], []
         block, block_start, copied = self.block, self.block_start, self.copied
+        last = offsets[-1]
+        if copied <= offsets[0] \
+                and last - (block_start + len(block)) <= _READ_AT_ONCE \
+                and all(a <= b for a, b in zip(offsets, offsets[1:])):
+            # (a file's commands go in order) the source up to the last
+            # place, read at once, cut at the places
+            if last > block_start + len(block):
+                more = self.src.read(last - block_start - len(block))
+                block = memoryview(bytes(block[copied - block_start:]) + more)
+                block_start = copied
+                self.block, self.block_start = block, block_start
+            if last <= block_start + len(block):
+                places = [a - block_start for a in offsets]
+                parts: List[Union[bytes, memoryview]] = [b""] * (2 * len(places))
+                parts[::2] = [block[a:b] for a, b in
+                              zip([copied - block_start] + places, places)]
+                parts[1::2] = lines
+                if last > copied:
+                    self.last_byte = block[places[-1] - 1:places[-1]]
+                self.copied = last
+                self.out.write(b"".join(parts))
+                return
+        # one at a time (the file ends before a place)
+        parts = []
+        append = parts.append
         end = block_start + len(block)
         piece = None                    # the last one copied
-        for offset, line in inserts:
+        for offset, line in zip(offsets, lines):
             if copied < offset <= end:   # within the block read
                 piece = block[copied - block_start:offset - block_start]
                 append(piece)
@@ -526,7 +555,7 @@ class _Annotator:
     def copy_to(self, offset: Optional[int]) -> None:
         """Copy the source up to byte offset (None: to its end), read in
         blocks of a MB."""
-        if self.inserts:
+        if self.insert_at:
             self._write_inserts()
         while offset is None or self.copied < offset:
             at = self.copied - self.block_start
