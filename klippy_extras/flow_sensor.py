@@ -20,6 +20,7 @@ from flowloop.host.klipper_config import option_error, option_message
 from flowloop.material.profile import FlowLine, profile_line
 from flowloop.sensor import ems22, twin
 from flowloop.sensor import grip as flow_grip
+from flowloop.window import FAULT
 
 try:    # klippy/extras/ (Klipper)
     from . import bulk_sensor, bus
@@ -142,7 +143,7 @@ class FlowSensor:
     # --- the public interface for other flowloop sections ---------------------
     def subscribe_grip_windows(self, callback):
         """callback(window) runs in the reactor for every closed grip window
-        (a frozen flowloop.sensor.grip.Window); while the sensor is faulted
+        (a frozen flowloop.window.Window); while the sensor is faulted
         windows come unjudged (grip None, reason 'fault'). It must not pause
         the reactor (it may run inside motion_queuing's flush)."""
         self.window_callbacks.append(callback)
@@ -213,7 +214,7 @@ class FlowSensor:
 
     def _deliver(self, window):
         if self.faults.fault is not None:
-            window = dataclasses.replace(window, grip=None, reason='fault')
+            window = dataclasses.replace(window, grip=None, reason=FAULT)
         elif window.grip is not None and self.window_callbacks:
             # What the window asked for over time (a grip model learns the
             # capacity from it): read while the trapq still holds the moves

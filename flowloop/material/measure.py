@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Iterator, Optional, Sequence, Tuple
 
 from ..errors import FlowloopError
-from ..sensor.grip import Window
+from ..window import Window
 from .profile import MeasuredPoint
 
 DEFAULT_START_FLOW_MM3_S = 2.0

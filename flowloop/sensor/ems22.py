@@ -29,6 +29,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ..errors import FlowloopError
+from ..window import JUDGED, STUCK
 
 CONFIG_CMD = "config_ems22 oid=%c spi_oid=%c max_read_ticks=%u"
 QUERY_CMD = ("query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c"
@@ -616,8 +617,8 @@ class FaultMonitor:
 
     def note_window(self, reason: str) -> Optional[str]:
         """Account a closed grip window (see grip.GripEstimator)."""
-        if reason != "stuck":
-            if reason == "judged":
+        if reason != STUCK:
+            if reason == JUDGED:
                 self._stuck = 0
                 if self.fault == "stuck":
                     self.fault = None

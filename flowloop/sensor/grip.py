@@ -36,6 +36,7 @@ import numpy as np
 
 from ..errors import FlowloopError
 from ..numbers import parse_numbers
+from ..window import JUDGED, RETRACTION, STUCK, TOO_LITTLE_MOTION, Window
 
 FLOW_PERIOD_S = 0.25
 # A slip is looked for over this much commanded filament (0.17 s at
@@ -59,21 +60,6 @@ ROTATION_DISTANCE_LENGTH_MM = 50.0
 ROTATION_DISTANCE_LENGTH_RANGE = (5.0, 500.0)
 ROTATION_DISTANCE_SPEED_MM_S = 1.0
 MAX_ROTATION_DISTANCE_CHANGE = 0.2
-
-
-@dataclass(frozen=True)
-class Window:
-    """One closed grip window, as [flow_sensor]'s subscribers receive it."""
-    start_time: float
-    end_time: float
-    commanded_mm: float
-    measured_mm: float
-    grip: Optional[float]
-    reason: str  # "judged", "retraction", "too_little_motion", "stuck", "fault"
-    flow_mm3_s: Optional[float] = None   # measured volumetric flow over it
-    temp_c: Optional[float] = None       # hotend temperature at end_time
-    # the planned (commanded) flow over it, in equal pieces (window_flows)
-    commanded_flows: Tuple[float, ...] = ()
 
 
 class GripEstimator:
@@ -158,7 +144,7 @@ class GripEstimator:
                 continue
             t0, m0, c0 = self._start
             if n < high - retract_mm:
-                closed.append(self._close(t, m, c, None, "retraction"))
+                closed.append(self._close(t, m, c, None, RETRACTION))
                 refill, high = max(refill, high), n
                 steps[:], next_step = [(t, m, c)], c + SLIP_STEP_MM
                 continue
@@ -190,7 +176,7 @@ class GripEstimator:
             if c - c0 >= window_mm:
                 closed.append(self._judge(t, m, c))
             elif t - t0 > max_window_s:
-                closed.append(self._close(t, m, c, None, "too_little_motion"))
+                closed.append(self._close(t, m, c, None, TOO_LITTLE_MOTION))
                 steps[:], next_step = [(t, m, c)], c + SLIP_STEP_MM
         self._high, self._refill, self._next_step = high, refill, next_step
         if kept_from is not None:
@@ -205,8 +191,8 @@ class GripEstimator:
         """Close the open window at a sample as judged (or stuck)."""
         measured, commanded = m - self._start[1], c - self._start[2]
         if abs(measured) <= self.stuck_tolerance_mm:
-            return self._close(t, m, c, None, "stuck")
-        return self._close(t, m, c, measured / commanded, "judged")
+            return self._close(t, m, c, None, STUCK)
+        return self._close(t, m, c, measured / commanded, JUDGED)
 
     def _close(self, t, m, c, grip, reason) -> Window:
         t0, m0, c0 = self._start

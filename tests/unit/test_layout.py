@@ -36,9 +36,14 @@ def domain_files():
     return [p for p in CORE.rglob("*.py") if "cli" not in p.relative_to(CORE).parts]
 
 
+# Beside the domain folders only the shared leaves every domain imports
+# downward: the error type, number parsing, the grip window.
+SHARED_LEAVES = ["errors.py", "numbers.py", "window.py"]
+
+
 def test_the_core_is_grouped_into_domain_folders():
     flat = sorted(p.name for p in CORE.glob("*.py"))
-    assert flat == ["__init__.py", "__main__.py", "errors.py", "numbers.py"]
+    assert flat == ["__init__.py", "__main__.py"] + SHARED_LEAVES
     for folder in ("sensor", "material", "calibrate", "host", "cli"):
         assert (CORE / folder / "__init__.py").is_file(), folder
 
@@ -61,3 +66,11 @@ def test_relative_imports_are_resolved_against_the_package():
     mods = set(imported_modules(CORE / "cli" / "delta.py"))
     assert "flowloop.calibrate.delta" in mods
     assert "flowloop.errors.FlowloopError" in mods
+
+
+def test_the_shared_leaves_import_no_domain():
+    offenders = [f"{name} imports {m}" for name in SHARED_LEAVES
+                 for m in imported_modules(CORE / name)
+                 if m.startswith("flowloop.")
+                 and not m.startswith(("flowloop.errors", "flowloop.numbers"))]
+    assert offenders == []

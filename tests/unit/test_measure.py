@@ -10,7 +10,7 @@ import pytest
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
 from flowloop.material import measure
-from flowloop.sensor.grip import Window
+from flowloop.window import Window
 
 pytestmark = pytest.mark.unit
 

@@ -1,0 +1,40 @@
+"""The grip window: what the flow sensor says about a stretch of filament,
+one frozen value from the sensor's pipeline to every rule that reads it
+(the flowrate limiter's, the profile measurement's, the grip model's).
+
+It lives at the bottom of the package (it imports nothing of flowloop) so
+that flowloop.sensor, which makes windows, and flowloop.material and
+flowloop.control, which judge them, import it downward.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+# Why a window has, or has no, grip
+JUDGED = "judged"
+RETRACTION = "retraction"          # the filament went back: nothing to judge
+TOO_LITTLE_MOTION = "too_little_motion"
+STUCK = "stuck"                    # the sensor did not move while fed
+FAULT = "fault"                    # the sensor is faulted: never judged
+REASONS = (JUDGED, RETRACTION, TOO_LITTLE_MOTION, STUCK, FAULT)
+
+
+@dataclass(frozen=True)
+class Window:
+    """One closed grip window, as [flow_sensor]'s subscribers receive it."""
+    start_time: float
+    end_time: float
+    commanded_mm: float
+    measured_mm: float
+    grip: Optional[float]
+    reason: str                          # one of REASONS
+    flow_mm3_s: Optional[float] = None   # measured volumetric flow over it
+    temp_c: Optional[float] = None       # hotend temperature at end_time
+    # the planned (commanded) flow over it, in equal pieces (window_flows)
+    commanded_flows: Tuple[float, ...] = ()
+
+    @property
+    def faulted(self) -> bool:
+        return self.reason == FAULT
