@@ -447,9 +447,7 @@ class MeasureProfile:
 
     @staticmethod
     def _default_min_grip(base):
-        if base is not None and base.provenance.min_grip:
-            return base.provenance.min_grip
-        return fl_measure.DEFAULT_MIN_GRIP
+        return fl_profile.min_grip_of(base)
 
     def _extruder(self, name):
         extruder = None

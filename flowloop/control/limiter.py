@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional, Sequence
 
 from ..errors import FlowloopError
-from ..material.profile import Profile, profile_line
+from ..material.profile import Profile, min_grip_of, profile_line
 from . import caps as fl_caps
 from .grip_model import CapacityLine, GripModel, WindowFlow
 from .reactive import (
@@ -118,11 +118,7 @@ class FlowLimiter:
     # --- inputs ------------------------------------------------------------
     @property
     def min_grip(self) -> float:
-        if self.settings.min_grip is not None:
-            return self.settings.min_grip
-        if self.profile is not None and self.profile.provenance.min_grip:
-            return self.profile.provenance.min_grip
-        return DEFAULT_MIN_GRIP
+        return min_grip_of(self.profile, self.settings.min_grip)
 
     def _reactive_settings(self) -> ReactiveSettings:
         s = self.settings
@@ -156,7 +152,7 @@ class FlowLimiter:
         self.model = None
         if profile is not None:
             line = profile_line(profile, working_point)
-            seed_grip = profile.provenance.min_grip or DEFAULT_MIN_GRIP
+            seed_grip = min_grip_of(profile)
             self.model = GripModel(CapacityLine.from_profile_line(
                 line, seed_grip, profile.bounds.recommended_temp_c))
         self.reactive = ReactiveRule(self._reactive_settings())

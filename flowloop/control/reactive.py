@@ -28,9 +28,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 from ..errors import FlowloopError
+from ..material.profile import DEFAULT_MIN_GRIP
 from .grip_model import WindowFlow
 
-DEFAULT_MIN_GRIP = 0.9
 DEFAULT_MIN_SPEED_FACTOR = 0.3
 DEFAULT_HYSTERESIS = 0.03
 DEFAULT_RECOVERY_PER_S = 0.2

@@ -27,7 +27,6 @@ from .profile import MeasuredPoint
 DEFAULT_START_FLOW_MM3_S = 2.0
 DEFAULT_STEP_MM3_S = 1.0
 DEFAULT_MAX_FLOW_MM3_S = 30.0
-DEFAULT_MIN_GRIP = 0.9
 # Without START_FLOW a level's ramp starts at this share of the flow the base
 # profile expects at the level's settled temperature: most of the ramp below
 # the limit is filament spent learning nothing.

@@ -207,6 +207,22 @@ class Line(NamedTuple):
 # Validation
 
 
+# The grip below which the feeder is taken to slip, where neither the user
+# nor the profile's measurement says otherwise.
+DEFAULT_MIN_GRIP = 0.9
+
+
+def min_grip_of(profile: Optional[Profile],
+                override: Optional[float] = None) -> float:
+    """The min grip that applies: the user's (a MIN_GRIP or config value),
+    else the one the profile was measured with, else DEFAULT_MIN_GRIP."""
+    if override is not None:
+        return override
+    if profile is not None and profile.provenance.min_grip:
+        return profile.provenance.min_grip
+    return DEFAULT_MIN_GRIP
+
+
 def _bad(msg: str) -> FlowloopError:
     return FlowloopError(msg)
 
