@@ -62,10 +62,10 @@ _MARKER = re.compile(MARKER_REGEX.encode(), re.MULTILINE)
 _MARKER_TEXT = b"; flowloop autotemp annotations v"
 SUMMARY_PREFIX = "; flowloop autotemp summary:"
 FLOW_STEP_MM3_S = 0.1
-# Commands kept before they are written out with the file between them,
-# which is read at once up to this much.
+# Commands kept before they are written out with the file between them (a
+# thousand), which is read at once as far as this much further.
 _INSERTS_HELD = 1024
-_READ_AT_ONCE = 1 << 23
+_READ_AT_ONCE = 1 << 17
 
 
 @dataclass(frozen=True)
@@ -483,36 +483,53 @@ class _Annotator:
             self._write_inserts()
 
     def _write_inserts(self) -> None:
-        """Copy the source up to each command kept, then the command, in
-        one write: copy_to and a write for each."""
+        """Copy the source up to each command kept, then the command: what
+        copy_to and a write for each do, a run of them at a time."""
         offsets, lines = self.insert_at, self.insert_lines
         self.insert_at, self.insert_lines = [], []
+        i = 0
+        if self.copied <= offsets[0] \
+                and all(a <= b for a, b in zip(offsets, offsets[1:])):
+            # (a file's commands go in order) the source up to the places
+            # of a run, read at once and cut at them
+            while i < len(offsets):
+                end = self.block_start + len(self.block)
+                k = bisect.bisect_right(offsets, end + _READ_AT_ONCE, i)
+                if k == i or not self._write_run(offsets[i:k], lines[i:k]):
+                    break
+                i = k
+        if i < len(offsets):
+            self._write_one_by_one(offsets[i:], lines[i:])
+
+    def _write_run(self, offsets: List[int], lines: List[bytes]) -> bool:
+        """_write_inserts for places in order from the one copied to at
+        most _READ_AT_ONCE past the block read; False (and nothing written)
+        if the file ends before the last."""
         block, block_start, copied = self.block, self.block_start, self.copied
         last = offsets[-1]
-        if copied <= offsets[0] \
-                and last - (block_start + len(block)) <= _READ_AT_ONCE \
-                and all(a <= b for a, b in zip(offsets, offsets[1:])):
-            # (a file's commands go in order) the source up to the last
-            # place, read at once, cut at the places
+        if last > block_start + len(block):
+            more = self.src.read(last - block_start - len(block))
+            if copied < block_start + len(block):
+                more = bytes(block[copied - block_start:]) + more
+            block = self.block = memoryview(more)
+            block_start = self.block_start = copied
             if last > block_start + len(block):
-                more = self.src.read(last - block_start - len(block))
-                block = memoryview(bytes(block[copied - block_start:]) + more)
-                block_start = copied
-                self.block, self.block_start = block, block_start
-            if last <= block_start + len(block):
-                places = [a - block_start for a in offsets]
-                parts: List[Union[bytes, memoryview]] = [b""] * (2 * len(places))
-                parts[::2] = [block[a:b] for a, b in
-                              zip([copied - block_start] + places, places)]
-                parts[1::2] = lines
-                if last > copied:
-                    self.last_byte = block[places[-1] - 1:places[-1]]
-                self.copied = last
-                self.out.write(b"".join(parts))
-                return
-        # one at a time (the file ends before a place)
-        parts = []
+                return False
+        places = [a - block_start for a in offsets]
+        parts: List[Union[bytes, memoryview]] = [b""] * (2 * len(places))
+        parts[::2] = [block[a:b] for a, b in
+                      zip([copied - block_start] + places, places)]
+        parts[1::2] = lines
+        if last > copied:
+            self.last_byte = block[places[-1] - 1:places[-1]]
+        self.copied = last
+        self.out.write(b"".join(parts))
+        return True
+
+    def _write_one_by_one(self, offsets: List[int], lines: List[bytes]) -> None:
+        parts: List[Union[bytes, memoryview]] = []
         append = parts.append
+        block, block_start, copied = self.block, self.block_start, self.copied
         end = block_start + len(block)
         piece = None                    # the last one copied
         for offset, line in zip(offsets, lines):
