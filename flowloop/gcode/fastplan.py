@@ -325,13 +325,13 @@ class FastPlanner:
             cr_line = sep_line[cr]
             bad_lines.append(cr_line[sep[cr] != ends[cr_line] - 1])
         too_long = length > _WORD_BYTES
-        bad_lines.append(line[too_long])
-        length = np.minimum(length, _WORD_BYTES)
+        if too_long.any():
+            bad_lines.append(line[too_long])
+            length = np.minimum(length, _WORD_BYTES)
         width = int(length.max()) if len(length) else 2
         numbers, ok = _read_numbers(buf, word_start, length, width)
         letter = _LETTER[buf[word_start]]
         ok &= (letter >= 0) & (length >= 2)
-        ok &= np.where(kinds[line] == _G92, letter < 4, True)
         bad_lines.append(line[~ok])
         absurd = ~(np.abs(numbers) <= MAX_ABS_VALUE)
         bad_lines.append(line[ok & absurd])
@@ -346,6 +346,10 @@ class FastPlanner:
         if np.count_nonzero(~np.isnan(values)) != len(key):
             counts = np.bincount(key, minlength=5 * n)
             bad_lines.append(np.flatnonzero(counts > 1) % n)
+        # a G92 sets X Y Z E only: one with an F word is bad
+        g92 = np.flatnonzero(kinds == _G92)
+        if g92.size:
+            bad_lines.append(g92[~np.isnan(values[4, g92])])
         bad = np.concatenate(bad_lines)
         kinds[bad] = _OTHER
         values[:, bad] = np.nan
@@ -695,11 +699,13 @@ def _limit_speed(mask, speed, accel, move_d, max_cruise_v2, accel_arr,
     mcr_delta_v2[mask] = np.minimum(mcr_delta_v2[mask], delta_v2[mask])
 
 
-def _ffill(values: np.ndarray, first: float) -> np.ndarray:
-    """NaN replaced by the last value before it (first before any)."""
+def _ffill(values: np.ndarray, first: float,
+           known: Optional[np.ndarray] = None) -> np.ndarray:
+    """NaN replaced by the last value before it (first before any); known:
+    where values are not NaN, if known."""
     filled = np.concatenate(([first], values))
     # each value given (and first) repeated up to the next one
-    given = np.flatnonzero(~np.isnan(values))
+    given = np.flatnonzero(~np.isnan(values) if known is None else known)
     given += 1
     starts = np.concatenate(([0], given))
     counts = np.diff(np.append(starts, len(filled)))
@@ -712,9 +718,16 @@ def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
     origin together), and the origin after the last row."""
     given = ~np.isnan(vals)
     g92 = given & ~is_move
+    if steps is None:
+        stepping = np.zeros(len(vals), bool)
+        special = np.flatnonzero(g92)
+    else:
+        stepping = ~np.isnan(steps)
+        special = np.flatnonzero(g92 | stepping)
+    if absolute and not special.size:
+        # the values given are all moves': each from the origin
+        return _ffill(vals + base0, last0, given), base0
     moves = given & is_move
-    stepping = np.zeros(len(vals), bool) if steps is None else ~np.isnan(steps)
-    special = np.flatnonzero(g92 | stepping)
     if not absolute:
         add = np.where(moves, vals, np.where(stepping, steps, 0.0)) \
             if steps is not None else np.where(moves, vals, 0.0)
@@ -727,8 +740,6 @@ def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
             else:
                 base = float(last[i]) - float(vals[i])
         return last, base
-    if not special.size:
-        return _ffill(np.where(moves, vals + base0, np.nan), last0), base0
     # each G92 or step starts a new origin from the position at that row
     bases = [base0]
     at_step = np.full(len(vals), np.nan)
