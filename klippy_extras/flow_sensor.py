@@ -2,16 +2,14 @@
 # feeder (or its simulated twin), grip from sensor vs commanded filament,
 # and the two calibrations it enables.
 #
-# The decoding, grip windows, fault counting and the simulated sensor live
-# in flowloop (pure Python); this module reads config, talks to the MCU and
-# the toolhead, and reports. Each sensor_type is one source object (SOURCES
-# at the end): both hand sensor_bulk_data payloads to the same decoder and
-# grip code, on the reactor, in batches.
+# The pipeline (decoding, grip windows, faults, the status policy) and the
+# simulated sensor live in flowloop (pure Python: flowloop.sensor.pipeline);
+# this module reads config, talks to the MCU and the toolhead, and reports.
+# Each sensor_type is one source object (SOURCES at the end): both feed
+# sensor_bulk_data payloads to the same pipeline, on the reactor, in batches.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
-import dataclasses
 import logging
-import threading
 
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
@@ -20,7 +18,7 @@ from flowloop.host.klipper_config import option_error, option_message
 from flowloop.material.profile import FlowLine, profile_line
 from flowloop.sensor import ems22, twin
 from flowloop.sensor import grip as flow_grip
-from flowloop.window import FAULT
+from flowloop.sensor import pipeline as fl_pipeline
 
 try:    # klippy/extras/ (Klipper)
     from . import bulk_sensor, bus
@@ -76,20 +74,16 @@ class FlowSensor:
         self.pause_resume = None
         if self.on_fault == 'pause':
             self.pause_resume = printer.load_object(config, 'pause_resume')
-        self.grip = flow_grip.GripEstimator(window_mm=grip_window,
-                                            calibration=calibration)
-        self.faults = ems22.FaultMonitor(fault_samples)
-        self.decoder = ems22.Decoder(
-            bit_offset=ems22.bit_offset_for_mode(self.spi_mode),
-            max_counts_per_record=ems22.max_counts_per_record(
-                self.sample_period, self.counts_per_mm))
-        self.rate = flow_grip.SampleRate()
+        self.pipeline = fl_pipeline.SensorPipeline(fl_pipeline.Settings(
+            counts_per_mm=self.counts_per_mm, direction_sign=self.direction_sign,
+            spi_mode=self.spi_mode, sample_period_s=self.sample_period,
+            window_mm=grip_window, calibration=calibration,
+            fault_samples=fault_samples))
+        self.motion = ExtruderMotion(self)
         self.window_callbacks = []
         self.dump_samples = None
         self.extruder = self.toolhead = self.heater = None
         self.source = source_class(config, self)
-        self.status = {}
-        self._update_status()
         self.batch_bulk = bulk_sensor.BatchBulkHelper(
             printer, self._dump_batch, self._dump_start, self._dump_stop,
             DUMP_INTERVAL)
@@ -129,7 +123,7 @@ class FlowSensor:
         self.heater = self.extruder.get_heater()
         area = getattr(self.extruder, 'filament_area', None)
         if area:
-            self.grip.filament_area_mm2 = area
+            self.pipeline.set_filament_area(area)
         self.source.connect(self)
 
     def _handle_ready(self):
@@ -147,6 +141,7 @@ class FlowSensor:
         windows come unjudged (grip None, reason 'fault'). It must not pause
         the reactor (it may run inside motion_queuing's flush)."""
         self.window_callbacks.append(callback)
+        self.pipeline.want_flows = True
 
     def sync(self, until=None):
         """Process the samples up to print time `until` now (after the
@@ -160,97 +155,18 @@ class FlowSensor:
 
     # --- sample path (both sources, on the reactor) --------------------------
     def process(self, messages):
-        """Decode (sequence, payload) pairs from the source and judge them."""
-        samples = self.decoder.decode(messages)
-        started = self.faults.update(samples)
-        valid = samples.valid
-        if valid.any():
-            source = self.source
-            clocks = ems22.sample_clocks(samples, source.start_clock,
-                                         source.rest_ticks,
-                                         source.time_shift)[valid]
-            times = ems22.print_times(clocks, source.mcu.clock_to_print_time)
-            sensor_mm = (self.direction_sign * samples.counts[valid]
-                         / self.counts_per_mm)
-            commanded = flow_grip.positions_at(times,
-                                               self.extruder.find_past_position)
-            temp_c = source.temp_c(self.reactor.monotonic())
-            nominal = self._nominal_positions(times)
-            for window in self.grip.add(times, sensor_mm, commanded, temp_c,
-                                        nominal, samples.breaks[valid]):
-                started = self.faults.note_window(window.reason) or started
-                self._deliver(window)
-            self.rate.add(times)
-            if self.dump_samples is not None:
-                cal = self.grip.calibration
-                self.dump_samples.extend(
-                    (round(t, 6), round(s / cal, 5), round(c, 5))
-                    for t, s, c in zip(times.tolist(), sensor_mm.tolist(),
-                                       commanded.tolist()))
-        self._update_status()
-        if started is not None:
-            self._report_fault(started)
-
-    def _nominal_positions(self, times):
-        """The extruder's planned E position (its trapq, as motion_report
-        reads it: no pressure advance) at each time, or None."""
-        return flow_grip.trapq_positions(
-            self._planned_moves(float(times[0]), float(times[-1])), times)
-
-    def _planned_moves(self, start, end):
-        """The extruder's trapq moves from start to end print time."""
-        ffi_main, ffi_lib = chelper.get_ffi()
-        trapq = self.extruder.get_trapq()
-        moves, end = [], end + 1e-9
-        while trapq is not None:
-            data = ffi_main.new('struct pull_move[64]')
-            count = ffi_lib.trapq_extract_old(trapq, data, len(data), start, end)
-            moves.extend((m.print_time, m.move_t, m.start_v, m.accel,
-                          m.start_x, m.x_r) for m in data[0:count])
-            if count < len(data):
-                break
-            end = data[count - 1].print_time
-        return moves
-
-    def _deliver(self, window):
-        if self.faults.fault is not None:
-            window = dataclasses.replace(window, grip=None, reason=FAULT)
-        elif window.grip is not None and self.window_callbacks:
-            # What the window asked for over time (a grip model learns the
-            # capacity from it): read while the trapq still holds the moves
-            window = dataclasses.replace(
-                window, commanded_flows=flow_grip.window_flows(
-                    self._planned_moves(window.start_time, window.end_time),
-                    window.start_time, window.end_time,
-                    self.grip.filament_area_mm2))
-        for callback in self.window_callbacks:
-            callback(window)
-
-    def _update_status(self):
-        measured, commanded = self.grip.flows()
-        position = self.grip.filament_position
-        position = None if position is None else round(float(position), 4)
-        grip = self.grip.grip
-        fault = self.faults.fault
-        self.status = {
-            'grip': None if grip is None or fault else round(float(grip), 4),
-            'measured_flow': round(float(measured), 3),
-            'commanded_flow': round(float(commanded), 3),
-            'filament_position': position,
-            'sample_rate': round(self.rate.per_second(), 1),
-            'samples': self.rate.total,
-            'errors': dict(self.faults.errors),
-            'fault': fault,
-            'calibration': round(self.grip.calibration, 6),
-            'simulation': self.source.simulation,
-        }
-
-    def _report_fault(self, fault):
-        msg = (f"flow_sensor {self.name}: fault '{fault}' ({self.faults.limit}"
-               " consecutive bad samples, or stuck windows); grip is not judged"
-               " until it clears")
-        logging.warning(msg)
-        self.reactor.register_callback(lambda e: self._act_on_fault(msg))
+        """Feed (sequence, payload) pairs from the source to the pipeline
+        and hand on what it made."""
+        batch = self.pipeline.feed(messages, self.source.timing(), self.motion)
+        for window in batch.windows:
+            for callback in self.window_callbacks:
+                callback(window)
+        if self.dump_samples is not None and len(batch.times):
+            self.dump_samples.extend(batch.dump_rows())
+        if batch.fault_started is not None:
+            msg = self.pipeline.fault_message(self.name, batch.fault_started)
+            logging.warning(msg)
+            self.reactor.register_callback(lambda e: self._act_on_fault(msg))
 
     def _act_on_fault(self, msg):
         gcode = self.printer.lookup_object('gcode')
@@ -275,7 +191,7 @@ class FlowSensor:
 
     # --- status and dump endpoint ---------------------------------------------
     def get_status(self, eventtime=None):
-        return self.status
+        return dict(self.pipeline.status(), simulation=self.source.simulation)
 
     def _dump_start(self):
         self.dump_samples = []
@@ -290,7 +206,7 @@ class FlowSensor:
         if not self.dump_samples:
             return {}
         data, self.dump_samples = self.dump_samples, []
-        status = self.status
+        status = self.pipeline.status()
         return {'data': data, 'grip': status['grip'], 'fault': status['fault'],
                 'errors': status['errors']}
 
@@ -299,7 +215,7 @@ class FlowSensor:
 
     def cmd_QUERY_FLOW_SENSOR(self, gcmd):
         self.source.sync()
-        s = self.status
+        s = self.pipeline.status()
         grip = "not judged" if s['grip'] is None else f"{s['grip']:.3f}"
         position = s['filament_position']
         position = "none" if position is None else f"{position:.3f} mm"
@@ -316,12 +232,12 @@ class FlowSensor:
         deadline = self.reactor.monotonic() + SAMPLE_WAIT_TIMEOUT
         while True:
             self.source.sync(until=print_time)
-            last = self.grip.last_time
-            if last is not None and last >= print_time - self.sample_period:
-                return self.grip.filament_position * self.grip.calibration
-            if self.faults.fault:
+            position = self.pipeline.position_at_or_after(print_time)
+            if position is not None:
+                return position
+            if self.pipeline.fault:
                 raise self.printer.command_error(
-                    f"flow_sensor {self.name}: fault '{self.faults.fault}'")
+                    f"flow_sensor {self.name}: fault '{self.pipeline.fault}'")
             now = self.reactor.monotonic()
             if now > deadline:
                 raise self.printer.command_error(
@@ -389,7 +305,7 @@ class FlowSensor:
         except FlowloopError as e:
             raise gcmd.error(
                 f"flow_sensor {self.name}: {e}; calibration unchanged") from None
-        old = self.grip.calibration
+        old = self.pipeline.calibration
         report = self._set_calibration(fit.calibration)
         gcmd.respond_info("\n".join([
             f"flow_sensor {self.name}: {fit.describe()}",
@@ -423,7 +339,7 @@ class FlowSensor:
         gcode.run_script_from_command(
             f"SET_EXTRUDER_ROTATION_DISTANCE EXTRUDER={self.extruder_name}"
             f" DISTANCE={change.rotation_distance:.6f}")
-        old_cal = self.grip.calibration
+        old_cal = self.pipeline.calibration
         report = self._set_calibration(change.calibration, [
             (self.extruder_name, 'rotation_distance',
              f"{change.rotation_distance:.6f}")])
@@ -443,14 +359,49 @@ class FlowSensor:
     def _set_calibration(self, calibration, also_stage=()):
         """Use a new calibration now and stage it (with also_stage) for
         SAVE_CONFIG; return the report: what to paste, what SAVE_CONFIG keeps."""
-        self.grip.calibration = calibration
-        self.grip.reset()
-        self._update_status()
+        self.pipeline.set_calibration(calibration)
         host = self.printer.lookup_object('flowloop')
         staged, paste = host.stage_for_save_config(
             [(self.section, 'calibration', f"{calibration:.6f}")]
             + list(also_stage))
         return klipper_config.save_report(staged, paste)
+
+
+class ExtruderMotion(fl_pipeline.Motion):
+    """What the pipeline asks of the printer: the watched extruder's
+    commanded and planned filament, and the hotend's temperature."""
+
+    def __init__(self, sensor):
+        self.sensor = sensor
+
+    def commanded_at(self, times):
+        return flow_grip.positions_at(times,
+                                      self.sensor.extruder.find_past_position)
+
+    def planned_moves(self, start, end):
+        ffi_main, ffi_lib = chelper.get_ffi()
+        trapq = self.sensor.extruder.get_trapq()
+        moves, end = [], end + 1e-9
+        while trapq is not None:
+            data = ffi_main.new('struct pull_move[64]')
+            count = ffi_lib.trapq_extract_old(trapq, data, len(data), start, end)
+            moves.extend((m.print_time, m.move_t, m.start_v, m.accel,
+                          m.start_x, m.x_r) for m in data[0:count])
+            if count < len(data):
+                break
+            end = data[count - 1].print_time
+        return moves
+
+    def temp_c(self):
+        sensor = self.sensor
+        return sensor.source.temp_c(sensor.reactor.monotonic())
+
+
+def sample_timing(source):
+    """The pipeline's view of a source's MCU query."""
+    return fl_pipeline.SampleTiming(source.start_clock, source.rest_ticks,
+                                    source.time_shift,
+                                    source.mcu.clock_to_print_time)
 
 
 class Ems22Source:
@@ -477,15 +428,9 @@ class Ems22Source:
         self.mcu = mcu = self.spi.get_mcu()
         self.oid = mcu.create_oid()
         mcu.register_config_callback(self._build_config)
-        if hasattr(mcu, 'register_serial_response'):
-            mcu.register_serial_response(self._handle_bulk, ems22.BULK_DATA_MSG,
-                                         self.oid)
-        else:
-            # Kalico, and Klipper before 2026-02-26 (v0.13.0): by message name
-            mcu.register_response(self._handle_bulk,
-                                  ems22.BULK_DATA_MSG.split()[0], self.oid)
-        self.lock = threading.Lock()
-        self.raw_queue = []
+        # the serial thread queues the messages, a reactor timer decodes them
+        # (each host's own default message: by format or by name)
+        self.bulk_queue = bulk_sensor.BulkDataQueue(mcu, oid=self.oid)
         self.query_cmd = None
         self.start_clock = None
         self.rest_ticks = self.time_shift = 0
@@ -544,8 +489,11 @@ class Ems22Source:
     def power(self, eventtime):
         return self.sensor.heater.get_status(eventtime)['power']
 
+    def timing(self):
+        return sample_timing(self)
+
     def _start_query(self):
-        self.sensor.decoder.reset()
+        self.sensor.pipeline.restart()
         print_time = self.mcu.estimated_print_time(self.reactor.monotonic())
         self.start_clock = self.mcu.print_time_to_clock(print_time + MIN_MSG_TIME)
         max_bytes = ems22.message_bytes(self.rest_ticks,
@@ -562,24 +510,18 @@ class Ems22Source:
                         self.sensor.name, self.mcu.get_name(), ems22.MAX_PENDING)
         self.restart_pending = True
         self.query_cmd.send_wait_ack([self.oid, 0, 0, 0, 0])
-        with self.lock:
-            self.raw_queue = []
+        self.bulk_queue.clear_queue()
         self._start_query()
         self.restart_pending = False
 
-    def _handle_bulk(self, params):
-        # Runs in the serial thread: only queue (the reactor timer decodes)
-        with self.lock:
-            self.raw_queue.append((params['sequence'], params['data']))
-
     def catch_up(self):
-        with self.lock:
-            messages, self.raw_queue = self.raw_queue, []
+        messages = [(params['sequence'], params['data'])
+                    for params in self.bulk_queue.pull_queue()]
         if not messages:
             return
         self.sensor.process(messages)
         # After this batch's good samples are timed against the old start
-        if self.sensor.decoder.time_lost and not self.restart_pending:
+        if self.sensor.pipeline.time_lost and not self.restart_pending:
             self._restart_query()
 
     def sync(self, until=None):
@@ -687,7 +629,9 @@ class SimulatedSource:
         # samples as real time passes and is the heater's thermometer.
         self.realtime = self.mcu.is_fileoutput() and print_time > 0.
         self.simulation = {'clock': self.steps.kind, 'realtime': self.realtime}
-        self.sensor._update_status()
+
+    def timing(self):
+        return sample_timing(self)
 
     def temp_c(self, eventtime):
         # The twin's nozzle: its hotend model's, else at its target at once

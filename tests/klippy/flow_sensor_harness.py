@@ -77,11 +77,11 @@ def profile(sensor):
     process = sensor.process
 
     def timed(messages):
-        samples = sensor.rate.total
+        samples = sensor.pipeline.rate.total
         start = time.process_time()
         process(messages)
         totals["cpu"] += time.process_time() - start
-        totals["samples"] += sensor.rate.total - samples
+        totals["samples"] += sensor.pipeline.rate.total - samples
         totals["calls"] += 1
 
     sensor.process = timed
