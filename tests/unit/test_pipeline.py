@@ -139,7 +139,8 @@ def test_dump_rows_and_positions_are_in_extruder_mm():
     rows = batch.dump_rows()
     t, sensor_mm, commanded_mm = rows[-1]
     assert commanded_mm == pytest.approx(SPEED_MM_S * t)
-    assert sensor_mm == pytest.approx(commanded_mm, abs=1.5 / ems22.DEFAULT_COUNTS_PER_MM)
+    one_count = 1.0 / ems22.DEFAULT_COUNTS_PER_MM
+    assert sensor_mm == pytest.approx(commanded_mm, abs=1.5 * one_count)
     # what the sensor itself measured (calibrations compare it with the
     # extruder's): sensor mm, before the calibration
     assert pipeline.position_at_or_after(t) == pytest.approx(1.1 * sensor_mm, abs=1e-4)
