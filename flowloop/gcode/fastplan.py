@@ -375,14 +375,28 @@ class FastPlanner:
     # --- gcode_move over a run of move and G92 lines --------------------------
     def _run(self, lo, hi, kinds, words, starts, ends, data, offset,
              first_line) -> None:
-        rows = np.flatnonzero(kinds[lo:hi] >= _MOVE) + lo
-        if not rows.size:
-            return
         st = self.state
         ef = st.extrude_factor
         retracted = st.is_retracted
         step_e = step_speed = None
-        retractions = np.flatnonzero(kinds[rows] >= _G10)
+        kind = kinds[lo:hi]
+        if st.absolute_coord and st.absolute_extrude \
+                and not (kind >= _G10).any():
+            # every line of the run, as a view: the ones with nothing to plan
+            # (comments) give no value, and in absolute coordinates a
+            # position is only ever carried over them
+            if not (kind >= _MOVE).any():
+                return
+            rows = np.arange(lo, hi)
+            vals = words[:, lo:hi]
+            retractions = rows[:0]
+        else:
+            rows = np.flatnonzero(kind >= _MOVE) + lo
+            if not rows.size:
+                return
+            kind = kinds[rows]
+            vals = words[:, rows]
+            retractions = np.flatnonzero(kind >= _G10)
         if retractions.size:
             # firmware_retraction: a G10 acts only when not retracted, a G11
             # only when retracted; each that acts is an E-only move (its own
@@ -406,8 +420,7 @@ class FastPlanner:
             if not rows.size:
                 st.is_retracted = retracted
                 return
-        kind = kinds[rows]
-        vals = words[:, rows]
+            kind, vals = kind[keep], vals[:, keep]
         is_move = kind == _MOVE
         vals[3] *= ef
         last = [None] * 4
@@ -419,8 +432,7 @@ class FastPlanner:
                 st.base_position[axis], absolute, step_e if axis == 3 else None)
         # the feed rate each move runs at (a retraction's own, not kept)
         feed = vals[4]
-        speeds = np.where(np.isnan(feed), np.nan, feed * st.speed_factor)
-        speeds = _ffill(speeds, st.speed)
+        speeds = _ffill(feed * st.speed_factor, st.speed, ~np.isnan(feed))
         move_speeds = speeds
         if step_e is not None:
             stepping = ~np.isnan(step_e)
