@@ -80,13 +80,21 @@ def _pieces(batch: Segments, volume_before: float) -> _Pieces:
     f1 = np.where(whole, batch.end_flow_mm3_s, 0.0)
     length = np.stack((accel, cruise, decel), axis=1).ravel()
     at_start = np.stack((f0, fc, fc), axis=1).ravel()
-    at_end = np.stack((fc, fc, f1), axis=1).ravel()
     starts = np.stack((start, start + accel, start + accel + cruise), axis=1).ravel()
-    volume = 0.5 * (at_start + at_end) * length
+    # each piece's 0.5 * (flow at start + at end) * length, and its slope,
+    # (flow at end - at start) / length (0 where it has none; a cruise's is 0)
+    volume = np.stack((0.5 * (f0 + fc) * accel, 0.5 * (fc + fc) * cruise,
+                       0.5 * (fc + f1) * decel), axis=1).ravel()
     total = np.cumsum(volume)
-    before = volume_before + np.concatenate(([0.0], total[:-1]))
+    before = np.empty(len(total))
+    before[0] = 0.0
+    before[1:] = total[:-1]
+    before += volume_before
     with np.errstate(divide="ignore", invalid="ignore"):
-        slope = np.where(length > 0.0, (at_end - at_start) / length, 0.0)
+        slope = np.stack((np.where(accel > 0.0, (fc - f0) / accel, 0.0),
+                          np.zeros(len(fc)),
+                          np.where(decel > 0.0, (f1 - fc) / decel, 0.0)),
+                         axis=1).ravel()
     return _Pieces(starts, length, before, at_start, slope,
                    volume_before + float(total[-1]))
 
