@@ -112,11 +112,9 @@ class FlowrateLimiter:
             self.limiter.set_profile(profile, working_point)
 
     def _handle_window(self, window):
-        # In the reactor, possibly inside a flush: no pauses here.
-        self.limiter.set_sensor_fault(self.sensor.get_status()['fault'])
-        self.limiter.on_window(window.end_time - window.start_time,
-                               window.commanded_mm, window.grip, window.temp_c,
-                               window.commanded_flows)
+        # In the reactor, possibly inside a flush: no pauses here. A window
+        # closed while the sensor is faulted says so itself (Window.faulted).
+        self.limiter.on_window(window)
 
     # --- the move transform --------------------------------------------------
     def get_position(self):
@@ -144,6 +142,8 @@ class FlowrateLimiter:
 
     def _update_inputs(self):
         if self.sensor is not None:
+            # the fault's name, for the status (no window may come while
+            # the sensor is faulted: samples that are all bad close none)
             self.limiter.set_sensor_fault(self.sensor.get_status()['fault'])
         if self.nozzle is None:
             temp_c, _ = self.heater.get_temp(self.reactor.monotonic())

@@ -35,12 +35,15 @@ import numpy as np
 
 from ..errors import FlowloopError
 from ..material.profile import Line
+from ..window import Window
 
 # A window at grip >= 1 - SLIP_TOLERANCE did not slip (sensor noise).
 SLIP_TOLERANCE = 0.02
 MAX_OBSERVATIONS = 200
 DEFAULT_PRIOR_WINDOWS = 5.0
 PRIOR_SPAN_C = 20.0
+# 1.75 mm filament (mm^2): the area a rule assumes when it is given none
+DEFAULT_FILAMENT_AREA_MM2 = 2.405
 
 
 @dataclass(frozen=True)
@@ -93,6 +96,27 @@ def melted_capacity(flows_mm3_s: Sequence[float], melted_mm3_s: float) -> float:
     return float(c[np.argmax(fits)])
 
 
+def duration_s(window: Window) -> float:
+    """How long a window lasted (a plain float: windows may carry numpy
+    numbers, the limiter's status is JSON)."""
+    return float(window.end_time - window.start_time)
+
+
+def judged_flow_mm3_s(window: Window,
+                      filament_area_mm2: float) -> Optional[float]:
+    """The mean flow a window asked for, if a grip rule may judge it; None
+    if not: the sensor was faulted (Window.faulted: a fault reaches the
+    rules only this way), the window was not judged (grip None), or it
+    lasted no time or asked for no forward flow."""
+    if window.faulted or window.grip is None:
+        return None
+    duration = duration_s(window)
+    if duration <= 0.0:
+        return None
+    flow = filament_area_mm2 * float(window.commanded_mm) / duration
+    return flow if flow > 0.0 else None
+
+
 @dataclass(frozen=True)
 class WindowFlow:
     """What one judged grip window says about the melt capacity."""
@@ -116,12 +140,24 @@ class WindowFlow:
                    melted_capacity(flows, grip * commanded_mm3_s),
                    float(flows.max()))
 
+    @classmethod
+    def of_window(cls, window: Window,
+                  filament_area_mm2: float) -> Optional[WindowFlow]:
+        """The one place a grip window becomes flows: None for a window no
+        rule may judge (judged_flow_mm3_s)."""
+        flow = judged_flow_mm3_s(window, filament_area_mm2)
+        if flow is None:
+            return None
+        return cls.of(flow, float(window.grip), window.commanded_flows)
+
 
 class GripModel:
     def __init__(self, seed: CapacityLine,
-                 prior_windows: float = DEFAULT_PRIOR_WINDOWS):
+                 prior_windows: float = DEFAULT_PRIOR_WINDOWS,
+                 filament_area_mm2: float = DEFAULT_FILAMENT_AREA_MM2):
         if prior_windows <= 0:
             raise FlowloopError(f"prior_windows must be above 0, not {prior_windows}")
+        self.filament_area_mm2 = filament_area_mm2
         self.seed = seed
         self.fitted = seed
         self.prior_windows = prior_windows
@@ -129,20 +165,15 @@ class GripModel:
         self.observations: Deque[Tuple[float, float]] = collections.deque(
             maxlen=MAX_OBSERVATIONS)
 
-    def add_window(self, commanded_flow_mm3_s: float, grip: Optional[float],
-                   temp_c: Optional[float],
-                   flows_mm3_s: Sequence[float] = ()) -> bool:
-        """Learn from one closed window (flows_mm3_s: its commanded flow over
-        time, as WindowFlow.of takes it); True if it changed the fit."""
-        if grip is None or commanded_flow_mm3_s <= 0.0:
+    def learn(self, window: Window) -> bool:
+        """Learn from one closed grip window (at its temperature, with its
+        commanded flow over time); True if it changed the fit."""
+        if window.temp_c is None:
             return False
-        return self.learn(WindowFlow.of(commanded_flow_mm3_s, grip, flows_mm3_s),
-                          temp_c)
-
-    def learn(self, flow: WindowFlow, temp_c: Optional[float]) -> bool:
-        """Learn from one judged window's flow; True if it changed the fit."""
-        if temp_c is None or flow.commanded_mm3_s <= 0.0:
+        flow = WindowFlow.of_window(window, self.filament_area_mm2)
+        if flow is None:
             return False
+        temp_c = float(window.temp_c)
         if flow.grip >= 1.0 - SLIP_TOLERANCE \
                 and flow.peak_mm3_s <= self.fitted.at(temp_c):
             return False  # kept up where the fit said it would: nothing new

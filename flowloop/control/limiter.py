@@ -15,7 +15,10 @@ static (max_flow), temperature, reactive, predictive. The lowest cap wins.
 max_flow and temperature are hard caps; the grip caps never slow a move
 below min_speed_factor of the speed the hard caps leave it. A cap that lacks
 its input (no profile, no temperature) is off, and the status says why; a
-sensor fault freezes the grip caps (never raising one).
+sensor fault freezes the grip caps (never raising one): it reaches the
+caps only as the reason of the windows the sensor closes while faulted
+(Window.faulted), which no rule judges; the sensor's fault as its status
+names it is for the status only (set_sensor_fault).
 
 `limit` runs once per G-code move: what it needs (the lowest cap, the hard
 one, the floor) is worked out when a cap changes, and a move under the
@@ -28,12 +31,18 @@ next one with it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Optional, Sequence
+from typing import Any, Dict, Optional
 
 from ..errors import FlowloopError
 from ..material.profile import Profile, min_grip_of, profile_line
+from ..window import Window
 from . import caps as fl_caps
-from .grip_model import CapacityLine, GripModel, WindowFlow
+from .grip_model import (
+    DEFAULT_FILAMENT_AREA_MM2,
+    CapacityLine,
+    GripModel,
+    judged_flow_mm3_s,
+)
 from .reactive import (
     DEFAULT_HYSTERESIS,
     DEFAULT_MIN_GRIP,
@@ -86,7 +95,7 @@ class LimiterSettings:
 
 class FlowLimiter:
     def __init__(self, settings: LimiterSettings = LimiterSettings(),
-                 filament_area_mm2: float = 2.405,
+                 filament_area_mm2: float = DEFAULT_FILAMENT_AREA_MM2,
                  host: Optional[Dict[str, Any]] = None):
         self.settings = settings
         self.filament_area_mm2 = filament_area_mm2
@@ -97,7 +106,7 @@ class FlowLimiter:
         self.model: Optional[GripModel] = None
         self.temp_c: Optional[float] = None
         self.sensor_fault: Optional[str] = None
-        self.reactive = ReactiveRule(self._reactive_settings())
+        self.reactive = self._reactive_rule()
         self.caps: Dict[str, Optional[float]] = {}
         self.active = fl_caps.ActiveCap(None, "none")
         # For limit(): the lowest cap in force (None: none), the lowest hard
@@ -120,9 +129,11 @@ class FlowLimiter:
     def min_grip(self) -> float:
         return min_grip_of(self.profile, self.settings.min_grip)
 
-    def _reactive_settings(self) -> ReactiveSettings:
+    def _reactive_rule(self) -> ReactiveRule:
         s = self.settings
-        return ReactiveSettings(self.min_grip, s.hysteresis, s.recovery_per_s)
+        return ReactiveRule(
+            ReactiveSettings(self.min_grip, s.hysteresis, s.recovery_per_s),
+            self.filament_area_mm2)
 
     def configure(self, enabled: Optional[bool] = None,
                   max_flow_mm3_s: Optional[float] = None, clear_max_flow=False,
@@ -154,8 +165,9 @@ class FlowLimiter:
             line = profile_line(profile, working_point)
             seed_grip = min_grip_of(profile)
             self.model = GripModel(CapacityLine.from_profile_line(
-                line, seed_grip, profile.bounds.recommended_temp_c))
-        self.reactive = ReactiveRule(self._reactive_settings())
+                line, seed_grip, profile.bounds.recommended_temp_c),
+                filament_area_mm2=self.filament_area_mm2)
+        self.reactive = self._reactive_rule()
         self._update()
 
     def set_temperature(self, temp_c: Optional[float]) -> None:
@@ -168,37 +180,27 @@ class FlowLimiter:
                 self._update()
 
     def set_sensor_fault(self, fault: Optional[str]) -> None:
-        """A fault stops the grip caps acting on the sensor: they neither
-        lower (a dead sensor is not a slip) nor recover (nothing shows the
-        hotend keeps up); a cap in force stays, so a fault never raises one."""
+        """The sensor's fault as its status names it (None: none), for the
+        status only: the caps learn of a fault from the windows (a faulted
+        one is never judged, so the grip caps neither lower, a dead sensor
+        is not a slip, nor recover, nothing shows the hotend keeps up; a cap
+        in force stays, so a fault never raises one)."""
         if fault == self.sensor_fault:
             return
         self.sensor_fault = fault
         self._update()
 
-    def on_window(self, duration_s: float, commanded_mm: float,
-                  grip: Optional[float], temp_c: Optional[float],
-                  flows_mm3_s: Sequence[float] = ()) -> None:
-        """One closed grip window of the sensor (flows_mm3_s: its commanded
-        flow over time, Window.commanded_flows)."""
-        if self.sensor_fault is not None or duration_s <= 0.0:
-            return
-        # Plain floats: windows may carry numpy numbers, the status is JSON
-        duration_s, commanded_mm = float(duration_s), float(commanded_mm)
-        temp_c = None if temp_c is None else float(temp_c)
-        flow = self.filament_area_mm2 * commanded_mm / duration_s
-        if grip is None or flow <= 0.0:
-            return
-        window = WindowFlow.of(flow, float(grip), flows_mm3_s)
+    def on_window(self, window: Window) -> None:
+        """One closed grip window of the sensor, as it delivered it."""
+        if judged_flow_mm3_s(window, self.filament_area_mm2) is None:
+            return  # faulted, not judged, or no forward flow: nothing to judge
         self.windows_judged += 1
-        if window.grip < self.min_grip:
+        if float(window.grip) < self.min_grip:
             self.windows_below_min_grip += 1
         self._status = {**self._status, "grip_windows": self._grip_windows()}
         before = self.reactive.cap_mm3_s
-        self.reactive.on_window(window.grip, flow, duration_s, window)
-        learned = False
-        if self.model is not None:
-            learned = self.model.learn(window, temp_c)
+        self.reactive.on_window(window)
+        learned = self.model is not None and self.model.learn(window)
         if learned or self.reactive.cap_mm3_s != before:
             self._update()
 

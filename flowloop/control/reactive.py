@@ -29,7 +29,13 @@ from typing import Optional
 
 from ..errors import FlowloopError
 from ..material.profile import DEFAULT_MIN_GRIP
-from .grip_model import WindowFlow
+from ..window import Window
+from .grip_model import (
+    DEFAULT_FILAMENT_AREA_MM2,
+    WindowFlow,
+    duration_s,
+    judged_flow_mm3_s,
+)
 
 DEFAULT_MIN_SPEED_FACTOR = 0.3
 DEFAULT_HYSTERESIS = 0.03
@@ -65,8 +71,10 @@ class ReactiveSettings:
 
 
 class ReactiveRule:
-    def __init__(self, settings: ReactiveSettings = ReactiveSettings()):
+    def __init__(self, settings: ReactiveSettings = ReactiveSettings(),
+                 filament_area_mm2: float = DEFAULT_FILAMENT_AREA_MM2):
         self.settings = settings
+        self.filament_area_mm2 = filament_area_mm2
         self.cap_mm3_s: Optional[float] = None
         self.slip_flow_mm3_s: Optional[float] = None  # the flow that slipped
         self.hold_s = RECOVERY_HOLD_S
@@ -77,20 +85,20 @@ class ReactiveRule:
         self.hold_s = RECOVERY_HOLD_S
         self.good_s = 0.0
 
-    def on_window(self, grip: Optional[float], commanded_flow_mm3_s: float,
-                  duration_s: float, flow: Optional[WindowFlow] = None
-                  ) -> Optional[float]:
-        """Update from one closed window (grip None: not judged, no change);
-        returns the cap (mm^3/s) or None when the rule does not limit.
-        flow (grip_model.WindowFlow), from the window's commanded flow over
-        time, says what the hotend melted while asked for more, and the flow
-        that slipped (its peak); without it the window ran at one flow."""
-        if grip is None or commanded_flow_mm3_s <= 0.0:
+    def on_window(self, window: Window) -> Optional[float]:
+        """Update from one closed grip window (one no rule may judge, a
+        faulted one among them, changes nothing); returns the cap (mm^3/s)
+        or None when the rule does not limit. A slip caps at what the
+        hotend melted while asked for more, from the window's commanded
+        flow over time (grip_model.WindowFlow), and recovers toward the
+        flow that slipped (its peak)."""
+        commanded = judged_flow_mm3_s(window, self.filament_area_mm2)
+        if commanded is None:
             return self.cap_mm3_s
+        grip = float(window.grip)
         s = self.settings
         if grip < s.min_grip:
-            if flow is None:
-                flow = WindowFlow.of(commanded_flow_mm3_s, grip)
+            flow = WindowFlow.of(commanded, grip, window.commanded_flows)
             measured = flow.melted_mm3_s
             if self.cap_mm3_s is None:
                 self.slip_flow_mm3_s = flow.peak_mm3_s
@@ -101,7 +109,7 @@ class ReactiveRule:
                     self.hold_s = min(2.0 * self.hold_s, MAX_RECOVERY_HOLD_S)
             self.good_s = 0.0
         elif grip >= s.min_grip + s.hysteresis and self.cap_mm3_s is not None:
-            step = min(max(duration_s, 0.0), MAX_RECOVERY_STEP_S)
+            step = min(duration_s(window), MAX_RECOVERY_STEP_S)
             held = min(step, max(0.0, self.good_s + step - self.hold_s))
             self.good_s += step
             self.cap_mm3_s += s.recovery_per_s * held * self.slip_flow_mm3_s

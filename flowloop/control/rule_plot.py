@@ -15,11 +15,15 @@ import collections
 from typing import Deque, Dict, List, Tuple
 
 from ..material.plot import COLORS, WIDTH, _Panel, svg_open
+from ..window import JUDGED, Window
 from .reactive import DEFAULT_MIN_SPEED_FACTOR, ReactiveRule, ReactiveSettings
 
 WINDOW_S = 0.25
 LATENCY_S = 1.0
 DEFAULT_SETTINGS = ReactiveSettings()
+# The scenario is in mm^3/s: its windows count filament as volume (an area
+# of 1 mm^2), so flows go through the rule unrounded.
+AREA_MM2 = 1.0
 
 
 def simulate(rule: str, demand: float = 20.0, capacity: float = 30.0,
@@ -30,7 +34,7 @@ def simulate(rule: str, demand: float = 20.0, capacity: float = 30.0,
              ) -> List[Tuple[float, float, float]]:
     """(time, speed factor, grip) per window under `rule` ("flowloop" or
     "ddprint")."""
-    reactive = ReactiveRule(settings)
+    reactive = ReactiveRule(settings, AREA_MM2)
     pending: Deque[Tuple[float, float]] = collections.deque()  # (from, factor)
     factor, out = 1.0, []
     steps = int(duration_s / WINDOW_S)
@@ -43,7 +47,10 @@ def simulate(rule: str, demand: float = 20.0, capacity: float = 30.0,
         grip = min(1.0, melt / flow)
         out.append((t, factor, grip))
         if rule == "flowloop":
-            cap = reactive.on_window(grip, flow, WINDOW_S)
+            commanded_mm = flow * WINDOW_S / AREA_MM2
+            cap = reactive.on_window(Window(
+                t, t + WINDOW_S, commanded_mm, grip * commanded_mm, grip,
+                JUDGED))
             wanted = 1.0 if cap is None else max(min_speed_factor,
                                                  min(1.0, cap / demand))
         else:

@@ -9,6 +9,7 @@ from flowloop.control.caps import move_shape
 from flowloop.control.limiter import FlowLimiter, LimiterSettings
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import profile_from_dict, profile_line
+from flowloop.window import FAULT, JUDGED, TOO_LITTLE_MOTION, Window
 from tests.samples import make
 
 AREA = 2.405
@@ -20,6 +21,15 @@ FAST = move_shape([0, 0, 0, 0], [100, 0, 0, 5])
 
 def flow(speed):
     return FAST.flow_mm3_s(speed, AREA)
+
+
+def window(duration_s, commanded_mm, grip, temp_c, flows=(), reason=None):
+    """A closed grip window as [flow_sensor] delivers it."""
+    if reason is None:
+        reason = TOO_LITTLE_MOTION if grip is None else JUDGED
+    return Window(0.0, duration_s, commanded_mm,
+                  0.0 if grip is None else grip * commanded_mm, grip, reason,
+                  temp_c=temp_c, commanded_flows=tuple(flows))
 
 
 def test_max_flow_alone_caps_without_sensor_or_profile():
@@ -70,15 +80,15 @@ def test_static_mode_ignores_the_profile():
 def test_a_slip_caps_at_the_measured_flow_down_to_the_floor():
     lim = FlowLimiter(LimiterSettings(mode="reactive", min_speed_factor=0.5), AREA)
     # 1.25 mm in 0.1 s is 30 mm^3/s commanded; grip 0.6 melts 18
-    lim.on_window(0.1, 1.25, 0.6, None)
+    lim.on_window(window(0.1, 1.25, 0.6, None))
     melted = 0.6 * AREA * 12.5
     s = lim.status()
     assert s["reason"] == "grip" and s["cap"] == pytest.approx(melted, abs=1e-3)
     assert flow(lim.limit(FAST, 200.0)) == pytest.approx(melted, abs=1e-3)
     # a move 4x as fast would need a quarter: it gets the floor, half its speed
     assert lim.limit(FAST, 800.0) == pytest.approx(400.0)
-    lim.on_window(0.1, 1.25, 0.95, None)
-    lim.on_window(0.1, 1.25, None, None)
+    lim.on_window(window(0.1, 1.25, 0.95, None))
+    lim.on_window(window(0.1, 1.25, None, None))
     assert lim.status()["grip_windows"] == {"judged": 2, "below_min_grip": 1}
 
 
@@ -87,13 +97,13 @@ def test_the_grip_floor_is_a_share_of_what_the_hard_caps_leave():
     # 6 mm^3/s, a slip measured 3; the floor (half) is of those 6, not of 40
     lim = FlowLimiter(LimiterSettings(mode="reactive", max_flow_mm3_s=6.0,
                                       min_speed_factor=0.5), AREA)
-    lim.on_window(0.5, 1.25, 0.5, None)          # 6.01 mm^3/s, grip 0.5
+    lim.on_window(window(0.5, 1.25, 0.5, None))         # 6.01 mm^3/s, grip 0.5
     melted = 0.5 * AREA * 1.25 / 0.5
     unretract = move_shape([0, 0, 0, 0], [0, 0, 0, 2.0])
     assert lim.status()["caps"]["grip"] == pytest.approx(melted, abs=1e-3)
     assert unretract.flow_mm3_s(lim.limit(unretract, 40.0), AREA) == \
         pytest.approx(melted, abs=1e-3)
-    lim.on_window(0.5, 1.25, 0.1, None)          # a slip to 0.6: the floor
+    lim.on_window(window(0.5, 1.25, 0.1, None))         # a slip to 0.6: the floor
     assert unretract.flow_mm3_s(lim.limit(unretract, 40.0), AREA) == \
         pytest.approx(3.0, abs=1e-3)
 
@@ -111,7 +121,7 @@ def test_predictive_mode_caps_before_any_slip():
     # a hotend weaker than its profile: the model learns and caps lower
     weak = 0.6 * LINE.flow_mm3_s(210.0)
     for _ in range(30):
-        lim.on_window(0.1, 1.25, weak / 30.0, 210.0)
+        lim.on_window(window(0.1, 1.25, weak / 30.0, 210.0))
     s = lim.status()
     assert s["reason"] in ("grip", "model")
     assert s["caps"]["model"] < 0.8 * s["caps"]["temperature"]
@@ -120,25 +130,27 @@ def test_predictive_mode_caps_before_any_slip():
 
 def test_a_sensor_fault_freezes_the_grip_caps_and_says_so():
     lim = FlowLimiter(LimiterSettings(mode="predictive", max_flow_mm3_s=25.0), AREA)
-    lim.on_window(0.1, 1.25, 0.5, None)
+    lim.on_window(window(0.1, 1.25, 0.5, None))
     capped = lim.status()["caps"]["grip"]
     assert lim.status()["reason"] == "grip"
-    lim.set_sensor_fault("magnet")
+    lim.set_sensor_fault("magnet")  # the name the sensor's status gives it
     s = lim.status()
     # never raised: the cap in force stays
     assert s["reason"] == "grip" and s["caps"]["grip"] == capped
     assert "sensor fault 'magnet': grip caps frozen" in s["why"]
-    # a faulted sensor's windows neither lower nor recover it
-    lim.on_window(0.1, 1.25, 0.1, None)
+    # the windows a faulted sensor closes neither lower nor recover it: the
+    # fault reaches the caps as their reason, whatever else they carry
+    lim.on_window(window(0.1, 1.25, None, None, reason=FAULT))
+    lim.on_window(window(0.1, 1.25, 0.1, None, reason=FAULT))
     for _ in range(40):
-        lim.on_window(1.0, 12.5, 1.0, None)
+        lim.on_window(window(1.0, 12.5, 1.0, None, reason=FAULT))
     assert lim.status()["caps"]["grip"] == capped
     assert lim.status()["grip_windows"]["judged"] == 1
     # cleared: the rule goes on from where it was
     lim.set_sensor_fault(None)
     assert "sensor fault" not in lim.status()["why"]
     for _ in range(40):
-        lim.on_window(1.0, 12.5, 1.0, None)
+        lim.on_window(window(1.0, 12.5, 1.0, None))
     assert lim.status()["caps"]["grip"] is None
 
 
@@ -190,8 +202,8 @@ def test_the_status_is_plain_json_whatever_numbers_the_sensor_hands_over():
     lim = FlowLimiter(LimiterSettings(max_flow_mm3_s=20.0), AREA)
     lim.set_profile(PROFILE, 0.5)
     lim.set_temperature(np.float64(212.0))
-    lim.on_window(np.float64(0.1), np.float64(1.25), np.float64(0.5),
-                  np.float64(212.0))
+    lim.on_window(window(np.float64(0.1), np.float64(1.25), np.float64(0.5),
+                  np.float64(212.0)))
     lim.limit(FAST, 200.0)
     msgspec.json.encode(lim.status())  # no numpy scalar anywhere
     assert type(lim.status()["grip_windows"]["below_min_grip"]) is int
@@ -204,7 +216,7 @@ def test_the_status_is_held_and_replaced_never_changed_in_place():
     held = lim.status()
     assert lim.status() is held  # reading builds nothing
     lim.limit(FAST, 200.0)       # slowed
-    lim.on_window(0.1, 1.25, 0.5, 212.0)
+    lim.on_window(window(0.1, 1.25, 0.5, 212.0))
     assert held["slowed_moves"] == 0 and held["grip_windows"]["judged"] == 0
     now = lim.status()
     assert now["slowed_moves"] == 1 and now["grip_windows"]["judged"] == 1

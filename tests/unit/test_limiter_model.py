@@ -8,6 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from flowloop.control.grip_model import (
+    DEFAULT_FILAMENT_AREA_MM2,
     CapacityLine,
     GripModel,
     WindowFlow,
@@ -16,10 +17,22 @@ from flowloop.control.grip_model import (
     predicted_grip,
 )
 from flowloop.material.profile import Line, profile_from_dict, profile_line
+from flowloop.window import FAULT, JUDGED, TOO_LITTLE_MOTION, Window
 from tests.samples import make
 
 PROFILE = profile_from_dict(make())          # herz-pla-red 0.8 mm (ddPrint)
 LINE = profile_line(PROFILE, 0.5)
+
+
+def seen(flow_mm3_s, grip, temp_c, flows=(), reason=None):
+    """A one-second grip window at a mean commanded flow, as the model
+    learns from it."""
+    if reason is None:
+        reason = TOO_LITTLE_MOTION if grip is None else JUDGED
+    commanded_mm = flow_mm3_s / DEFAULT_FILAMENT_AREA_MM2
+    return Window(0.0, 1.0, commanded_mm,
+                  0.0 if grip is None else grip * commanded_mm, grip, reason,
+                  temp_c=temp_c, commanded_flows=tuple(flows))
 
 
 def test_the_seed_is_the_profile_line_at_its_grip():
@@ -45,7 +58,7 @@ def test_slipping_windows_pull_the_fit_to_the_true_capacity():
     for i in range(60):
         temp = 200.0 + (i % 5) * 10.0
         demand = 1.6 * true.at(temp)
-        model.add_window(demand, true.at(temp) / demand, temp)
+        model.learn(seen(demand, true.at(temp) / demand, temp))
     # 60 windows against a prior worth 5: over 90 % of the seed's error gone
     assert abs(model.fitted.capacity_mm3_s - 7.0) < 0.1 * 3.0
     assert model.fitted.slope_mm3_s_per_c == pytest.approx(0.12, rel=0.1)
@@ -55,15 +68,16 @@ def test_slipping_windows_pull_the_fit_to_the_true_capacity():
 def test_a_window_that_kept_up_above_the_model_raises_it():
     model = GripModel(CapacityLine(210.0, 10.0, 0.15))
     for _ in range(20):
-        model.add_window(14.0, 1.0, 210.0)
+        model.learn(seen(14.0, 1.0, 210.0))
     assert model.fitted.at(210.0) > 13.0
 
 
 def test_windows_that_say_nothing_change_nothing():
     model = GripModel(CapacityLine(210.0, 10.0, 0.15))
-    assert not model.add_window(5.0, 1.0, 210.0)     # kept up below capacity
-    assert not model.add_window(15.0, None, 210.0)   # not judged
-    assert not model.add_window(15.0, 0.5, None)     # no temperature
+    assert not model.learn(seen(5.0, 1.0, 210.0))     # kept up below capacity
+    assert not model.learn(seen(15.0, None, 210.0))   # not judged
+    assert not model.learn(seen(15.0, 0.5, None))     # no temperature
+    assert not model.learn(seen(15.0, 0.5, 210.0, reason=FAULT))  # faulted
     assert model.fitted == model.seed
 
 
@@ -127,18 +141,18 @@ def test_mixed_windows_teach_the_true_capacity_not_their_mean():
         flows = [1.5 * c] * 4 + [0.5 * c] * 4 + [0.0] * 2
         mean = sum(flows) / len(flows)
         grip = sum(min(f, c) for f in flows) / len(flows) / mean
-        model.add_window(mean, grip, temp, flows)
+        model.learn(seen(mean, grip, temp, flows))
     # as with windows at one flow: over 90 % of the seed's error gone (their
     # mean flow, 0.6 of the capacity, would have fitted about 4.6)
     assert abs(model.fitted.capacity_mm3_s - 7.0) < 0.1 * 3.0
     # a window that kept up while peaking above the model raises it to the peak
     kept = GripModel(CapacityLine(210.0, 7.0, 0.12))
-    assert kept.add_window(4.0, 1.0, 210.0, [9.0, 9.0, 0.0, 0.0, 2.0])
+    assert kept.learn(seen(4.0, 1.0, 210.0, [9.0, 9.0, 0.0, 0.0, 2.0]))
     assert kept.observations[-1] == (210.0, pytest.approx(9.0))
     # one that nearly kept up (a slip within sensor noise, under 2 %) says
     # the capacity its slip gives: 9.8 under a peak of 10
     flows = [10.0] * 5 + [2.0] * 5
     grip = (5 * 9.8 + 5 * 2.0) / sum(flows)
     assert grip > 0.98
-    assert kept.add_window(6.0, grip, 210.0, flows)
+    assert kept.learn(seen(6.0, grip, 210.0, flows))
     assert kept.observations[-1] == (210.0, pytest.approx(9.8))
