@@ -14,7 +14,7 @@ from __future__ import annotations
 import collections
 from typing import Deque, Dict, List, Tuple
 
-from ..material.plot import COLORS, WIDTH, _Panel, svg_open
+from ..material.plot import COLORS, WIDTH, Panel, svg_open
 from ..window import JUDGED, Window
 from .reactive import DEFAULT_MIN_SPEED_FACTOR, ReactiveRule, ReactiveSettings
 
@@ -71,7 +71,7 @@ def svg() -> str:
     runs: Dict[str, List[Tuple[float, float, float]]] = {
         rule: simulate(rule) for rule in ("flowloop", "ddprint")}
     height = 460
-    panel = _Panel(0, (0.0, 20.0), (0.0, 1.5))  # room for the legend
+    panel = Panel(0, (0.0, 20.0), (0.0, 1.5))  # room for the legend
     panel.frame("Reactive rule: demand 20 mm³/s, the hotend melts 12 from 2 s "
                 "to 12 s", "time (s)", "speed factor, grip")
     ours, theirs = COLORS["working"], COLORS["real_print"]

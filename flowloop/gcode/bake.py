@@ -140,9 +140,12 @@ class _Empty:
         return len(data)
 
 
-def _parse(line: str) -> Tuple[float, float, float]:
+def parse_announcement(line: str) -> Tuple[float, float, float]:
+    """(FLOW, LEAD, DURATION) of one announcement line as annotate writes it
+    (COMMAND FLOW= LEAD= DURATION=); FlowloopError for any other line."""
     m = _ANNOUNCEMENT.match(line)
-    assert m is not None, line
+    if m is None:
+        raise FlowloopError(f"not an announcement: {line!r}")
     return float(m["flow"]), float(m["lead"]), float(m["duration"])
 
 
@@ -155,7 +158,8 @@ def replay(commands: List[Tuple[int, float, str]], end_s: float,
     for k in range(math.ceil(end_s / GRID_S) + 1):
         t = k * GRID_S
         while i < len(commands) and commands[i][1] <= t:
-            controller.announce(commands[i][1], *_parse(commands[i][2]))
+            controller.announce(commands[i][1],
+                                *parse_announcement(commands[i][2]))
             i += 1
         targets.append(controller.target_at(t, GRID_S))
     return targets
@@ -384,15 +388,15 @@ def timeline_svg(timeline: Timeline, title: str) -> str:
     out.append(f'<text x="{plot.WIDTH / 2}" y="24" text-anchor="middle" '
                f'font-size="15" font-weight="bold">{_escape(title)}</text>')
     # headroom above the lines for the legend
-    temp = plot._Panel(40, (0.0, end), (lo - 5.0, hi + 0.25 * (hi - lo) + 8.0))
+    temp = plot.Panel(40, (0.0, end), (lo - 5.0, hi + 0.25 * (hi - lo) + 8.0))
     temp.frame("Hotend", time_label, "temperature (°C)", time_ticks)
     temp.polyline(points(timeline.target_c), plot.COLORS["target"], "target")
     temp.polyline(points(timeline.nozzle_c), plot.COLORS["nozzle"], "nozzle",
                   dash="6,3")
     temp.legend([("target (M104 / [autotemp])", plot.COLORS["target"], ""),
                  ("modelled nozzle", plot.COLORS["nozzle"], "6,3")])
-    flow = plot._Panel(40 + plot.PANEL_HEIGHT, (0.0, end),
-                       (0.0, max(flows, default=1.0) * 1.3 or 1.0))
+    flow = plot.Panel(40 + plot.PANEL_HEIGHT, (0.0, end),
+                      (0.0, max(flows, default=1.0) * 1.3 or 1.0))
     flow.frame("Flow", time_label, "flow (mm³/s)", time_ticks)
     flow.polyline(points(timeline.demand_mm3_s), plot.COLORS["demand"], "demand",
                   width=1)

@@ -19,8 +19,7 @@ from ..control.autotemp import DEFAULT_PARAMS, GRID_S, Autotemp
 from ..control.hotend import HotendParams
 from ..errors import FlowloopError
 from ..gcode.annotate import COMMAND, HEADER_BYTES, is_annotated
-from ..gcode.bake import _parse as parse_announcement
-from ..gcode.bake import replay
+from ..gcode.bake import parse_announcement, replay
 from ..material.plot import COLORS
 from ..material.profile import Profile, decode_profile, encode_profile, profile_line
 
@@ -145,7 +144,7 @@ def _timed(found: Sequence[Tuple[int, str]]) -> Tuple[List[_Timed], float]:
     for offset, line in found:
         try:
             flow, lead, duration = parse_announcement(line)
-        except AssertionError:
+        except FlowloopError:
             continue  # not a well-formed announcement: autotemp refuses it too
         if start is None:
             start = lead  # the first command runs at the first move

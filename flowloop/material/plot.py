@@ -105,8 +105,9 @@ def nice_ticks(lo: float, hi: float, count: int = 6) -> List[float]:
     return ticks
 
 
-class _Panel:
-    """Maps data coordinates to one panel of the SVG."""
+class Panel:
+    """Maps data coordinates to one panel of the SVG (the profile plot's,
+    the bake timeline's, the reactive rule's)."""
 
     def __init__(self, top: float, x_range: Tuple[float, float],
                  y_range: Tuple[float, float], width: float = WIDTH):
@@ -410,8 +411,8 @@ def warning_lines(profile: Profile) -> List[str]:
 # --- SVG ----------------------------------------------------------------------
 
 
-def _svg_panel(series: PanelSeries, top: float) -> _Panel:
-    panel = _Panel(top, series.x_range, series.y_range, PROFILE_WIDTH - LEGEND_WIDTH)
+def _svg_panel(series: PanelSeries, top: float) -> Panel:
+    panel = Panel(top, series.x_range, series.y_range, PROFILE_WIDTH - LEGEND_WIDTH)
     if series.band:  # under the grid: a solid colour hides nothing
         coords = " ".join(f"{panel.x(a):.2f},{panel.y(c):.2f}" for a, c in series.band)
         panel.add(f'<polygon id="band" points="{coords}" fill="{COLORS["band"]}" '

@@ -268,8 +268,8 @@ def test_the_profile_plot_renders_its_labels_and_marks_outside_a_browser(
     image = mpl_image.imread(str(png_path))[:, :, :3]
     assert image.shape[:2] == (40 + 2 * plot.PANEL_HEIGHT, plot.PROFILE_WIDTH)
     (panel, _) = plot.panels(measured)
-    axes = plot._Panel(40, panel.x_range, panel.y_range,
-                       plot.PROFILE_WIDTH - plot.LEGEND_WIDTH)
+    axes = plot.Panel(40, panel.x_range, panel.y_range,
+                      plot.PROFILE_WIDTH - plot.LEGEND_WIDTH)
     assert image[0, 0].min() > 0.95 and image[-1, -1].min() > 0.95  # no border
     # the y label, left of the tick numbers
     strip = image[int(axes.top) + 100:int(axes.bottom) - 100, 5:28]
