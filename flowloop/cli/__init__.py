@@ -111,17 +111,27 @@ def _one_file_process() -> None:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    one_file = False
     if argv is None:
         argv = sys.argv[1:]
-        if argv[:1] == ["annotate"]:
+        one_file = argv[:1] == ["annotate"]
+        if one_file:
             _one_file_process()
     parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
     try:
-        return args.func(args) or 0
+        code = args.func(args) or 0
     except FlowloopError as e:
         print(f"flowloop {args.command}: error: {e}", file=sys.stderr)
-        return 2
+        code = 2
+    if one_file:
+        # The process ends with the command (its files are closed): without
+        # the interpreter's teardown of numpy and the rest, 15 ms of a 25 MB
+        # file's 0.5 s
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 if __name__ == "__main__":
