@@ -446,7 +446,7 @@ class FastPlanner:
         # each axis's position after each move, and its change from the one
         # before (the first from where the last run left it)
         pos = [axis[moving] for axis in last]
-        d = [np.diff(p, prepend=c) for p, c in zip(pos, st.commanded_pos)]
+        d = [_steps(p, c) for p, c in zip(pos, st.commanded_pos)]
         moves = self._moves(d, move_speeds[moving],
                             offset + starts[rows[moving]])
         if moves is None:               # an error or an odd move: the slow way
@@ -507,7 +507,8 @@ class FastPlanner:
             dx * inv_move_d, dy * inv_move_d, dz * inv_move_d, er, move_d,
             accel, np.full(n, st.junction_deviation), max_cruise_v2, delta_v2,
             mcr_delta_v2, kin, filament, filament * st.area * inv_move_d,
-            offsets.astype(np.int64), np.full(n, np.nan), np.full(n, np.nan))
+            offsets.astype(np.int64, copy=False), np.full(n, np.nan),
+            np.full(n, np.nan))
 
     def _filament(self, de: np.ndarray) -> np.ndarray:
         """Net filament of each move: pushed back after a retraction it
@@ -709,6 +710,14 @@ def _limit_speed(mask, speed, accel, move_d, max_cruise_v2, accel_arr,
     accel_arr[mask] = np.minimum(accel_arr[mask], accel)
     delta_v2[mask] = 2.0 * move_d[mask] * accel_arr[mask]
     mcr_delta_v2[mask] = np.minimum(mcr_delta_v2[mask], delta_v2[mask])
+
+
+def _steps(positions: np.ndarray, before: float) -> np.ndarray:
+    """Each position less the one before it (before the first: before)."""
+    steps = np.empty(len(positions))
+    steps[0] = positions[0] - before
+    np.subtract(positions[1:], positions[:-1], out=steps[1:])
+    return steps
 
 
 def _ffill(values: np.ndarray, first: float,
