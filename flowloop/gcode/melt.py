@@ -112,13 +112,39 @@ def volume_at(pieces: _Pieces, times: np.ndarray) -> np.ndarray:
     np.not_equal(length[1:-1], 0.0, out=keep[1:-1])
     keep[1:-1] |= start[2:] != start[1:-1]
     kept = np.flatnonzero(keep)
-    first = np.maximum.accumulate(np.searchsorted(times, start[kept], "left"))
+    first = np.maximum.accumulate(_search_grid(times, start[kept]))
     first[0] = 0
     counts = np.diff(np.append(first, len(times)))
     i = np.repeat(kept, counts)
     u = np.clip(times - start[i], 0.0, length[i])
     return pieces.volume_mm3[i] + u * (pieces.flow_mm3_s[i]
                                        + 0.5 * pieces.slope_mm3_s2[i] * u)
+
+
+def _search_grid(times: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """np.searchsorted(times, keys, "left") for times evenly spaced (the
+    grid): each place computed, then checked against its neighbours (a
+    search only where that fails)."""
+    m = len(times)
+    if m < 2:
+        return np.searchsorted(times, keys, "left")
+    step = (times[-1] - times[0]) / (m - 1)
+    at = np.ceil((keys - times[0]) / step)
+    np.clip(at, 0, m, out=at)
+    at = at.astype(np.intp)
+    # the first time at or after each key: the one before is earlier
+    before = at - 1
+    np.maximum(before, 0, out=before)
+    right = times[before] < keys
+    right |= at == 0
+    after = np.minimum(at, m - 1)
+    later = times[after] >= keys
+    later |= at == m
+    right &= later
+    if not right.all():
+        wrong = np.flatnonzero(~right)
+        at[wrong] = np.searchsorted(times, keys[wrong], "left")
+    return at
 
 
 def _batches(events: Iterable) -> Iterator[Union[Segments, Barrier]]:
