@@ -724,13 +724,18 @@ def _ffill(values: np.ndarray, first: float,
            known: Optional[np.ndarray] = None) -> np.ndarray:
     """NaN replaced by the last value before it (first before any); known:
     where values are not NaN, if known."""
-    filled = np.concatenate(([first], values))
-    # each value given (and first) repeated up to the next one
     given = np.flatnonzero(~np.isnan(values) if known is None else known)
-    given += 1
-    starts = np.concatenate(([0], given))
-    counts = np.diff(np.append(starts, len(filled)))
-    return np.repeat(filled[starts], counts)[1:]
+    if not len(given):
+        return np.full(len(values), first, float)
+    # first until the first value given, each value given until the next
+    held = np.empty(len(given) + 1)
+    held[0] = first
+    held[1:] = values[given]
+    counts = np.empty(len(given) + 1, np.intp)
+    counts[0] = given[0]
+    np.subtract(given[1:], given[:-1], out=counts[1:-1])
+    counts[-1] = len(values) - given[-1]
+    return np.repeat(held, counts)
 
 
 def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
@@ -793,7 +798,10 @@ def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
                 cur_base = cur_last - float(vals[i])
             bases.append(cur_base)
             prev = i
-    epoch = np.searchsorted(special, np.arange(len(vals)), "right")
+    # the origin of each row: the specials at or before it
+    epoch = np.zeros(len(vals), np.intp)
+    epoch[special] = 1
+    np.cumsum(epoch, out=epoch)
     base_of_row = np.asarray(bases)[epoch]
     known = np.where(moves, vals + base_of_row, at_step)
     return _ffill(known, last0), cur_base
