@@ -11,7 +11,7 @@ Both of [flow_sensor]'s sources feed it the same way: the real EMS22 the
 payloads its MCU sent, the simulated twin the payloads it made. What it needs
 of the printer it asks through one narrow interface (Motion): the extruder's
 commanded and planned positions, the hotend's temperature and the planned
-moves a window spans. The klippy adapter (klippy_extras/flow_sensor.py)
+moves a window spans. The klippy adapter (klippy_extras/flow_sensor/)
 keeps the MCU, the trapq reads, the step clock and the commands.
 """
 
@@ -39,6 +39,21 @@ class SampleTiming:
     rest_ticks: int
     time_shift: int
     clock_to_print_time: Callable[[float], float]
+
+
+def due_times(timing: SampleTiming, next_index: int,
+              before: float) -> List[float]:
+    """Print times of the reads the MCU's timer schedules from record
+    next_index on, up to (not at) print time `before`: when a twin that
+    samples as the MCU would owes its next records."""
+    times: List[float] = []
+    to_time, start, rest = (timing.clock_to_print_time, timing.start_clock,
+                            timing.rest_ticks)
+    while True:
+        t = to_time(start + (next_index + len(times)) * rest)
+        if t >= before:
+            return times
+        times.append(t)
 
 
 class Motion:

@@ -91,7 +91,7 @@ def test_a_missing_link_is_named_with_flowloop_install(klipper_build, klippy_ven
                                                        moonraker_venv, capsys):
     where = stack.short_tempdir("fl-doc-tree-")
     try:
-        broken = copy_tree_without(klipper_build, "flow_sensor.py", where)
+        broken = copy_tree_without(klipper_build, "flow_sensor", where)
         with stack.printer_stack(build=broken, klippy_ready=False) as ps:
             assert klippy_connected(ps)
             code, lines = doctor(ps, moonraker_venv, capsys)
@@ -100,7 +100,7 @@ def test_a_missing_link_is_named_with_flowloop_install(klipper_build, klippy_ven
     assert code == 1
     assert lines["links"].startswith("FAIL links: flowloop is not installed from"
                                      " this checkout: install would link")
-    assert "klippy/extras/flow_sensor.py" in lines["links"]
+    assert "klippy/extras/flow_sensor ->" in lines["links"]
     assert "fix: run flowloop install" in lines["links"]
     # klippy cannot load [flow_sensor sim] without its module: said in its words
     assert lines["config"].startswith(
