@@ -313,8 +313,11 @@ class FastPlanner:
         # ends it too: one at its line's end is not part of the number)
         after = np.flatnonzero(sep_byte == 32)
         line = sep_line[after]
-        word_start = sep[after] + 1
-        word_end = np.append(sep, size)[after + 1]
+        word_start = sep[after]
+        word_start += 1
+        word_end = sep.take(after + 1, mode="clip")
+        if len(after) and after[-1] == len(sep) - 1:
+            word_end[-1] = size         # the data's last byte is a space
         keep = code[line] & (word_start < code_end[line]) & (word_end > word_start)
         word_start, line = word_start[keep], line[keep]
         length = word_end[keep] - word_start
