@@ -11,6 +11,7 @@
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import logging
 
+from flowloop.calibrate import flow_sensor as sensor_cal
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
 from flowloop.host.klipper_config import option_message
@@ -60,7 +61,7 @@ class FlowSensor:
             'counts_per_mm', ems22.DEFAULT_COUNTS_PER_MM, above=0.)
         self.direction_sign = config.getchoice('direction', DIRECTIONS,
                                                'forward')
-        low, high = flow_grip.CALIBRATION_RANGE
+        low, high = sensor_cal.CALIBRATION_RANGE
         calibration = config.getfloat('calibration', 1., minval=low,
                                       maxval=high)
         low, high = flow_grip.WINDOW_MM_RANGE
@@ -280,17 +281,17 @@ class FlowSensor:
         "Extrude at slow speeds and set sensor mm per extruder mm")
 
     def cmd_CALIBRATE_FLOW_SENSOR(self, gcmd):
-        low, high = flow_grip.CALIBRATION_LENGTH_RANGE
-        length = gcmd.get_float('LENGTH', flow_grip.CALIBRATION_LENGTH_MM,
+        low, high = sensor_cal.CALIBRATION_LENGTH_RANGE
+        length = gcmd.get_float('LENGTH', sensor_cal.CALIBRATION_LENGTH_MM,
                                 minval=low, maxval=high)
         try:
-            speeds = flow_grip.parse_speeds(
-                gcmd.get('SPEEDS', flow_grip.DEFAULT_CALIBRATION_SPEEDS))
+            speeds = sensor_cal.parse_speeds(
+                gcmd.get('SPEEDS', sensor_cal.DEFAULT_CALIBRATION_SPEEDS))
         except FlowloopError as e:
             raise gcmd.error(str(e)) from None
-        low, high = flow_grip.MAX_CALIBRATION_SPREAD_RANGE
+        low, high = sensor_cal.MAX_CALIBRATION_SPREAD_RANGE
         max_spread = gcmd.get_float('MAX_SPREAD',
-                                    flow_grip.MAX_CALIBRATION_SPREAD,
+                                    sensor_cal.MAX_CALIBRATION_SPREAD,
                                     minval=low, maxval=high)
         self._check_extruder(gcmd)
         commanded, measured = [], []
@@ -302,8 +303,8 @@ class FlowSensor:
             commanded.append(c)
             measured.append(m)
         try:
-            fit = flow_grip.fit_calibration(speeds, commanded, measured, max_spread)
-        except flow_grip.ReversedSensor as e:
+            fit = sensor_cal.fit_calibration(speeds, commanded, measured, max_spread)
+        except sensor_cal.ReversedSensor as e:
             raise gcmd.error(self._reversed_message(e)
                              + "; calibration unchanged") from None
         except FlowloopError as e:
@@ -320,11 +321,11 @@ class FlowSensor:
         "Correct the extruder rotation_distance from what the sensor measured")
 
     def cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE(self, gcmd):
-        low, high = flow_grip.ROTATION_DISTANCE_LENGTH_RANGE
-        length = gcmd.get_float('LENGTH', flow_grip.ROTATION_DISTANCE_LENGTH_MM,
+        low, high = sensor_cal.ROTATION_DISTANCE_LENGTH_RANGE
+        length = gcmd.get_float('LENGTH', sensor_cal.ROTATION_DISTANCE_LENGTH_MM,
                                 minval=low, maxval=high)
-        speed = gcmd.get_float('SPEED', flow_grip.ROTATION_DISTANCE_SPEED_MM_S,
-                               above=0., maxval=flow_grip.MAX_CALIBRATION_SPEED)
+        speed = gcmd.get_float('SPEED', sensor_cal.ROTATION_DISTANCE_SPEED_MM_S,
+                               above=0., maxval=sensor_cal.MAX_CALIBRATION_SPEED)
         self._check_extruder(gcmd)
         stepper = self.extruder.extruder_stepper.stepper
         old_rd = stepper.get_rotation_distance()[0]
@@ -332,9 +333,9 @@ class FlowSensor:
                           f" {speed:g} mm/s (about {length / speed:.0f} s)")
         commanded, measured = self._measure_extrusion(length, speed)
         try:
-            change = flow_grip.rotation_distance_correction(
+            change = sensor_cal.rotation_distance_correction(
                 old_rd, commanded, measured)
-        except flow_grip.ReversedSensor as e:
+        except sensor_cal.ReversedSensor as e:
             raise gcmd.error(self._reversed_message(e)
                              + "; nothing changed") from None
         except FlowloopError as e:

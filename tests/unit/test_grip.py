@@ -7,18 +7,20 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from flowloop.calibrate.flow_sensor import (
+    ReversedSensor,
+    fit_calibration,
+    parse_speeds,
+    rotation_distance_correction,
+)
 from flowloop.errors import FlowloopError
 from flowloop.sensor.grip import (
     SLIP_CHECK_MM,
     SLIP_GRIP,
     SLIP_STEP_MM,
     GripEstimator,
-    ReversedSensor,
     SampleRate,
-    fit_calibration,
-    parse_speeds,
     positions_at,
-    rotation_distance_correction,
     trapq_positions,
     window_flows,
 )
