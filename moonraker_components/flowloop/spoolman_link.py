@@ -1,6 +1,9 @@
 # flowloop component: the Spoolman link. When Moonraker's [spoolman] sets the
 # active spool, the profile naming that spool's filament becomes active on
 # the linked extruder (the rule is flowloop.material.active.follow_spool).
+# A spool loaded while Spoolman cannot say what it holds is looked up again
+# when Moonraker reconnects to Spoolman (Moonraker does not announce the
+# same spool twice).
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -27,8 +30,12 @@ class SpoolmanLink:
         self.default_wp = default_wp
         self.store = store
         self.profiles = profiles
+        # the active spool whose filament Spoolman could not be asked for
+        self.unresolved_spool: Any = None
         server.register_event_handler("spoolman:active_spool_set",
                                       self._on_active_spool_set)
+        server.register_event_handler("spoolman:spoolman_status_changed",
+                                      self._on_spoolman_status)
 
     def check_spoolman(self) -> None:
         if self.server.lookup_component("spoolman", None) is None:
@@ -46,11 +53,26 @@ class SpoolmanLink:
         if resp.has_error():
             logging.info(f"flowloop: Spoolman spool {spool_id}: HTTP "
                          f"{resp.status_code}")
+            if resp.status_code == 599 or resp.status_code >= 500:
+                # unreachable, timed out or failing: ask again on reconnect
+                self.unresolved_spool = spool_id
             return None
         return resp.json()
 
+    async def _on_spoolman_status(self, data: Dict[str, Any]) -> None:
+        if not (isinstance(data, dict) and data.get("spoolman_connected")):
+            return
+        spoolman = self.server.lookup_component("spoolman", None)
+        spool_id = self.unresolved_spool
+        if spool_id is not None and spoolman is not None \
+                and getattr(spoolman, "spool_id", None) == spool_id:
+            logging.info(f"flowloop: Spoolman is back: looking up spool "
+                         f"{spool_id} again")
+            await self._on_active_spool_set({"spool_id": spool_id})
+
     async def _on_active_spool_set(self, data: Dict[str, Any]) -> None:
         spool_id = data.get("spool_id") if isinstance(data, dict) else None
+        self.unresolved_spool = None
         if spool_id is None:
             return
         spool = await self._fetch_spool(spool_id)
