@@ -162,9 +162,10 @@ class Hardware:
     """What the procedure needs of the extruder, its heater and its sensor."""
     filament_area_mm2: float
     nozzle_diameter_mm: float
-    max_power: float = 1.0    # the heater's (POWERS= are shares of it)
+    max_power: float          # the heater's (POWERS= are shares of it)
     # The grip window length until the sensor's judged windows show it
-    window_mm: float = 1.25
+    # (flowloop.sensor.grip.DEFAULT_WINDOW_MM)
+    window_mm: float
 
     @property
     def filament_diameter_mm(self) -> float:

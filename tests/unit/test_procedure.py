@@ -22,7 +22,7 @@ from flowloop.material.profile import (
     MeasuredPoint,
     profile_from_dict,
 )
-from flowloop.sensor.grip import GripEstimator
+from flowloop.sensor.grip import DEFAULT_WINDOW_MM, GripEstimator
 from flowloop.sensor.twin import SimulatedEms22, scaled_line
 from flowloop.window import FAULT, JUDGED, Window
 
@@ -41,7 +41,8 @@ KNOWN = profile_from_dict({
     "provenance": {"method": "manual"},
 })
 AREA = 2.405
-HARDWARE = proc.Hardware(filament_area_mm2=AREA, nozzle_diameter_mm=0.4)
+HARDWARE = proc.Hardware(filament_area_mm2=AREA, nozzle_diameter_mm=0.4,
+                         max_power=1.0, window_mm=DEFAULT_WINDOW_MM)
 SETTINGS = proc.Settings(step_time_s=3.0, settle_time_s=5.0)
 TWIN = HotendParams(max_power_w=40.0)
 
@@ -374,8 +375,9 @@ def test_settings_and_hardware():
     with pytest.raises(FlowloopError, match="20 is below settle_time 30"):
         proc.Settings(settle_time_s=30.0, max_settle_time_s=20.0)
     assert HARDWARE.filament_diameter_mm == 1.75
-    assert proc.Hardware(3.14159265 / 4 * 2.85 ** 2, 0.6).filament_diameter_mm \
-        == 2.85
+    assert dataclasses.replace(
+        HARDWARE, filament_area_mm2=3.14159265 / 4 * 2.85 ** 2
+    ).filament_diameter_mm == 2.85
     assert proc.move_times(2.5) == (1.0, 1.0, 0.5)
     assert proc.move_times(2.0) == (1.0, 1.0)
 
@@ -386,7 +388,8 @@ def test_without_a_base_the_identity_is_the_extruder_s():
               for t, f, p in ((200.0, 4.8, 80.0), (230.0, 8.4, 100.0))]
     procedure = make(temps=(200.0, 230.0), base=None, min_temp=180.0,
                      max_temp=260.0,
-                     hardware=proc.Hardware(2.405, 0.6))
+                     hardware=dataclasses.replace(HARDWARE,
+                                                  nozzle_diameter_mm=0.6))
     # the levels, answered with the points above
     action = procedure.start()
     time, level = 0.0, -1
