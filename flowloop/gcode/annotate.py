@@ -269,8 +269,9 @@ class _Annotator:
         edges = edges[:final + 2]
         # window m holds the cells that overlap it: from the first that ends
         # after its start to the last that starts before its end
-        ends = np.append(start[1:], last_end)
-        lo = np.searchsorted(ends, edges[:-1], "right")
+        # (cell k ends where k + 1 starts, the last at last_end)
+        lo = np.searchsorted(start[1:], edges[:-1], "right")
+        lo += edges[:-1] >= last_end
         hi = np.searchsorted(start, edges[1:], "left")
         bounds = np.stack((lo, np.maximum(hi, lo)), axis=1).ravel()
         peaks = np.maximum.reduceat(np.append(flow, 0.0), bounds)[::2]
