@@ -1,19 +1,22 @@
 """`flowloop profile show|plot|validate|import|export`: material profiles at a
-desk; `flowloop profile list|store|activate|remove`: the profiles a printer's
-Moonraker keeps (flowloop.host.moonraker_api)."""
+desk (export: a ddPrint file, or slicer filament settings through
+flowloop.material.slicer); `flowloop profile list|store|activate|remove`: the
+profiles a printer's Moonraker keeps (flowloop.host.moonraker_api)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import sys
 from pathlib import Path
+from typing import Dict, List, Optional
 
 from ..errors import FlowloopError
 from ..host.moonraker_api import DEFAULT_URL, MoonrakerApi
-from ..material import ddprint, plot
+from ..material import ddprint, plot, slicer
 from ..material.active import extruder_arg, working_point_arg
 from ..material.profile import (
     DEFAULT_WORKING_POINT,
@@ -153,15 +156,117 @@ def cmd_import(args) -> int:
     return 1 if problems else 0
 
 
+EXPORT_FORMATS = ("ddprint",) + slicer.FORMATS
+# The file each format is written to in --output-dir: NAME + suffix.
+EXPORT_SUFFIX = {"ddprint": ".ddprint.json", **slicer.SUFFIX}
+
+
+def _formats(text: str) -> List[str]:
+    """--format's comma-separated list: each format once, in the order given."""
+    out: List[str] = []
+    for part in text.split(","):
+        name = part.strip().lower()
+        if name != "ddprint":
+            try:
+                name = slicer.check_format(name)
+            except FlowloopError:
+                raise FlowloopError(
+                    f"--format: unknown format {part.strip()!r} (one of "
+                    f"{', '.join(EXPORT_FORMATS + tuple(slicer.ALIASES))})") from None
+        if name not in out:
+            out.append(name)
+    return out
+
+
+def _number_option(option: str, text: Optional[str]) -> Optional[float]:
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise FlowloopError(f"{option}: not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise FlowloopError(f"{option}: not a number: {text!r}")
+    return value
+
+
+def _temp_option(profile: Profile, option: str, text: Optional[str]) -> Optional[int]:
+    value = _number_option(option, text)
+    if value is None:
+        return None
+    try:
+        return slicer.check_temp(profile, value)
+    except FlowloopError as e:
+        raise FlowloopError(f"{option}: {e}") from None
+
+
+def _export_texts(args, profile: Profile, formats: List[str]) -> Dict[str, str]:
+    """{format: file text}, every refusal made before anything is written."""
+    slicer_formats = [f for f in formats if f != "ddprint"]
+    given = [option for option, value in (
+        ("--temp", args.temp), ("--first-layer-temp", args.first_layer_temp),
+        ("--wp", args.wp), ("--inherits", args.inherits)) if value is not None]
+    if given and not slicer_formats:
+        raise FlowloopError(f"{given[0]}: only for a slicer format "
+                            f"(--format {','.join(slicer.FORMATS)})")
+    if args.inherits is not None and "orcaslicer" not in slicer_formats:
+        raise FlowloopError("--inherits: only for --format orcaslicer")
+    texts: Dict[str, str] = {}
+    if slicer_formats:
+        try:
+            wp = working_point_arg(args.wp, "") if args.wp is not None \
+                else DEFAULT_WORKING_POINT
+        except FlowloopError as e:
+            raise FlowloopError(f"--wp: {e}") from None
+        temp = _temp_option(profile, "--temp", args.temp)
+        first = _temp_option(profile, "--first-layer-temp", args.first_layer_temp)
+        numbers = slicer.slicer_numbers(profile, temp, first, wp)
+    for fmt in formats:
+        if fmt == "ddprint":
+            texts[fmt] = ddprint.export_text(profile)
+        elif fmt == "orcaslicer":
+            texts[fmt] = slicer.orcaslicer_json(numbers, args.inherits or "")
+        else:
+            texts[fmt] = slicer.prusaslicer_ini(numbers)
+    return texts
+
+
 def cmd_export(args) -> int:
+    formats = _formats(args.format)
+    if args.output is not None and args.output_dir is not None:
+        raise FlowloopError("-o and --output-dir: give one")
+    if len(formats) > 1 and args.output is not None:
+        raise FlowloopError(f"-o: {len(formats)} formats are written to "
+                            f"{len(formats)} files: give --output-dir DIR")
     profile = load(args.file)
-    refuse_overwriting([("-o", args.output)], [("FILE", args.file)])
-    text = ddprint.export_text(profile)
-    if args.output is None:
-        sys.stdout.write(text)
+    texts = _export_texts(args, profile, formats)
+    if args.output_dir is not None:
+        if not args.output_dir.is_dir():
+            raise FlowloopError(f"--output-dir: {args.output_dir}: no such directory")
+        stem = safe_file_stem(profile.identity.name)
+        outputs = [("--output-dir", args.output_dir / (stem + EXPORT_SUFFIX[fmt]))
+                   for fmt in formats]
+    elif args.output is not None:
+        outputs = [("-o", args.output)]
+    elif len(formats) == 1:
+        sys.stdout.write(texts[formats[0]])
+        return 0
     else:
-        args.output.write_text(text, encoding="utf-8")
-        print(f"wrote {args.output}")
+        raise FlowloopError(f"{len(formats)} formats are written to "
+                            f"{len(formats)} files: give --output-dir DIR")
+    refuse_overwriting(outputs, [("FILE", args.file)])
+    if not args.force:
+        for option, path in outputs:
+            if path.exists():
+                raise FlowloopError(f"{option}: {path} exists: not overwritten "
+                                    f"(--force overwrites it)")
+    for (option, path), fmt in zip(outputs, formats):
+        try:
+            path.write_text(texts[fmt], encoding="utf-8")
+        except OSError as e:
+            raise FlowloopError(f"{option}: {path}: cannot write: "
+                                f"{e.strerror}") from None
+        print(f"wrote {path} ({fmt})")
     return 0
 
 
@@ -272,9 +377,31 @@ def register(subparsers) -> None:
                                      "printer-specific files)")
     p.set_defaults(func=cmd_import)
 
-    p = sub.add_parser("export", help="a flowloop profile -> a ddPrint material file")
+    p = sub.add_parser(
+        "export", help="a flowloop profile -> a ddPrint material file, or slicer "
+                       "filament settings (PrusaSlicer .ini, OrcaSlicer .json)")
     p.add_argument("file", type=Path)
-    p.add_argument("-o", "--output", type=Path, help="output file (default: stdout)")
+    p.add_argument("-f", "--format", default="ddprint", metavar="LIST",
+                   help="comma-separated: ddprint, prusaslicer (superslicer), "
+                        "orcaslicer (default ddprint)")
+    p.add_argument("-o", "--output", type=Path,
+                   help="output file, one format (default: stdout)")
+    p.add_argument("-d", "--output-dir", type=Path, metavar="DIR",
+                   help="write each format to DIR/NAME.ddprint.json, NAME.ini, "
+                        "NAME.orcaslicer.json")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite output files that exist (default: refused)")
+    p.add_argument("--temp", metavar="DEGC",
+                   help="slicer: nozzle temperature, a whole degree within the "
+                        "profile's bounds (default: its recommended)")
+    p.add_argument("--first-layer-temp", metavar="DEGC",
+                   help="slicer: first-layer nozzle temperature (default: --temp)")
+    p.add_argument("--wp", metavar="WP",
+                   help="slicer: working point 0..1 the max volumetric speed is "
+                        "read at (0 real print, 1 into air; default 0.5)")
+    p.add_argument("--inherits", metavar="PRESET",
+                   help="orcaslicer: the preset this one is based on (default: "
+                        "none, a preset of its own)")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("list", help="the profiles a printer keeps, and where active")
