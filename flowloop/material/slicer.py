@@ -21,7 +21,9 @@ resources/profiles/*/filament/*.json; see docs/material_profiles.md):
   `filament_diameter` mm, `filament_notes` a quoted C-style string.
 * OrcaSlicer, a filament preset `.json`: every value a list of strings
   (`"nozzle_temperature": ["215"]`), with `type`, `name`, `from`,
-  `inherits`, `instantiation` and `filament_settings_id` naming the preset.
+  `inherits`, `instantiation`, `version` and `filament_settings_id` naming
+  the preset (its import needs `name`, a `version` and
+  `filament_settings_id`, which says it is a filament preset).
 """
 
 from __future__ import annotations
@@ -44,6 +46,11 @@ SUFFIX = {"prusaslicer": ".ini", "orcaslicer": ".orcaslicer.json"}
 MIN_FLOW_MM3_S = 0.01
 # OrcaSlicer's filament_max_volumetric_speed accepts at most this (its def->max).
 ORCA_MAX_FLOW_MM3_S = 200.0
+# OrcaSlicer imports a preset only with a version that parses (its
+# PresetBundle::import_json_presets: `if (!version) return false`); the
+# version of the OrcaSlicer the preset is written for, shaped as its own
+# user presets' ("1.6.0.66").
+ORCA_PRESET_VERSION = "1.6.0.0"
 
 
 class SlicerNumbers(NamedTuple):
@@ -178,6 +185,7 @@ def orcaslicer_preset(numbers: SlicerNumbers, inherits: str = "") -> Dict[str, o
         "from": "User",
         "inherits": inherits,
         "instantiation": "true",
+        "version": ORCA_PRESET_VERSION,
         "filament_settings_id": one(numbers.name),
         "nozzle_temperature": one(str(numbers.temp_c)),
         "nozzle_temperature_initial_layer": one(str(numbers.first_layer_temp_c)),

@@ -300,10 +300,16 @@ def test_the_orcaslicer_preset_has_the_keys_and_types_of_real_ones():
         assert preset[key][0].isdigit()
     for key in ("filament_max_volumetric_speed", "filament_diameter"):
         assert float(preset[key][0]) > 0
-    # a user preset as OrcaSlicer exports one has these
+    # a user preset as OrcaSlicer exports one has these; its import
+    # (PresetBundle::import_json_presets) skips a file without a version that
+    # parses, and takes filament_settings_id for "a filament preset"
     user = excerpts["resources/profiles/Custom/filament/XFILAMENTS PLA.json"]
-    assert {"from", "inherits", "name", "filament_settings_id"} <= set(preset)
+    assert {"from", "inherits", "name", "filament_settings_id", "version"} \
+        <= set(preset)
     assert user["from"] == preset["from"]
+    shape = r"\d+\.\d+\.\d+\.\d+"
+    assert re.fullmatch(shape, user["version"]) and re.fullmatch(shape,
+                                                                 preset["version"])
 
 
 def test_orcaslicer_refuses_more_than_its_most():
