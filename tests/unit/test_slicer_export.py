@@ -180,13 +180,13 @@ def _cube_stl(path: Path, size: float = 20.0) -> None:
     path.write_text("\n".join(out + ["endsolid cube"]) + "\n")
 
 
-def _slice(tmp_path: Path, ini: Path) -> str:
-    stl, gcode = tmp_path / "cube.stl", tmp_path / (ini.stem + ".gcode")
+def _slice(tmp_path: Path, *inis: Path) -> str:
+    stl, gcode = tmp_path / "cube.stl", tmp_path / (inis[-1].stem + ".gcode")
     if not stl.exists():
         _cube_stl(stl)
-    done = subprocess.run([PRUSA, "--load", str(ini), "--export-gcode",
-                           "-o", str(gcode), str(stl)],
-                          capture_output=True, text=True, timeout=120)
+    loads = [arg for ini in inis for arg in ("--load", str(ini))]
+    done = subprocess.run([PRUSA, *loads, "--export-gcode", "-o", str(gcode),
+                           str(stl)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     return gcode.read_text()
 
@@ -251,6 +251,23 @@ def test_prusaslicer_loads_the_ini_and_slices_with_its_numbers(tmp_path):
     unlimited.write_text(ini.read_text().replace(
         "filament_max_volumetric_speed = 7.21", "filament_max_volumetric_speed = 0"))
     assert _max_flow(_slice(tmp_path, unlimited), 1.75) > 7.21 * 1.2
+
+
+@pytest.mark.skipif(PRUSA is None, reason="prusa-slicer is not installed (Debian: "
+                                           "apt-get install prusa-slicer)")
+def test_the_ini_loaded_last_overrides_a_farms_own_settings(tmp_path):
+    # a farm's printer and print settings first, flowloop's filament last
+    farm = tmp_path / "farm.ini"
+    farm.write_text("layer_height = 0.2\ntemperature = 250\n"
+                    "first_layer_temperature = 255\n"
+                    "filament_max_volumetric_speed = 20\n")
+    ini = tmp_path / "herz.ini"
+    ini.write_text(slicer.prusaslicer_ini(slicer.slicer_numbers(herz(), 230, 235)))
+    gcode = _slice(tmp_path, farm, ini)
+    config = dict(m.groups() for m in re.finditer(r"^; (\w+) = (.*)$", gcode, re.M))
+    assert config["layer_height"] == "0.2"            # the farm's
+    assert (config["temperature"], config["first_layer_temperature"],
+            config["filament_max_volumetric_speed"]) == ("230", "235", "14.57")
 
 
 # --- OrcaSlicer -------------------------------------------------------------------
