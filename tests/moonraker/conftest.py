@@ -1,6 +1,7 @@
 """Helpers for the Moonraker tier: a JSON-RPC websocket client that also
-collects notifications (polling is devtools.stack.wait_until), and a
-Moonraker run from a copy of its package (polling is devtools.stack.wait_until)."""
+collects notifications (polling is devtools.stack.wait_until), a Moonraker
+run from a copy of its package (polling is devtools.stack.wait_until), and
+the printer stack a module's tests share (the printer fixture)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import json
 import shutil
 import time
 from pathlib import Path
+from typing import Optional
 
 import pytest
 
@@ -64,6 +66,52 @@ class Rpc:
     async def in_thread(self, fn):
         """A blocking call (an HTTP request, G-code) while the socket listens."""
         return await asyncio.get_running_loop().run_in_executor(None, fn)
+
+
+@contextlib.contextmanager
+def stack_with_cfg(cfg: Optional[str] = None, **options):
+    """devtools.stack.printer_stack(**options) on klippy's printer config
+    given as text, kept in a temporary file while the stack runs (None:
+    config/printer.cfg)."""
+    if cfg is None:
+        with stack.printer_stack(**options) as ps:
+            yield ps
+        return
+    cfg_dir = stack.short_tempdir("fl-cfg-")
+    path = cfg_dir / "test_printer.cfg"
+    path.write_text(cfg)
+    try:
+        with stack.printer_stack(printer_cfg=path, **options) as ps:
+            yield ps
+    finally:
+        shutil.rmtree(cfg_dir, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def printer(request, moonraker_venv):
+    """The printer stack a module's tests share, started once per module
+    (module scope: make test's scheduler runs the module's tests that use it
+    on one worker). What differs between modules, each module says:
+    PRINTER_CFG, klippy's printer config, formatted with project= the
+    project's folder and PRINTER_CFG_ARGS (none: config/printer.cfg);
+    PRINTER_STACK, more printer_stack() arguments (with_klippy=False:
+    Moonraker alone, no Klipper wanted); prepare_printer(ps), called once
+    the stack is up, before the module's first test."""
+    module = request.module
+    options = dict(getattr(module, "PRINTER_STACK", {}))
+    if options.get("with_klippy", True):
+        # Klipper built (skipped without a checkout) and its venv, for klippy
+        request.getfixturevalue("klipper_build")
+        request.getfixturevalue("klippy_venv")
+    cfg = getattr(module, "PRINTER_CFG", None)
+    if cfg is not None:
+        cfg = cfg.format(project=stack.PROJECT,
+                         **getattr(module, "PRINTER_CFG_ARGS", {}))
+    with stack_with_cfg(cfg, **options) as ps:
+        prepare = getattr(module, "prepare_printer", None)
+        if prepare is not None:
+            prepare(ps)
+        yield ps
 
 
 @pytest.fixture

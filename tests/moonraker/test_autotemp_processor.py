@@ -8,20 +8,13 @@ import urllib.request
 from pathlib import Path
 from urllib.parse import quote
 
-import pytest
-
 from devtools import stack
 from flowloop.gcode.annotate import is_annotated
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
 GCODE = DATA / "block_layers_1_2.gcode"
-
-
-@pytest.fixture(scope="module")
-def printer(moonraker_venv):
-    with stack.printer_stack(with_klippy=False,
-                             moonraker_conf="annotate_uploads: True") as p:
-        yield p
+# the printer fixture (tests/moonraker/conftest.py): Moonraker alone
+PRINTER_STACK = {"with_klippy": False, "moonraker_conf": "annotate_uploads: True"}
 
 
 def metadata(moonraker, name: str):

@@ -9,15 +9,8 @@ from __future__ import annotations
 
 import pytest
 
-from devtools import stack
 from devtools.klippy_api import KlippyApi
 from flowloop.sensor import ems22
-
-
-@pytest.fixture(scope="module")
-def printer(klipper_build, klippy_venv, moonraker_venv):
-    with stack.printer_stack() as printer:
-        yield printer
 
 
 def test_dump_flow_streams_sensor_and_commanded_filament(printer):

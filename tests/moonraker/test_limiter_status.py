@@ -3,12 +3,9 @@ Fluidd read), and a change made with SET_FLOWRATE_LIMIT shows in it."""
 
 from __future__ import annotations
 
-import shutil
-
 import pytest
 
-from devtools import stack
-
+# klippy's config in the printer fixture (tests/moonraker/conftest.py)
 PRINTER_CFG = """\
 [include {project}/config/printer.cfg]
 
@@ -17,18 +14,6 @@ max_flow: 9
 """
 
 FIELDS = {"enabled", "cap", "reason", "slowed_time", "slowed_moves", "model"}
-
-
-@pytest.fixture(scope="module")
-def printer(klipper_build, klippy_venv, moonraker_venv):
-    cfg_dir = stack.short_tempdir("fl-lcfg-")
-    cfg = cfg_dir / "limiter_printer.cfg"
-    cfg.write_text(PRINTER_CFG.format(project=stack.PROJECT))
-    try:
-        with stack.printer_stack(printer_cfg=cfg) as ps:
-            yield ps
-    finally:
-        shutil.rmtree(cfg_dir, ignore_errors=True)
 
 
 def gcode(ps, script):

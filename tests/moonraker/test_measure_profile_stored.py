@@ -5,7 +5,6 @@ and provenance, shows in Moonraker's API and comes back activated in klippy."""
 
 from __future__ import annotations
 
-import shutil
 from urllib.parse import quote
 
 import pytest
@@ -17,18 +16,8 @@ KNOWN = make(name="known pla", bounds=(185.0, 210.0, 250.0),
              air=(0.12, 210.0, 6.0), real=(0.12, 210.0, 6.0))
 MEASURE = ("MEASURE_MATERIAL_PROFILE NAME=\"measured pla\" TEMPS=200,220,240 "
            "START_FLOW=4 STEP=0.25 MAX_FLOW=14 MIN_GRIP=0.9 ACTIVATE=1")
-
-
-@pytest.fixture(scope="module")
-def printer(klipper_build, klippy_venv, moonraker_venv):
-    cfg_dir = stack.short_tempdir("fl-mcfg-")
-    cfg = cfg_dir / "measure_printer.cfg"
-    cfg.write_text(f"[include {stack.PROJECT / 'tests/klippy/measure_profile.cfg'}]\n")
-    try:
-        with stack.printer_stack(printer_cfg=cfg) as ps:
-            yield ps
-    finally:
-        shutil.rmtree(cfg_dir, ignore_errors=True)
+# klippy's config in the printer fixture (tests/moonraker/conftest.py)
+PRINTER_CFG = "[include {project}/tests/klippy/measure_profile.cfg]\n"
 
 
 def request(ps, method, path, body=None):

@@ -25,11 +25,13 @@ import pytest
 
 from devtools import stack
 from flowloop.gcode.annotate import annotate_file
+from tests.moonraker.conftest import stack_with_cfg
 from tests.samples import make
 
 PROJECT = stack.PROJECT
 EXCERPT = PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
 
+# klippy's config in the printer fixture (tests/moonraker/conftest.py)
 PRINTER_CFG = """\
 [include {project}/config/printer.cfg]
 
@@ -114,19 +116,12 @@ def own_browser(browser):
         driver.quit()
 
 
-@pytest.fixture(scope="module")
-def printer(klipper_build, klippy_venv, moonraker_venv):
-    cfg_dir = stack.short_tempdir("fl-page-")
-    cfg = cfg_dir / "page_printer.cfg"
-    cfg.write_text(PRINTER_CFG.format(project=PROJECT))
-    try:
-        with stack.printer_stack(printer_cfg=cfg) as ps:
-            gcodes = ps.data_dir / "gcodes"
-            annotate_file(EXCERPT, gcodes / "annotated.gcode")
-            shutil.copy(EXCERPT, gcodes / "plain.gcode")
-            yield ps
-    finally:
-        shutil.rmtree(cfg_dir, ignore_errors=True)
+def prepare_printer(ps):
+    """The printer fixture's files to print (tests/moonraker/conftest.py;
+    its klippy runs PRINTER_CFG)."""
+    gcodes = ps.data_dir / "gcodes"
+    annotate_file(EXCERPT, gcodes / "annotated.gcode")
+    shutil.copy(EXCERPT, gcodes / "plain.gcode")
 
 
 def page_url(ps, extruder=None):
@@ -472,15 +467,9 @@ gcode: SET_KINEMATIC_POSITION X=0 Y=0 Z=0
 def live_printer(klipper_build, klippy_venv, moonraker_venv):
     """The same printer on klippy paced to the clock (devtools/realtime_klippy.py):
     a print runs in real time, as the page is meant to watch it."""
-    cfg_dir = stack.short_tempdir("fl-page-rt-")
-    cfg = cfg_dir / "page_realtime.cfg"
-    cfg.write_text(REALTIME_CFG.format(project=PROJECT))
-    try:
-        with stack.printer_stack(printer_cfg=cfg, realtime=True) as ps:
-            annotate_file(EXCERPT, ps.data_dir / "gcodes" / "annotated.gcode")
-            yield ps
-    finally:
-        shutil.rmtree(cfg_dir, ignore_errors=True)
+    with stack_with_cfg(REALTIME_CFG.format(project=PROJECT), realtime=True) as ps:
+        annotate_file(EXCERPT, ps.data_dir / "gcodes" / "annotated.gcode")
+        yield ps
 
 
 @pytest.mark.alone  # paced to the wall clock

@@ -5,18 +5,10 @@ from __future__ import annotations
 
 import json
 
-import pytest
-
 from devtools import stack
 from flowloop.cli import main
 
 WEAK = stack.PROJECT / "docs" / "examples" / "weak.json"
-
-
-@pytest.fixture(scope="module")
-def printer(klipper_build, klippy_venv, moonraker_venv):
-    with stack.printer_stack() as ps:
-        yield ps
 
 
 def flowloop(capsys, *argv):

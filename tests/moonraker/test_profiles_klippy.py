@@ -5,7 +5,6 @@ not G-code) and a klippy macro hands a profile over with flowloop_store_profile.
 from __future__ import annotations
 
 import json
-import shutil
 import socket
 from urllib.parse import quote
 
@@ -17,6 +16,7 @@ from tests.samples import make
 
 MACRO_PROFILE = make(name="from-klippy", bounds=(200.0, 215.0, 250.0))
 
+# klippy's config in the printer fixture (tests/moonraker/conftest.py)
 PRINTER_CFG = """\
 [include {project}/config/printer.cfg]
 
@@ -34,19 +34,8 @@ gcode:
                               activate_extruder="extruder", working_point="abc")}}
 """
 BAD_WP_PROFILE = make(name="bad-wp-from-klippy")
-
-
-@pytest.fixture(scope="module")
-def printer(klipper_build, klippy_venv, moonraker_venv):
-    cfg_dir = stack.short_tempdir("fl-pcfg-")
-    cfg = cfg_dir / "profiles_printer.cfg"
-    cfg.write_text(PRINTER_CFG.format(project=stack.PROJECT, profile=MACRO_PROFILE,
-                                      bad_wp_profile=BAD_WP_PROFILE))
-    try:
-        with stack.printer_stack(printer_cfg=cfg) as ps:
-            yield ps
-    finally:
-        shutil.rmtree(cfg_dir, ignore_errors=True)
+# what the printer fixture formats PRINTER_CFG with (tests/moonraker/conftest.py)
+PRINTER_CFG_ARGS = {"profile": MACRO_PROFILE, "bad_wp_profile": BAD_WP_PROFILE}
 
 
 def request(ps, method, path, body=None):
