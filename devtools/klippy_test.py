@@ -8,6 +8,8 @@ an "Unknown command" anywhere in the log fails the run, and a comment line
 "# EXPECT_LOG: text" (a comment, so Klipper's own runner ignores it) requires
 that text in the log of every run of the file: a SHOULD_FAIL test says why
 it must fail.
+write_test writes a .test file (and its printer config) for a test that
+makes one up.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Optional, Tuple, Union
 
 from .stack import KlipperBuild, Venv
 
@@ -81,6 +83,26 @@ def parse(test_file: Path, dict_dir: Path) -> List[Run]:
     for run in runs:
         run.expect_log = list(expect_log)
     return runs
+
+
+def write_test(folder: Path, name: str, gcode: str = "", *,
+               cfg: Optional[str] = None, config: Optional[Path] = None,
+               dictionary: Union[str, Path] = "atmega2560.dict",
+               should_fail: bool = False) -> Tuple[Path, Path]:
+    """Write folder/NAME.test: DICTIONARY, CONFIG, SHOULD_FAIL if asked,
+    then gcode (G-code and directives, as in a .test file). The printer
+    config is cfg, its text, written to folder/NAME.cfg, or config, an
+    existing file (exactly one of them). Returns (config, test) paths."""
+    if (cfg is None) == (config is None):
+        raise ValueError("write_test: give cfg (a config's text) or config "
+                         "(a config file), not both or neither")
+    if cfg is not None:
+        config = Path(folder) / f"{name}.cfg"
+        config.write_text(cfg)
+    test = Path(folder) / f"{name}.test"
+    test.write_text(f"DICTIONARY {dictionary}\nCONFIG {config}\n"
+                    + ("SHOULD_FAIL\n" if should_fail else "") + gcode)
+    return Path(config), test
 
 
 def run_file(test_file: Path, build: KlipperBuild, venv: Venv, workdir: Path,

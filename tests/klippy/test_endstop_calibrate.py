@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from devtools.klippy_test import run_file
+from devtools.klippy_test import run_file, write_test
 from flowloop.calibrate import delta
 from flowloop.host.klipper_config import read_config
 
@@ -104,10 +104,6 @@ POINTS = [(0.0, 0.0, 20.0), (-86.6, -50.0, 0.3), (86.4, -50.3, -0.8),
 def klippy_positions(build, venv, workdir, config, points):
     """GET_POSITION after G28 (home), then for each point after a move and
     after SET_KINEMATIC_POSITION to it: [(steppers, kinematic, toolhead)]."""
-    printer_cfg = workdir / "printer.cfg"
-    # SET_KINEMATIC_POSITION needs [force_move]; the delta itself is the file's.
-    printer_cfg.write_text(f"[include {config}]\n[force_move]\n"
-                           "enable_force_move: True\n")
     gcode = ["G28", "GET_POSITION"]
     for x, y, z in points:
         gcode += [f"G1 X{x} Y{y} Z{z} F6000",
@@ -116,9 +112,10 @@ def klippy_positions(build, venv, workdir, config, points):
                   "GET_POSITION",
                   f"SET_KINEMATIC_POSITION X={x} Y={y} Z={z}",
                   "GET_POSITION"]
-    test = workdir / "positions.test"
-    test.write_text(f"CONFIG {printer_cfg}\nDICTIONARY atmega2560.dict\n"
-                    + "\n".join(gcode) + "\n")
+    # SET_KINEMATIC_POSITION needs [force_move]; the delta itself is the file's.
+    printer_cfg, test = write_test(
+        workdir, "printer", "\n".join(gcode) + "\n",
+        cfg=f"[include {config}]\n[force_move]\nenable_force_move: True\n")
     log = run_file(test, build, venv, workdir)
     found = [tuple(np.array(m.groups()[i:i + 3], float) for i in (0, 3, 6))
              for m in POSITION_RE.finditer(log)]

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from devtools.klippy_test import run_file
+from devtools.klippy_test import run_file, write_test
 from flowloop.sensor import ems22
 from flowloop.sensor.grip import FLOW_PIECE_S
 
@@ -37,11 +37,10 @@ def test_the_linux_mcu_hands_payloads_to_the_sensor(klipper_build, klippy_venv,
     # flow_sensor_linux.cfg reads in SPI mode 1
     read = ems22.spi_read_model(ems22.make_frame(100), 1)
     payload = ems22.pack_messages(0, [(0, read)])[0].hex()
-    test = short_tmp / "linux.test"
-    test.write_text(
-        f"DICTIONARY linuxprocess.dict\nCONFIG {HERE / 'flow_sensor_linux.cfg'}\n"
-        f"FLOW_SENSOR_FEED SENSOR=host SEQUENCE=0 DATA={payload}\n"
-        "QUERY_FLOW_SENSOR SENSOR=host\n")
+    _, test = write_test(
+        short_tmp, "linux", f"FLOW_SENSOR_FEED SENSOR=host SEQUENCE=0 DATA={payload}\n"
+        "QUERY_FLOW_SENSOR SENSOR=host\n", config=HERE / "flow_sensor_linux.cfg",
+        dictionary="linuxprocess.dict")
     log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
     # one good sample arrived: the position exists (none before any)
     assert "flow_sensor host: grip not judged" in log
@@ -50,10 +49,9 @@ def test_the_linux_mcu_hands_payloads_to_the_sensor(klipper_build, klippy_venv,
 
 def test_a_real_sensor_offers_no_testing_command(klipper_build, klippy_venv,
                                                  short_tmp):
-    test = short_tmp / "feed.test"
-    test.write_text(
-        f"DICTIONARY atmega2560.dict\nCONFIG {HERE / 'flow_sensor.cfg'}\n"
-        "FLOW_SENSOR_FEED SENSOR=filament SEQUENCE=0 DATA=0000028c9000\n")
+    _, test = write_test(
+        short_tmp, "feed", "FLOW_SENSOR_FEED SENSOR=filament SEQUENCE=0 "
+        "DATA=0000028c9000\n", config=HERE / "flow_sensor.cfg")
     log = run_file(test, klipper_build, klippy_venv, short_tmp,
                    allow_unknown=True)
     assert 'Unknown command:"FLOW_SENSOR_FEED"' in log
@@ -66,9 +64,8 @@ def test_firmware_without_the_command_is_told_to_rebuild(klipper_build, klippy_v
         del data["commands"][fmt]
     old = short_tmp / "old-firmware.dict"
     old.write_text(json.dumps(data))
-    test = short_tmp / "old.test"
-    test.write_text(f"DICTIONARY {old}\nCONFIG {HERE / 'flow_sensor.cfg'}\n"
-                    "SHOULD_FAIL\n")
+    _, test = write_test(short_tmp, "old", config=HERE / "flow_sensor.cfg",
+                         dictionary=old, should_fail=True)
     log = run_file(test, klipper_build, klippy_venv, short_tmp)
     assert "firmware has no EMS22 sensor support" in log
     assert "make flash" in log
@@ -90,15 +87,13 @@ MISSING_FRAMES = ("180002ffffff02ffffff02ffffff02ffffff02ffffff02ffffff02ffffff"
 def test_on_fault_pause_leaves_an_idle_printer_alone(klipper_build, klippy_venv,
                                                      short_tmp):
     # A sensor unplugged at boot: a fault, said on the console, no PAUSE
-    cfg = short_tmp / "idle.cfg"
-    cfg.write_text(f"[include {HERE / 'flow_sensor.cfg'}]\n"
-                   "[flow_sensor filament]\non_fault: pause\n")
-    test = short_tmp / "idle.test"
-    test.write_text(
-        f"DICTIONARY atmega2560.dict\nCONFIG {cfg}\n"
+    _, test = write_test(
+        short_tmp, "idle",
         f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE=0 DATA={MISSING_FRAMES}\n"
         f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE=1 DATA={MISSING_FRAMES}\n"
-        "G4 P100\nQUERY_FLOW_SENSOR\n")
+        "G4 P100\nQUERY_FLOW_SENSOR\n",
+        cfg=f"[include {HERE / 'flow_sensor.cfg'}]\n"
+            "[flow_sensor filament]\non_fault: pause\n")
     log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
     assert "fault missing" in log          # the query saw the fault
     # logged, then said on the console by the callback that would pause
@@ -109,11 +104,10 @@ def test_on_fault_pause_leaves_an_idle_printer_alone(klipper_build, klippy_venv,
 def test_calibration_with_slipping_speeds_changes_nothing(klipper_build,
                                                           klippy_venv, short_tmp):
     # 8 mm/s of 1.75 mm filament is 19 mm^3/s: the twin melts only 10 at 200 C
-    test = short_tmp / "slip.test"
-    test.write_text(
-        f"DICTIONARY atmega2560.dict\nCONFIG {HERE / 'flow_sensor_sim.cfg'}\n"
-        "SHOULD_FAIL\nSET_HEATER_TEMPERATURE HEATER=extruder TARGET=200\n"
-        "CALIBRATE_FLOW_SENSOR SENSOR=sim LENGTH=20 SPEEDS=1,8\n")
+    _, test = write_test(
+        short_tmp, "slip", "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=200\n"
+        "CALIBRATE_FLOW_SENSOR SENSOR=sim LENGTH=20 SPEEDS=1,8\n",
+        config=HERE / "flow_sensor_sim.cfg", should_fail=True)
     log = run_file(test, klipper_build, klippy_venv, short_tmp)
     assert "the speeds disagree by more than 2.00%; calibration unchanged" in log
     assert "save_config: set [flow_sensor sim]" not in log
@@ -122,14 +116,11 @@ def test_calibration_with_slipping_speeds_changes_nothing(klipper_build,
 def test_a_reversed_sensor_is_named_in_calibration(klipper_build, klippy_venv,
                                                   short_tmp):
     # the twin counts forward; configured reverse, it reads backwards
-    cfg = short_tmp / "reversed.cfg"
-    cfg.write_text(f"[include {HERE / 'flow_sensor_cal.cfg'}]\n"
-                   "[flow_sensor cal]\ndirection: reverse\n")
-    test = short_tmp / "reversed.test"
-    test.write_text(
-        f"DICTIONARY atmega2560.dict\nCONFIG {cfg}\nSHOULD_FAIL\n"
-        "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=210\n"
-        "CALIBRATE_FLOW_SENSOR SENSOR=cal LENGTH=5 SPEEDS=1,2\n")
+    _, test = write_test(
+        short_tmp, "reversed", "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=210\n"
+        "CALIBRATE_FLOW_SENSOR SENSOR=cal LENGTH=5 SPEEDS=1,2\n",
+        cfg=f"[include {HERE / 'flow_sensor_cal.cfg'}]\n"
+            "[flow_sensor cal]\ndirection: reverse\n", should_fail=True)
     log = run_file(test, klipper_build, klippy_venv, short_tmp)
     assert ("the sensor counts backwards (ratio -1.0" in log
             and "set direction: forward in [flow_sensor cal]; calibration"
@@ -142,18 +133,15 @@ def test_pressure_advance_at_corners_is_not_a_retraction(klipper_build,
     # A zigzag of 0.4 x 0.2 mm lines at 50 mm/s (4 mm^3/s): each corner
     # slows to the square corner velocity and pressure advance pulls the
     # extruder stepper back ~0.07 mm; the planned E never goes back.
-    cfg = short_tmp / "pa.cfg"
-    cfg.write_text(f"[include {HERE / 'flow_sensor_sim.cfg'}]\n"
-                   "[extruder]\npressure_advance: 0.05\n")
     e_per_line = 20 * 0.4 * 0.2 / 2.405
     lines = "".join(f"G1 X{60 if i % 2 else 40} Y{40 + i} E{e_per_line:.4f}\n"
                     for i in range(1, 41))
-    test = short_tmp / "pa.test"
-    test.write_text(
-        f"DICTIONARY atmega2560.dict\nCONFIG {cfg}\n"
-        "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=200\n"
+    _, test = write_test(
+        short_tmp, "pa", "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=200\n"
         "G28\nG1 X40 Y40 Z0.2 F6000\nM83\nG1 F3000\n" + lines
-        + "M400\nQUERY_FLOW_SENSOR\n")
+        + "M400\nQUERY_FLOW_SENSOR\n",
+        cfg=f"[include {HERE / 'flow_sensor_sim.cfg'}]\n"
+            "[extruder]\npressure_advance: 0.05\n")
     log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
     reasons = [json.loads(line.split("GRIP_WINDOW ", 1)[1])["reason"]
                for line in log.splitlines() if "GRIP_WINDOW " in line]
@@ -181,10 +169,8 @@ def test_time_lost_by_the_mcu_restarts_the_query(klipper_build, klippy_venv,
     assert len(records) % ems22.RECORDS_PER_MSG == 0
     # the host restarts the query at once: the MCU counts from 0 again
     fresh = list(enumerate(ems22.pack_messages(0, _reads([140]))))
-    test = short_tmp / "time_lost.test"
-    test.write_text(
-        f"DICTIONARY atmega2560.dict\nCONFIG {HERE / 'flow_sensor.cfg'}\n"
-        + _feed(lost)
+    _, test = write_test(
+        short_tmp, "time_lost", _feed(lost)
         + "ASSERT_FLOW SAMPLES=1 POSITION=0 ERROR_KIND=time_lost ERRORS=9"
           " FAULT=overflow\n"
         + _feed(fresh)
@@ -192,7 +178,7 @@ def test_time_lost_by_the_mcu_restarts_the_query(klipper_build, klippy_venv,
           " ERRORS=0 FAULT=none\n"
         # the first read of the new query follows a gap of unknown length
         + "ASSERT_FLOW SAMPLES=2 POSITION=0.3890 ERROR_KIND=discontinuity"
-          " ERRORS=1 FAULT=none\n")
+          " ERRORS=1 FAULT=none\n", config=HERE / "flow_sensor.cfg")
     log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
     assert "fell 255 reads behind and lost count of them" in log
 
@@ -201,16 +187,16 @@ def test_subscribers_get_every_window_with_flow_and_temperature(
         klipper_build, klippy_venv, short_tmp):
     # Phases, each ended by a QUERY_FLOW_SENSOR answer in the log: 5 mm^3/s,
     # 20 mm^3/s (the twin melts 10 at 200 C), a missing sensor, back again
-    test = short_tmp / "subscribe.test"
-    test.write_text(
-        f"DICTIONARY atmega2560.dict\nCONFIG {HERE / 'flow_sensor_sim.cfg'}\n"
+    _, test = write_test(
+        short_tmp, "subscribe",
         "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=200\nM83\n"
         "G1 E20 F125\nM400\nQUERY_FLOW_SENSOR\n"
         "G1 E40 F500\nM400\nQUERY_FLOW_SENSOR\n"
         "SET_FLOW_SENSOR_SIMULATION FAULT=missing\n"
         "G1 E10 F300\nM400\nG1 E10 F300\nM400\nQUERY_FLOW_SENSOR\n"
         "SET_FLOW_SENSOR_SIMULATION FAULT=none\n"
-        "G1 E10 F125\nM400\nQUERY_FLOW_SENSOR\n")
+        "G1 E10 F125\nM400\nQUERY_FLOW_SENSOR\n",
+        config=HERE / "flow_sensor_sim.cfg")
     log = run_file(test, Harnessed(klipper_build), klippy_venv, short_tmp)
     phases = [[]]
     for line in log.splitlines():

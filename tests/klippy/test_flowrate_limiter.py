@@ -12,7 +12,7 @@ import pytest
 from devtools import stack
 from devtools.demo_flowrate_limiter import OPTIMISTIC_PROFILE, print_closed_loop
 from devtools.klippy_api import KlippyApi
-from devtools.klippy_test import run_file
+from devtools.klippy_test import run_file, write_test
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.klippy.flowrate_limiter_steps import (
     output_is_whole,
@@ -55,10 +55,7 @@ def run(klipper_build, klippy_venv, tmp, first_lines="", source=GCODE,
     mode after first_lines."""
     gcode = tmp / "print.gcode"
     gcode.write_text(first_lines + source.read_text())
-    test = tmp / "file.test"
-    test.write_text(f"DICTIONARY atmega2560.dict\n"
-                    f"CONFIG {config}\n"
-                    f"GCODE {gcode}\n")
+    _, test = write_test(tmp, "file", f"GCODE {gcode}\n", config=config)
     # A busy machine can cost the output its tail (output_is_whole): run
     # again then, and fail if that keeps happening
     for _ in range(3):
@@ -225,9 +222,8 @@ def test_the_model_learns_a_hotend_weaker_than_its_profile(klipper_build,
 ])
 def test_a_bad_option_fails_config_loading_naming_it(klipper_build, klippy_venv,
                                                     short_tmp, cfg, message):
-    test = short_tmp / "bad.test"
-    test.write_text(f"DICTIONARY atmega2560.dict\n"
-                    f"CONFIG {HERE / f'flowrate_limiter_fail_{cfg}.cfg'}\n"
-                    "SHOULD_FAIL\n")
+    _, test = write_test(short_tmp, "bad",
+                         config=HERE / f"flowrate_limiter_fail_{cfg}.cfg",
+                         should_fail=True)
     log = run_file(test, klipper_build, klippy_venv, short_tmp)
     assert f"Section [flowrate_limiter], {message}" in log

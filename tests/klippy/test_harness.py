@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from devtools import stack
-from devtools.klippy_test import KlippyTestFailure, parse, run_file
+from devtools.klippy_test import KlippyTestFailure, parse, run_file, write_test
 
 
 def test_klippers_own_commands_test_runs_in_place(klipper_build, klippy_venv,
@@ -29,9 +29,8 @@ def test_import_test_passes_in_the_patched_tree(klipper_build, klippy_venv):
 
 
 def test_an_unknown_command_fails_the_run(klipper_build, klippy_venv, short_tmp):
-    test = short_tmp / "unknown.test"
-    cfg = klipper_build.tree / "config" / "example-cartesian.cfg"
-    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nNO_SUCH_COMMAND_X\n")
+    _, test = write_test(short_tmp, "unknown", "NO_SUCH_COMMAND_X\n",
+                         config=klipper_build.tree / "config" / "example-cartesian.cfg")
     with pytest.raises(KlippyTestFailure, match="Unknown command"):
         run_file(test, klipper_build, klippy_venv, short_tmp)
 
@@ -51,9 +50,9 @@ def test_installing_flowloop_moved_no_pinned_klippy_package(klippy_venv):
 
 
 def test_expect_log_lines_are_read_from_comments(tmp_path):
-    test = tmp_path / "why.test"
-    test.write_text("CONFIG a.cfg\nDICTIONARY a.dict\nSHOULD_FAIL\n"
-                    "# EXPECT_LOG: must be above 0\nG28\n")
+    _, test = write_test(tmp_path, "why", "# EXPECT_LOG: must be above 0\nG28\n",
+                         config=tmp_path / "a.cfg", dictionary="a.dict",
+                         should_fail=True)
     (run,) = parse(test, tmp_path)
     assert run.expect_log == ["must be above 0"]
     assert run.gcode == ["G28"]
@@ -61,11 +60,11 @@ def test_expect_log_lines_are_read_from_comments(tmp_path):
 
 def test_a_failure_for_another_reason_fails_the_test(klipper_build, klippy_venv,
                                                      short_tmp):
-    test = short_tmp / "wrong_reason.test"
-    cfg = klipper_build.tree / "config" / "example-cartesian.cfg"
-    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nSHOULD_FAIL\n"
-                    "# EXPECT_LOG: a reason that never appears\n"
-                    "G28\nG1 X9999\n")  # fails, but for another reason
+    _, test = write_test(short_tmp, "wrong_reason",
+                         "# EXPECT_LOG: a reason that never appears\n"
+                         "G28\nG1 X9999\n",  # fails, but for another reason
+                         config=klipper_build.tree / "config" / "example-cartesian.cfg",
+                         should_fail=True)
     with pytest.raises(KlippyTestFailure, match="log lacks"):
         run_file(test, klipper_build, klippy_venv, short_tmp)
 
@@ -155,17 +154,15 @@ def test_flowloop_sees_the_sensor_command_in_either_hosts_firmware(
         klipper_build, klippy_venv, short_tmp):
     """[flowloop] asks the MCU dictionary for query_ems22 (Kalico's MCU has
     no check_valid_response); the patched build's firmware has it."""
-    cfg = short_tmp / "printer.cfg"
-    cfg.write_text(
-        f"[include {klipper_build.tree / 'config' / 'example-cartesian.cfg'}]\n"
-        "[flowloop]\n"
-        "[gcode_macro CHECK_FIRMWARE]\ngcode:\n"
-        "  {% set fw = printer.flowloop.sensor_firmware %}\n"
-        "  {% if fw != {'mcu': true} %}\n"
-        "    {action_raise_error('sensor_firmware is %s' % (fw,))}\n"
-        "  {% endif %}\n")
-    test = short_tmp / "firmware.test"
-    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nCHECK_FIRMWARE\n")
+    _, test = write_test(
+        short_tmp, "firmware", "CHECK_FIRMWARE\n", cfg=(
+            f"[include {klipper_build.tree / 'config' / 'example-cartesian.cfg'}]\n"
+            "[flowloop]\n"
+            "[gcode_macro CHECK_FIRMWARE]\ngcode:\n"
+            "  {% set fw = printer.flowloop.sensor_firmware %}\n"
+            "  {% if fw != {'mcu': true} %}\n"
+            "    {action_raise_error('sensor_firmware is %s' % (fw,))}\n"
+            "  {% endif %}\n"))
     run_file(test, klipper_build, klippy_venv, short_tmp)
 
 
@@ -176,16 +173,14 @@ def check_host_status(host, build, venv, tmp, config: str, section: str) -> None
     """Run klippy on `config` (printer.cfg text) and raise unless
     printer[section].host is HOST_FACTS[host] with a PID heater control."""
     name, buffer_time = HOST_FACTS[host]
-    cfg = tmp / "printer.cfg"
-    cfg.write_text(
-        config + "[gcode_macro CHECK_HOST]\ngcode:\n"
-        f"  {{% set h = printer.{section}.host %}}\n"
-        f"  {{% if h != {{'name': '{name}', 'buffer_time_s': {buffer_time},"
-        " 'heater_control': 'pid'} %}\n"
-        "    {action_raise_error('host is %s' % (h,))}\n"
-        "  {% endif %}\n")
-    test = tmp / "host.test"
-    test.write_text(f"CONFIG {cfg}\nDICTIONARY atmega2560.dict\nCHECK_HOST\n")
+    _, test = write_test(
+        tmp, "host", "CHECK_HOST\n", cfg=(
+            config + "[gcode_macro CHECK_HOST]\ngcode:\n"
+            f"  {{% set h = printer.{section}.host %}}\n"
+            f"  {{% if h != {{'name': '{name}', 'buffer_time_s': {buffer_time},"
+            " 'heater_control': 'pid'} %}\n"
+            "    {action_raise_error('host is %s' % (h,))}\n"
+            "  {% endif %}\n"))
     run_file(test, build, venv, tmp)
 
 

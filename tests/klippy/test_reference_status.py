@@ -15,7 +15,7 @@ from typing import Dict, Set
 
 import pytest
 
-from devtools.klippy_test import run_file
+from devtools.klippy_test import run_file, write_test
 from tests.unit import test_reference_doc as ref
 
 HERE = Path(__file__).resolve().parent
@@ -59,11 +59,10 @@ def running(klipper_build, klippy_venv, tmp_path_factory):
     found: Dict[str, Dict[str, Set[str]]] = {}
     for i, config in enumerate(CONFIGS):
         work = tmp_path_factory.mktemp("reference")  # klippy appends to its log
-        wrapper = work / f"facts{i}.cfg"
-        wrapper.write_text(f"[include {HERE / config}]\n{FACTS_MACRO}")
-        test = work / f"facts{i}.test"
-        test.write_text(f"DICTIONARY atmega2560.dict\nCONFIG {wrapper}\n"
-                        f"FLOWLOOP_REFERENCE_FACTS MODULES={','.join(modules)}\n")
+        _, test = write_test(
+            work, f"facts{i}",
+            f"FLOWLOOP_REFERENCE_FACTS MODULES={','.join(modules)}\n",
+            cfg=f"[include {HERE / config}]\n{FACTS_MACRO}")
         log = run_file(test, klipper_build, klippy_venv, work)
         match = FACTS_LINE.search(log)
         assert match, f"{config}: no facts in the log\n{log[-3000:]}"
