@@ -7,7 +7,8 @@ so far. This is our own runner so that a run can be judged on its log too:
 an "Unknown command" anywhere in the log fails the run, and a comment line
 "# EXPECT_LOG: text" (a comment, so Klipper's own runner ignores it) requires
 that text in the log of every run of the file: a SHOULD_FAIL test says why
-it must fail.
+it must fail. "# EXPECT_NO_LOG: text" requires that text in no run's log
+(a refusal that changed nothing: "# EXPECT_NO_LOG: save_config: set").
 write_test writes a .test file (and its printer config) for a test that
 makes one up.
 """
@@ -22,6 +23,7 @@ from typing import List, Optional, Tuple, Union
 from .stack import KlipperBuild, Venv
 
 EXPECT_LOG = "# EXPECT_LOG:"
+EXPECT_NO_LOG = "# EXPECT_NO_LOG:"
 
 
 class KlippyTestFailure(Exception):
@@ -36,6 +38,7 @@ class Run:
     gcode_file: Optional[Path]
     should_fail: bool
     expect_log: List[str] = dataclasses.field(default_factory=list)
+    expect_no_log: List[str] = dataclasses.field(default_factory=list)
 
 
 def parse(test_file: Path, dict_dir: Path) -> List[Run]:
@@ -46,6 +49,7 @@ def parse(test_file: Path, dict_dir: Path) -> List[Run]:
     gcode: List[str] = []
     runs: List[Run] = []
     expect_log: List[str] = []
+    expect_no_log: List[str] = []
 
     def launch(cfg: Path) -> None:
         runs.append(Run(cfg, list(dictionaries), list(gcode), gcode_file, should_fail))
@@ -53,6 +57,9 @@ def parse(test_file: Path, dict_dir: Path) -> List[Run]:
     for raw in test_file.read_text().splitlines():
         if raw.strip().startswith(EXPECT_LOG):
             expect_log.append(raw.strip()[len(EXPECT_LOG):].strip())
+            continue
+        if raw.strip().startswith(EXPECT_NO_LOG):
+            expect_no_log.append(raw.strip()[len(EXPECT_NO_LOG):].strip())
             continue
         line = raw.split("#", 1)[0].strip()
         parts = line.split()
@@ -82,6 +89,7 @@ def parse(test_file: Path, dict_dir: Path) -> List[Run]:
         launch(config)
     for run in runs:
         run.expect_log = list(expect_log)
+        run.expect_no_log = list(expect_no_log)
     return runs
 
 
@@ -143,6 +151,10 @@ def run_file(test_file: Path, build: KlipperBuild, venv: Venv, workdir: Path,
         missing = [text for text in run.expect_log if text not in log]
         if missing:
             raise KlippyTestFailure(f"{where}: log lacks {missing[0]!r}\n"
+                                    + _tail(log))
+        unwanted = [text for text in run.expect_no_log if text in log]
+        if unwanted:
+            raise KlippyTestFailure(f"{where}: log has {unwanted[0]!r}\n"
                                     + _tail(log))
         unknown = [ln for ln in log.splitlines() if "Unknown command" in ln]
         if unknown and not allow_unknown:

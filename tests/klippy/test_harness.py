@@ -50,11 +50,13 @@ def test_installing_flowloop_moved_no_pinned_klippy_package(klippy_venv):
 
 
 def test_expect_log_lines_are_read_from_comments(tmp_path):
-    _, test = write_test(tmp_path, "why", "# EXPECT_LOG: must be above 0\nG28\n",
+    _, test = write_test(tmp_path, "why", "# EXPECT_LOG: must be above 0\n"
+                         "# EXPECT_NO_LOG: save_config: set\nG28\n",
                          config=tmp_path / "a.cfg", dictionary="a.dict",
                          should_fail=True)
     (run,) = parse(test, tmp_path)
     assert run.expect_log == ["must be above 0"]
+    assert run.expect_no_log == ["save_config: set"]
     assert run.gcode == ["G28"]
 
 
@@ -66,6 +68,15 @@ def test_a_failure_for_another_reason_fails_the_test(klipper_build, klippy_venv,
                          config=klipper_build.tree / "config" / "example-cartesian.cfg",
                          should_fail=True)
     with pytest.raises(KlippyTestFailure, match="log lacks"):
+        run_file(test, klipper_build, klippy_venv, short_tmp)
+
+
+def test_a_log_line_said_to_be_absent_fails_the_test(klipper_build, klippy_venv,
+                                                     short_tmp):
+    _, test = write_test(short_tmp, "unwanted",
+                         "# EXPECT_NO_LOG: Starting Klippy\nG4 P1\n",
+                         config=klipper_build.tree / "config" / "example-cartesian.cfg")
+    with pytest.raises(KlippyTestFailure, match="log has 'Starting Klippy"):
         run_file(test, klipper_build, klippy_venv, short_tmp)
 
 
