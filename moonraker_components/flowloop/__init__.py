@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 
 from flowloop.errors import FlowloopError
 from flowloop.material import profile as fl_profile
+from flowloop.material import spoolman_field
 from flowloop.material.active import extruder_arg
 
 from .api import Api
@@ -49,15 +50,22 @@ class Flowloop:
                 f"Section [flowloop], option spoolman_extruder: {e}") from None
         default_wp = config.getfloat(
             "working_point", fl_profile.DEFAULT_WORKING_POINT, minval=0.0, maxval=1.0)
+        # what makes two printers the same for a profile kept in Spoolman
+        hotend = config.get("hotend", None)
+        if hotend is not None:
+            try:
+                spoolman_field.check_hotend(hotend)
+            except FlowloopError as e:
+                raise config.error(f"Section [flowloop], option hotend: {e}") from None
         self.store = ProfileStore(self.server.lookup_component("database"))
         self.klippy = KlippySync(self.server, self.store)
         self.profiles = Profiles(self.server, self.store, self.klippy)
         self.spoolman = None
         if spoolman_link:
             self.spoolman = SpoolmanLink(self.server, spoolman_extruder, default_wp,
-                                         self.store, self.profiles)
+                                         self.store, self.profiles, hotend)
         self.processor = Processor(config)
-        self.info = Info(self.server, self.store, spoolman_link,
+        self.info = Info(self.server, self.store, self.spoolman,
                          self.processor.registered_name)
         self.api = Api(self.server, self.store, self.profiles, self.info, default_wp)
         self.page = Page(self.server, self.store)

@@ -40,9 +40,9 @@ def _klippy_part(host: Optional[Dict[str, Any]]) -> Dict[str, Any]:
 
 class Info:
     def __init__(self, server: Server, store: ProfileStore,
-                 spoolman_link: bool, gcode_processor: Optional[str]) -> None:
+                 spoolman_link: Any, gcode_processor: Optional[str]) -> None:
         self.store = store
-        self.spoolman_link = spoolman_link
+        self.spoolman_link = spoolman_link   # a SpoolmanLink, or None
         self.gcode_processor = gcode_processor  # its name when registered
         self.eventloop = server.get_event_loop()
         self.klippy_apis: KlippyAPI = server.lookup_component("klippy_apis")
@@ -81,6 +81,10 @@ class Info:
             **self.last_klippy,
             "profiles": len(self.store.profiles),
             "active_profiles": active_to_stored(self.store.active),
-            "spoolman_link": self.spoolman_link,
+            "spoolman_link": self.spoolman_link is not None,
+            # hotend key, profiles not yet written, spool not yet looked up,
+            # the last problem with Spoolman (None once it answered again)
+            "spoolman": (self.spoolman_link.status()
+                         if self.spoolman_link is not None else None),
             "gcode_processor": self.gcode_processor,
         }

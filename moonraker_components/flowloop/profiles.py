@@ -16,7 +16,7 @@
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, Dict, Optional
+from typing import TYPE_CHECKING, Any, Awaitable, Callable, Dict, List, Optional
 
 from flowloop.material import profile as fl_profile
 from flowloop.material.active import ActiveProfile
@@ -37,6 +37,9 @@ class Profiles:
         self.server = server
         self.store = store
         self.klippy = klippy
+        # async checks a profile must pass before it is stored (each raises
+        # the refusal): the Spoolman link's
+        self.before_store: List[Callable[[fl_profile.Profile], Awaitable[None]]] = []
         server.register_notification(NOTIFICATION, "flowloop_profile_changed")
         server.register_event_handler("server:klippy_ready", self._on_klippy_ready)
 
@@ -45,6 +48,8 @@ class Profiles:
 
     async def store_profile(self, profile: fl_profile.Profile,
                             source: str) -> Dict[str, Any]:
+        for check in self.before_store:
+            await check(profile)
         action = await self.store.put(profile)
         self.notify(action, profile.name, source=source,
                     profile=fl_profile.summary(profile))

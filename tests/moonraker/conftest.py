@@ -15,7 +15,7 @@ from typing import Optional
 
 import pytest
 
-from devtools import stack
+from devtools import spoolman, stack
 from flowloop.host import install
 
 
@@ -155,3 +155,9 @@ def moonraker_from(site: Path, moonraker_venv, prefix: str):
     finally:
         mr.stop()
         shutil.rmtree(data_dir, ignore_errors=True)
+
+
+def pytest_terminal_summary(terminalreporter):
+    reason = spoolman.missing_spoolman_reason()
+    if reason:
+        terminalreporter.write_line("!!! " + reason, red=True, bold=True)

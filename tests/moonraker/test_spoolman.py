@@ -92,3 +92,147 @@ def test_a_spool_loaded_while_spoolman_is_down_is_looked_up_when_it_is_back(farm
         "name": "blue pla", "working_point": 0.5}, 20.0)
     assert "flowloop: Spoolman is back: looking up spool" in (
         mr.data_dir / "moonraker.log").read_text()
+
+
+# --- a farm: profiles kept on the filament, shared by hotend ------------------
+
+
+@pytest.fixture(scope="module")
+def printers(moonraker_venv):
+    """(Spoolman, {name: Moonraker}): printers a and b share a hotend key,
+    c has another."""
+    reason = spoolman.missing_spoolman_reason()
+    if reason:
+        pytest.skip(reason)
+    data_dir = stack.short_tempdir("fl-farm-")
+    sm = spoolman.Spoolman(data_dir / "spoolman")
+    started = {}
+    try:
+        sm.wait_ready()
+        for name, hotend in (("a", "revo_0.4"), ("b", "revo_0.4"), ("c", "v6_0.6")):
+            conf = (f"spoolman_link: True\nhotend: {hotend}\n\n"
+                    f"[spoolman]\nserver: {sm.url}\n")
+            started[name] = stack.Moonraker(moonraker_venv, data_dir / name,
+                                            extra_conf=conf)
+        for mr in started.values():
+            mr.wait_ready()
+        yield sm, started
+    finally:
+        for mr in started.values():
+            mr.stop()
+        sm.stop()
+        shutil.rmtree(data_dir, ignore_errors=True)
+
+
+def _shared(sm, filament_id):
+    """{hotend: profile name} Spoolman keeps on the filament."""
+    from flowloop.material import spoolman_field
+    filament = sm.request("GET", f"/api/v1/filament/{filament_id}")[1]
+    return {hotend: p.name for hotend, p in
+            spoolman_field.read_field(filament).items()}
+
+
+def _names(mr):
+    result = mr.request("GET", "/server/flowloop/profiles")[1]["result"]
+    return [p["name"] for p in result["profiles"]]
+
+
+def _store(mr, **kw):
+    return mr.request("POST", "/server/flowloop/profile", {"profile": make(**kw)})
+
+
+def _measured(name, fid, when, flow=10.1356):
+    data = make(name=name, identity={"spoolman_filament_id": fid},
+                real=(0.146, 210.0, flow))
+    data["provenance"]["measured_at"] = when
+    return data
+
+
+def test_a_profile_stored_on_one_printer_follows_the_spool_to_its_twin(printers):
+    sm, mr = printers
+    green = sm.add_filament("PLA green")
+    assert _store(mr["a"], name="green pla",
+                  identity={"spoolman_filament_id": green["id"]})[0] == 200
+    assert stack.wait_until(lambda: _shared(sm, green["id"]), 10.0) == {
+        "revo_0.4": "green pla"}
+    # b (same hotend) has never seen it: loading a spool fetches and uses it
+    assert "green pla" not in _names(mr["b"])
+    _load_spool(mr["b"], sm.add_spool(green["id"])["id"])
+    assert stack.wait_until(lambda: _active(mr["b"]), 10.0) == {
+        "name": "green pla", "working_point": 0.5}
+    assert "green pla" in _names(mr["b"])
+    # c (another hotend) gets nothing from it
+    _load_spool(mr["c"], sm.add_spool(green["id"])["id"])
+    time.sleep(1.5)
+    assert _active(mr["c"]) is None
+
+
+def test_a_filament_spoolman_does_not_know_is_refused_by_name(printers):
+    _, mr = printers
+    status, body = _store(mr["a"], name="ghost pla",
+                          identity={"spoolman_filament_id": 9999})
+    assert status == 400
+    assert body["error"]["message"] == ('profile "ghost pla": Spoolman has no'
+                                        " filament 9999"
+                                        " (identity.spoolman_filament_id)")
+    assert "ghost pla" not in _names(mr["a"])
+
+
+def test_bad_data_on_the_filament_is_never_activated(printers):
+    sm, mr = printers
+    odd = sm.add_filament("PLA odd")
+    sm.request("POST", f"/api/v1/field/filament/{'flowloop_profiles'}",
+               {"name": "flowloop profiles", "field_type": "text", "order": 0})
+    status, _ = sm.request("PATCH", f"/api/v1/filament/{odd['id']}", {
+        "extra": {"flowloop_profiles": '"{\\"flowloop\\": 7}"'}})
+    assert status == 200
+    before = _active(mr["b"])
+    _load_spool(mr["b"], sm.add_spool(odd["id"])["id"])
+    time.sleep(1.5)
+    assert _active(mr["b"]) == before
+    info = mr["b"].request("GET", "/server/flowloop/info")[1]["result"]
+    assert info["spoolman"]["problem"].startswith(
+        f"Spoolman filament {odd['id']} ('PLA odd'): its flowloop_profiles field"
+        " is not a flowloop document of version 1")
+
+
+def test_two_printers_storing_at_once_converge_on_the_later_measurement(printers):
+    sm, mr = printers
+    white = sm.add_filament("PLA white")
+    older = _measured("white pla a", white["id"], "2026-11-20T10:00:00Z")
+    newer = _measured("white pla b", white["id"], "2026-11-21T10:00:00Z", 11.0)
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(2) as pool:
+        done = [pool.submit(m.request, "POST", "/server/flowloop/profile",
+                            {"profile": p})
+                for m, p in ((mr["a"], older), (mr["b"], newer))]
+        assert [f.result()[0] for f in done] == [200, 200]
+    # Spoolman has no conditional write: a write from an older read can have
+    # won the race; b puts its later one back at its next spool of it
+    _load_spool(mr["b"], sm.add_spool(white["id"])["id"])
+    assert stack.wait_until(
+        lambda: _shared(sm, white["id"]) == {"revo_0.4": "white pla b"}, 10.0)
+    assert stack.wait_until(lambda: _active(mr["b"]), 10.0)["name"] == "white pla b"
+    # and a learns of b's at its next spool of the filament
+    _load_spool(mr["a"], sm.add_spool(white["id"])["id"])
+    assert stack.wait_until(lambda: _active(mr["a"]), 10.0)["name"] == "white pla b"
+
+
+def test_a_profile_stored_while_spoolman_is_down_is_written_when_it_is_back(printers):
+    sm, mr = printers
+    black = sm.add_filament("PLA black")
+    sm.stop()
+    try:
+        assert _store(mr["a"], name="black pla",
+                      identity={"spoolman_filament_id": black["id"]})[0] == 200
+        info = mr["a"].request("GET", "/server/flowloop/info")[1]["result"]
+        assert stack.wait_until(lambda: "black pla" in mr["a"].request(
+            "GET", "/server/flowloop/info")[1]["result"]["spoolman"]["unwritten"],
+            5.0), info
+    finally:
+        sm.restart()
+    sm.wait_ready()
+    assert stack.wait_until(lambda: _shared(sm, black["id"]) == {
+        "revo_0.4": "black pla"}, 20.0)
+    info = mr["a"].request("GET", "/server/flowloop/info")[1]["result"]
+    assert info["spoolman"]["unwritten"] == []
