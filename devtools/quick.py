@@ -78,7 +78,10 @@ def _stem(path: Path) -> str:
 
 def klippy_tests(changed: Set[str]) -> Dict[str, List[str]]:
     """{klippy test file: the changed files that select it}."""
-    extras = sorted(p for p in EXTRAS.glob("*.py") if p.stem != "__init__")
+    # a module, or a package (its files together: flow_sensor/)
+    extras = sorted(p for p in EXTRAS.iterdir()
+                    if (p.suffix == ".py" and p.stem != "__init__")
+                    or (p / "__init__.py").is_file())
     tests = sorted(list(KLIPPY_TESTS.glob("test_*.py"))
                    + list(KLIPPY_TESTS.glob("*.test")))
     cache: Dict[str, Set[str]] = {}
@@ -91,7 +94,11 @@ def klippy_tests(changed: Set[str]) -> Dict[str, List[str]]:
                 chosen.setdefault(key, []).extend(why)
 
     for extra in extras:
-        why = sorted(reach(str(extra.relative_to(PROJECT)), cache) & changed)
+        files = sorted(extra.rglob("*.py")) if extra.is_dir() else [extra]
+        reached: Set[str] = set()
+        for file in files:
+            reached |= reach(str(file.relative_to(PROJECT)), cache)
+        why = sorted(reached & changed)
         if why:
             choose(extra.stem, why)
     # a changed test, config or helper of the tier: the tests named like it,
