@@ -6,12 +6,13 @@ is down changes nothing until Spoolman is back."""
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import time
 
 import pytest
 
-from devtools import spoolman, stack
+from devtools import postgres, spoolman, stack
 from tests.samples import make
 
 
@@ -97,18 +98,31 @@ def test_a_spool_loaded_while_spoolman_is_down_is_looked_up_when_it_is_back(farm
 # --- a farm: profiles kept on the filament, shared by hotend ------------------
 
 
-@pytest.fixture(scope="module")
-def printers(moonraker_venv):
+@pytest.fixture(scope="module", params=["sqlite", "postgres"])
+def printers(request, moonraker_venv):
     """(Spoolman, {name: Moonraker}): printers a and b share a hotend key,
-    c has another."""
+    c has another; Spoolman on its default SQLite, then on PostgreSQL."""
     reason = spoolman.missing_spoolman_reason()
     if reason:
         pytest.skip(reason)
+    with contextlib.ExitStack() as stack_:
+        env = {}
+        if request.param == "postgres":
+            reason = postgres.missing_postgres_reason()
+            if reason:
+                pytest.skip(reason)
+            env = stack_.enter_context(postgres.postgres())
+        yield from _farm(moonraker_venv, env)
+
+
+def _farm(moonraker_venv, env):
     data_dir = stack.short_tempdir("fl-farm-")
-    sm = spoolman.Spoolman(data_dir / "spoolman")
+    sm = spoolman.Spoolman(data_dir / "spoolman", env=env)
     started = {}
     try:
-        sm.wait_ready()
+        # Spoolman 0.26 says 'sqlite', or 'DatabaseType.POSTGRES'
+        db_type = sm.wait_ready()["db_type"].lower()
+        assert env.get("SPOOLMAN_DB_TYPE", "sqlite") in db_type, db_type
         for name, hotend in (("a", "revo_0.4"), ("b", "revo_0.4"), ("c", "v6_0.6")):
             conf = (f"spoolman_link: True\nhotend: {hotend}\n\n"
                     f"[spoolman]\nserver: {sm.url}\n")
