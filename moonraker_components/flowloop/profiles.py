@@ -37,9 +37,10 @@ class Profiles:
         self.server = server
         self.store = store
         self.klippy = klippy
-        # async checks a profile must pass before it is stored (each raises
-        # the refusal): the Spoolman link's
-        self.before_store: List[Callable[[fl_profile.Profile], Awaitable[None]]] = []
+        # async checks a profile (and its source) must pass before it is
+        # stored, each raising its refusal: the Spoolman link's
+        self.before_store: List[Callable[[fl_profile.Profile, str],
+                                         Awaitable[None]]] = []
         server.register_notification(NOTIFICATION, "flowloop_profile_changed")
         server.register_event_handler("server:klippy_ready", self._on_klippy_ready)
 
@@ -49,7 +50,7 @@ class Profiles:
     async def store_profile(self, profile: fl_profile.Profile,
                             source: str) -> Dict[str, Any]:
         for check in self.before_store:
-            await check(profile)
+            await check(profile, source)
         action = await self.store.put(profile)
         self.notify(action, profile.name, source=source,
                     profile=fl_profile.summary(profile))

@@ -186,11 +186,12 @@ class SpoolmanLink:
 
     # --- storing a profile ------------------------------------------------------
 
-    async def _check_filament(self, profile: Profile) -> None:
+    async def _check_filament(self, profile: Profile, source: str) -> None:
         """Before a profile is stored: refuse one for a filament Spoolman
-        does not know (Spoolman down: stored, written when it is back)."""
+        does not know (Spoolman down: stored, written when it is back). One
+        that came from Spoolman's filament needs no asking."""
         fid = sf.filament_id_of(profile)
-        if fid is None:
+        if fid is None or source == "spoolman":
             return
         try:
             status, _ = await self._api("GET", f"/v1/filament/{fid}")
