@@ -1,15 +1,12 @@
 """Material profiles served by the real Moonraker (no klippy): HTTP, JSON-RPC,
-names, errors, notifications, plots, persistence, concurrency, authorization,
-the Spoolman link."""
+names, errors, notifications, plots, persistence, concurrency, authorization.
+The Spoolman link runs against a real Spoolman in test_spoolman.py."""
 
 from __future__ import annotations
 
-import http.server
 import json
 import re
 import shutil
-import threading
-import time
 import xml.etree.ElementTree as ET
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -450,69 +447,6 @@ def test_an_untrusted_websocket_client_is_refused(untrusting_server, rpc):
         assert answer["error"]["code"] == -32602
         assert "Unauthorized" in answer["error"]["message"]
     rpc(untrusting_server.port, steps)
-
-
-# --- Spoolman link --------------------------------------------------------------
-
-
-class FakeSpoolman(http.server.BaseHTTPRequestHandler):
-    """Answers GET /api/v1/spool/<id> with the spool's filament id."""
-
-    spools = {7: 3, 8: 99}
-
-    def do_GET(self):
-        m = re.fullmatch(r"/api/v1/spool/(\d+)", self.path)
-        if m and int(m.group(1)) in self.spools:
-            spool_id = int(m.group(1))
-            body = json.dumps({"id": spool_id, "filament": {
-                "id": self.spools[spool_id], "name": "PLA red"}}).encode()
-            self.send_response(200)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-        else:
-            self.send_error(404)
-
-    def log_message(self, *args):
-        pass
-
-
-@pytest.fixture(scope="module")
-def spoolman_server(moonraker_venv):
-    fake = http.server.ThreadingHTTPServer(("127.0.0.1", 0), FakeSpoolman)
-    thread = threading.Thread(target=fake.serve_forever, daemon=True)
-    thread.start()
-    data_dir = stack.short_tempdir("fl-spool-")
-    conf = (f"spoolman_link: True\n\n[spoolman]\n"
-            f"server: http://127.0.0.1:{fake.server_address[1]}\n")
-    try:
-        srv = Server(moonraker_venv, data_dir, extra_conf=conf)
-        yield srv
-        srv.stop()
-    finally:
-        fake.shutdown()
-        shutil.rmtree(data_dir, ignore_errors=True)
-
-
-def test_active_spool_activates_the_profile_of_its_filament(spoolman_server):
-    store(spoolman_server, name="other pla")
-    data = make(name="spool pla", identity={"spoolman_filament_id": 3})
-    assert spoolman_server.request("POST", "/server/flowloop/profile",
-                                   {"profile": data})[0] == 200
-
-    def active():
-        result = spoolman_server.request("GET", "/server/flowloop/profiles")[1]
-        return result["result"]["active"].get("extruder")
-    assert active() is None
-    status, _ = spoolman_server.request("POST", "/server/spoolman/spool_id",
-                                        {"spool_id": 7})
-    assert status == 200
-    assert stack.wait_until(active, 10.0) == {"name": "spool pla", "working_point": 0.5}
-    # a spool whose filament has no profile leaves the active one alone
-    spoolman_server.request("POST", "/server/spoolman/spool_id", {"spool_id": 8})
-    time.sleep(1.0)
-    assert active() == {"name": "spool pla", "working_point": 0.5}
 
 
 # --- configuration -----------------------------------------------------------------
