@@ -11,7 +11,7 @@ from flowloop.control import autotemp as fl_autotemp
 from flowloop.control import caps as fl_caps
 from flowloop.control.hotend import HotendParams
 from flowloop.errors import FlowloopError
-from flowloop.host.klipper_config import option_error
+from flowloop.host.klipper_config import extruder_for, option_error
 from flowloop.material.active import working_point_arg
 
 from . import flowloop as flowloop_host
@@ -66,8 +66,8 @@ class Autotemp:
 
     # --- setup ---------------------------------------------------------------
     def _handle_connect(self):
-        self.extruder = extruder = self.host.extruder_for(self.section,
-                                                          self.extruder_name)
+        self.extruder = extruder = extruder_for(self.printer, self.section,
+                                                self.extruder_name)
         self.heater = extruder.get_heater()
         self.core.heater_max_temp_c = self.heater.max_temp
         self.toolhead = self.printer.lookup_object('toolhead')

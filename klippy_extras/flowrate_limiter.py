@@ -14,7 +14,12 @@ from flowloop.control import caps as fl_caps
 from flowloop.control import limiter as fl_limiter
 from flowloop.control.hotend import NozzleEstimate
 from flowloop.errors import FlowloopError
-from flowloop.host.klipper_config import option_error
+from flowloop.host.klipper_config import (
+    extruder_for,
+    find_flow_sensor,
+    option_error,
+    option_message,
+)
 
 from . import flowloop as flowloop_host
 
@@ -66,8 +71,8 @@ class FlowrateLimiter:
 
     # --- setup ---------------------------------------------------------------
     def _handle_connect(self):
-        self.extruder = extruder = self.host.extruder_for(self.section,
-                                                          self.extruder_name)
+        self.extruder = extruder = extruder_for(self.printer, self.section,
+                                                self.extruder_name)
         self.heater = extruder.get_heater()
         self.toolhead = self.printer.lookup_object('toolhead')
         self.mcu = self.printer.lookup_object('mcu')
@@ -93,19 +98,12 @@ class FlowrateLimiter:
         self.next_transform = gcode_move.set_move_transform(self, force=True)
 
     def _find_sensor(self):
-        sensors = [obj for name, obj in self.printer.lookup_objects('flow_sensor')
-                   if name.startswith('flow_sensor ')]
-        if self.sensor_name is not None:
-            for sensor in sensors:
-                if sensor.name == self.sensor_name:
-                    return sensor
-            raise self.printer.config_error(
-                f"Section [{self.section}], option sensor: no [flow_sensor"
-                f" {self.sensor_name}]")
-        for sensor in sensors:
-            if sensor.extruder_name == self.extruder_name:
-                return sensor
-        return None
+        sensor = find_flow_sensor(self.printer, self.extruder_name,
+                                  self.sensor_name)
+        if sensor is None and self.sensor_name is not None:
+            raise self.printer.config_error(option_message(
+                self.section, 'sensor', f"no [flow_sensor {self.sensor_name}]"))
+        return sensor
 
     def _handle_profile(self, extruder, profile, working_point):
         if extruder == self.extruder_name and self.limiter is not None:

@@ -231,6 +231,48 @@ def check_finite(section: str, values: Dict[str, Optional[float]]) -> None:
                                                f"must be a finite number, not {value}"))
 
 
+# --- what flowloop's sections look up in klippy ------------------------------
+# (printer is klippy's Printer, handed in: this module imports no Klipper)
+
+
+def find_extruder(printer, name: str):
+    """The extruder klippy holds as `name` ([extruder], [extruder1], ...);
+    None if no object by that name is one (has no get_heater)."""
+    extruder = printer.lookup_object(name, None)
+    if extruder is None or not hasattr(extruder, 'get_heater'):
+        return None
+    return extruder
+
+
+def extruder_for(printer, section: str, name: str):
+    """The extruder a section's `extruder` option names; the config error
+    (option_message's format) if it names none. For klippy:connect."""
+    extruder = find_extruder(printer, name)
+    if extruder is None:
+        raise printer.config_error(option_message(
+            section, 'extruder', f"'{name}' is not an extruder"))
+    return extruder
+
+
+def flow_sensors(printer) -> list:
+    """The object of every [flow_sensor NAME] section, in klippy's order."""
+    return [obj for name, obj in printer.lookup_objects('flow_sensor')
+            if name.startswith('flow_sensor ')]
+
+
+def find_flow_sensor(printer, extruder_name: str,
+                     sensor_name: Optional[str] = None):
+    """[flow_sensor sensor_name] if a name is given, else the first flow
+    sensor on extruder_name; None if there is none."""
+    for sensor in flow_sensors(printer):
+        if sensor_name is not None:
+            if sensor.name == sensor_name:
+                return sensor
+        elif sensor.extruder_name == extruder_name:
+            return sensor
+    return None
+
+
 # --- which file sets an option ----------------------------------------------
 
 

@@ -220,3 +220,54 @@ def test_config_errors_name_section_and_option_in_one_format():
             klipper_config.check_finite("diff_ab_calibrate", {"d1": 10.0, "d2": bad})
         assert str(e.value) == ("Section [diff_ab_calibrate], option d2: must be a"
                                 f" finite number, not {bad}")
+
+
+class _Printer:
+    """What the lookup helpers use of klippy's Printer."""
+
+    def __init__(self, objects):
+        self.objects = objects
+
+    def lookup_object(self, name, default=None):
+        return self.objects.get(name, default)
+
+    def lookup_objects(self, module=None):
+        return [(name, obj) for name, obj in self.objects.items()
+                if module is None or name == module
+                or name.startswith(module + " ")]
+
+    def config_error(self, message):
+        return FlowloopError(message)
+
+
+class _Extruder:
+    def get_heater(self):
+        return None
+
+
+class _Sensor:
+    def __init__(self, name, extruder_name):
+        self.name, self.extruder_name = name, extruder_name
+
+
+def test_one_extruder_lookup_for_the_sections():
+    extruder = _Extruder()
+    printer = _Printer({"extruder": extruder, "toolhead": object()})
+    assert klipper_config.find_extruder(printer, "extruder") is extruder
+    assert klipper_config.find_extruder(printer, "toolhead") is None
+    assert klipper_config.find_extruder(printer, "extruder1") is None
+    assert klipper_config.extruder_for(printer, "autotemp", "extruder") is extruder
+    with pytest.raises(FlowloopError, match=r"^Section \[autotemp\], option "
+                       r"extruder: 'toolhead' is not an extruder$"):
+        klipper_config.extruder_for(printer, "autotemp", "toolhead")
+
+
+def test_one_flow_sensor_lookup_by_name_else_by_extruder():
+    a, b = _Sensor("a", "extruder1"), _Sensor("b", "extruder")
+    printer = _Printer({"flow_sensor a": a, "flow_sensor b": b,
+                        "flow_sensor": object()})  # no NAME: not one
+    assert klipper_config.flow_sensors(printer) == [a, b]
+    assert klipper_config.find_flow_sensor(printer, "extruder") is b
+    assert klipper_config.find_flow_sensor(printer, "extruder", "a") is a
+    assert klipper_config.find_flow_sensor(printer, "extruder", "c") is None
+    assert klipper_config.find_flow_sensor(printer, "extruder2") is None
