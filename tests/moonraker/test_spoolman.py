@@ -104,7 +104,8 @@ def test_a_spool_loaded_while_spoolman_is_down_is_looked_up_when_it_is_back(farm
 
 @pytest.fixture(scope="module", params=["sqlite", "postgres"])
 def printers(request, moonraker_venv):
-    """(Spoolman, {name: Moonraker}): printers a and b share a hotend key,
+    """(Spoolman, {name: Moonraker}, {name: PrinterStack}): printers a and b
+    share a hotend key,
     c has another; Spoolman on its default SQLite, then on PostgreSQL."""
     reason = spoolman.missing_spoolman_reason()
     if reason:
@@ -120,6 +121,8 @@ def printers(request, moonraker_venv):
 
 
 def _farm(moonraker_venv, env):
+    """Printers a and b are whole stacks (klippy in batch mode behind
+    Moonraker: an activation reaches klippy), c is Moonraker alone."""
     data_dir = stack.short_tempdir("fl-farm-")
     sm = spoolman.Spoolman(data_dir / "spoolman", env=env)
     started = {}
@@ -127,17 +130,17 @@ def _farm(moonraker_venv, env):
         # Spoolman 0.26 says 'sqlite', or 'DatabaseType.POSTGRES'
         db_type = sm.wait_ready()["db_type"].lower()
         assert env.get("SPOOLMAN_DB_TYPE", "sqlite") in db_type, db_type
-        for name, hotend in (("a", "revo_0.4"), ("b", "revo_0.4"), ("c", "v6_0.6")):
-            conf = (f"spoolman_link: True\nhotend: {hotend}\n\n"
-                    f"[spoolman]\nserver: {sm.url}\n")
-            started[name] = stack.Moonraker(moonraker_venv, data_dir / name,
-                                            extra_conf=conf)
-        for mr in started.values():
-            mr.wait_ready()
-        yield sm, started
+        with contextlib.ExitStack() as printers:
+            for name, hotend in (("a", "revo_0.4"), ("b", "revo_0.4"),
+                                 ("c", "v6_0.6")):
+                conf = (f"spoolman_link: True\nhotend: {hotend}\n\n"
+                        f"[spoolman]\nserver: {sm.url}\n")
+                ps = printers.enter_context(stack.printer_stack(
+                    with_klippy=name != "c", moonraker_conf=conf,
+                    data_dir=data_dir / name))
+                started[name] = ps
+            yield sm, {name: ps.moonraker for name, ps in started.items()}, started
     finally:
-        for mr in started.values():
-            mr.stop()
         sm.stop()
         shutil.rmtree(data_dir, ignore_errors=True)
 
@@ -167,7 +170,7 @@ def _measured(name, fid, when, flow=10.1356):
 
 
 def test_a_profile_stored_on_one_printer_follows_the_spool_to_its_twin(printers):
-    sm, mr = printers
+    sm, mr, stacks = printers
     green = sm.add_filament("PLA green")
     assert _store(mr["a"], name="green pla",
                   identity={"spoolman_filament_id": green["id"]})[0] == 200
@@ -179,6 +182,9 @@ def test_a_profile_stored_on_one_printer_follows_the_spool_to_its_twin(printers)
     assert stack.wait_until(lambda: _active(mr["b"]), 10.0) == {
         "name": "green pla", "working_point": 0.5}
     assert "green pla" in _names(mr["b"])
+    # and klippy behind b runs it
+    klippy_profiles = stacks["b"].query("flowloop")["profiles"]
+    assert klippy_profiles["extruder"]["name"] == "green pla"
     # c (another hotend) gets nothing from it
     _load_spool(mr["c"], sm.add_spool(green["id"])["id"])
     time.sleep(1.5)
@@ -186,7 +192,7 @@ def test_a_profile_stored_on_one_printer_follows_the_spool_to_its_twin(printers)
 
 
 def test_a_filament_spoolman_does_not_know_is_refused_by_name(printers):
-    _, mr = printers
+    _, mr, _ = printers
     status, body = _store(mr["a"], name="ghost pla",
                           identity={"spoolman_filament_id": 9999})
     assert status == 400
@@ -197,7 +203,7 @@ def test_a_filament_spoolman_does_not_know_is_refused_by_name(printers):
 
 
 def test_bad_data_on_the_filament_is_never_activated(printers):
-    sm, mr = printers
+    sm, mr, _ = printers
     odd = sm.add_filament("PLA odd")
     sm.request("POST", f"/api/v1/field/filament/{'flowloop_profiles'}",
                {"name": "flowloop profiles", "field_type": "text", "order": 0})
@@ -215,7 +221,7 @@ def test_bad_data_on_the_filament_is_never_activated(printers):
 
 
 def test_two_printers_storing_at_once_converge_on_the_later_measurement(printers):
-    sm, mr = printers
+    sm, mr, _ = printers
     white = sm.add_filament("PLA white")
     older = _measured("white pla a", white["id"], "2026-11-20T10:00:00Z")
     newer = _measured("white pla b", white["id"], "2026-11-21T10:00:00Z", 11.0)
@@ -237,7 +243,7 @@ def test_two_printers_storing_at_once_converge_on_the_later_measurement(printers
 
 
 def test_a_profile_stored_while_spoolman_is_down_is_written_when_it_is_back(printers):
-    sm, mr = printers
+    sm, mr, _ = printers
     black = sm.add_filament("PLA black")
     sm.stop()
     try:
