@@ -89,22 +89,11 @@ class FlowloopHost:
                                 profile, wp)
         web_request.send({'extruder': extruder, 'name': profile.name})
 
-    def extruder_for(self, section, name):
-        """The extruder a section's `extruder` option names; a config error
-        in the one format when it names none (called at klippy:connect)."""
-        extruder = self.printer.lookup_object(name, None)
-        if extruder is None or not hasattr(extruder, 'get_heater'):
-            raise self.printer.config_error(klipper_config.option_message(
-                section, 'extruder', f"'{name}' is not an extruder"))
-        return extruder
-
     def _extruder_heater(self, name):
         if not fl_profile.is_extruder_name(name):
             return None
-        extruder = self.printer.lookup_object(name, None)
-        if extruder is None or not hasattr(extruder, 'get_heater'):
-            return None
-        return extruder.get_heater()
+        extruder = klipper_config.find_extruder(self.printer, name)
+        return None if extruder is None else extruder.get_heater()
 
     def _update_status(self):
         status = {}

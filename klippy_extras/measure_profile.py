@@ -28,6 +28,7 @@ import logging
 
 from flowloop.control import watchdog
 from flowloop.errors import FlowloopError
+from flowloop.host import klipper_config
 from flowloop.host.klipper_config import option_error
 from flowloop.material import measure as fl_measure
 from flowloop.material import procedure as fl_proc
@@ -151,11 +152,10 @@ class MeasureProfile:
 
     # --- grip windows (every flow sensor; the run keeps its own sensor's) ----
     def _handle_connect(self):
-        for name, sensor in self.printer.lookup_objects('flow_sensor'):
-            if name.startswith('flow_sensor '):
-                sensor.subscribe_grip_windows(
-                    lambda window, sensor=sensor: self._handle_window(sensor,
-                                                                      window))
+        for sensor in klipper_config.flow_sensors(self.printer):
+            sensor.subscribe_grip_windows(
+                lambda window, sensor=sensor: self._handle_window(sensor,
+                                                                  window))
 
     def _handle_window(self, sensor, window):
         # In the reactor, possibly inside a flush: only collect and decide;
@@ -404,16 +404,18 @@ class MeasureProfile:
     def _extruder(self, name):
         extruder = None
         if fl_profile.is_extruder_name(name):
-            extruder = self.printer.lookup_object(name, None)
-        if extruder is None or not hasattr(extruder, 'get_heater'):
+            extruder = klipper_config.find_extruder(self.printer, name)
+        if extruder is None:
             raise FlowloopError(f"EXTRUDER: no extruder named '{name}'")
         return extruder, extruder.get_heater()
 
     def _sensor(self, extruder_name):
-        return fl_proc.choose_sensor(
-            [obj for name, obj in self.printer.lookup_objects('flow_sensor')
-             if name.startswith('flow_sensor ')], self.sensor_name,
-            extruder_name)
+        sensor = klipper_config.find_flow_sensor(self.printer, extruder_name,
+                                                 self.sensor_name)
+        if sensor is None:
+            raise FlowloopError(fl_proc.missing_sensor(self.sensor_name,
+                                                       extruder_name))
+        return sensor
 
     def _base(self, extruder_name):
         """The extruder's active profile, or None."""

@@ -43,7 +43,6 @@ from typing import (
     Generator,
     List,
     Optional,
-    Sequence,
     Tuple,
     Union,
 )
@@ -197,20 +196,13 @@ def bounds_for(base: Optional[Profile], min_temp_c: Optional[float],
                                          max_temp_c))
 
 
-def choose_sensor(sensors: Sequence, sensor_name: Optional[str],
-                  extruder_name: str):
-    """The flow sensor that judges a run's grip: the one [measure_profile]
-    names (`sensor`), else the one on the extruder (each has .name and
-    .extruder_name); FlowloopError naming what is missing."""
-    for sensor in sensors:
-        if sensor_name is not None:
-            if sensor.name == sensor_name:
-                return sensor
-        elif sensor.extruder_name == extruder_name:
-            return sensor
+def missing_sensor(sensor_name: Optional[str], extruder_name: str) -> str:
+    """Why a run cannot start when no flow sensor judges its grip: the one
+    [measure_profile] names (`sensor`), else one on the extruder (which one
+    that is: flowloop.host.klipper_config.find_flow_sensor)."""
     which = (f"[flow_sensor {sensor_name}]" if sensor_name
              else f"a [flow_sensor] on {extruder_name}")
-    raise FlowloopError(f"EXTRUDER: {which} is needed to judge grip")
+    return f"EXTRUDER: {which} is needed to judge grip"
 
 
 # What a run relies on between two of its turns on the G-code queue:

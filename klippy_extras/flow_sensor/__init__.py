@@ -14,7 +14,6 @@ import logging
 from flowloop.calibrate import flow_sensor as sensor_cal
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
-from flowloop.host.klipper_config import option_message
 from flowloop.sensor import ems22
 from flowloop.sensor import grip as flow_grip
 from flowloop.sensor import pipeline as fl_pipeline
@@ -118,12 +117,8 @@ class FlowSensor:
 
     # --- setup ---------------------------------------------------------------
     def _handle_connect(self):
-        self.extruder = self.printer.lookup_object(self.extruder_name, None)
-        if self.extruder is None or not hasattr(self.extruder,
-                                                'find_past_position'):
-            raise self.printer.config_error(option_message(
-                self.section, 'extruder',
-                f"'{self.extruder_name}' is not an extruder"))
+        self.extruder = klipper_config.extruder_for(self.printer, self.section,
+                                                    self.extruder_name)
         self.toolhead = self.printer.lookup_object('toolhead')
         self.heater = self.extruder.get_heater()
         area = getattr(self.extruder, 'filament_area', None)

@@ -507,16 +507,9 @@ def test_a_run_ends_before_a_turn_on_what_a_command_in_between_changed():
         " cancelled")
 
 
-def test_the_run_s_sensor_is_the_named_one_else_the_extruder_s():
-    class Sensor:
-        def __init__(self, name, extruder_name):
-            self.name, self.extruder_name = name, extruder_name
-    a, b = Sensor("a", "extruder"), Sensor("b", "extruder1")
-    assert proc.choose_sensor([a, b], None, "extruder1") is b
-    assert proc.choose_sensor([a, b], "a", "extruder1") is a
-    with pytest.raises(FlowloopError, match=r"EXTRUDER: \[flow_sensor c\] is"
-                       " needed to judge grip"):
-        proc.choose_sensor([a, b], "c", "extruder")
-    with pytest.raises(FlowloopError, match=r"EXTRUDER: a \[flow_sensor\] on"
-                       " extruder2 is needed"):
-        proc.choose_sensor([a, b], None, "extruder2")
+def test_a_run_without_its_sensor_names_what_is_missing():
+    # which sensor a run takes: klipper_config.find_flow_sensor (its tests)
+    assert proc.missing_sensor("c", "extruder") == (
+        "EXTRUDER: [flow_sensor c] is needed to judge grip")
+    assert proc.missing_sensor(None, "extruder2") == (
+        "EXTRUDER: a [flow_sensor] on extruder2 is needed to judge grip")
