@@ -29,3 +29,20 @@ def make(air=(0.146, 171.6312, 7.5789), real=(0.146, 210.0, 10.1356),
     data["identity"].update(identity or {})
     data.update(extra)
     return data
+
+
+# A line the simulated twin melts at any working point (into_air ==
+# real_print): the measurement tests' "known" material, as a dict.
+TWIN_SLOPE, TWIN_TEMP, TWIN_FLOW = 0.12, 210.0, 6.0
+
+
+def twin_known():
+    line = {"slope_mm3_s_per_c": TWIN_SLOPE, "temp_c": TWIN_TEMP,
+            "flow_mm3_s": TWIN_FLOW}
+    return {
+        "identity": {"name": "known", "nozzle_diameter_mm": 0.4},
+        "lines": {"into_air": dict(line), "real_print": dict(line)},
+        "bounds": {"min_temp_c": 185.0, "recommended_temp_c": 210.0,
+                   "max_temp_c": 250.0},
+        "provenance": {"method": "manual"},
+    }

@@ -299,13 +299,7 @@ class _Annotator:
             return
         lead = self.settings.lead_s
         edge_list = edges.tolist()
-        k = 0
-        if not self.started:
-            nonzero = np.flatnonzero(flows != 0.0)
-            lead_in = int(nonzero[0]) if nonzero.size else count
-            if lead_in:
-                self._prune(edge_list[lead_in] - self.settings.placement_s)
-                k = lead_in
+        k = self._skip_lead_in(flows, edge_list, count)
         self.bin_start, self.bin_peak = edge_list[count], 0.0
         if k == count:
             return
@@ -373,6 +367,17 @@ class _Annotator:
                 hi = mid
         return lo
 
+    def _skip_lead_in(self, flows: np.ndarray, edge_list: list, count: int) -> int:
+        """Before the first flow nothing is announced: the first bin to
+        close (count when none flows), the source pruned up to it."""
+        if self.started:
+            return 0
+        nonzero = np.flatnonzero(flows != 0.0)
+        lead_in = int(nonzero[0]) if nonzero.size else count
+        if lead_in:
+            self._prune(edge_list[lead_in] - self.settings.placement_s)
+        return lead_in
+
     def _close_bins_one_by_one(self, edges: np.ndarray, peaks: np.ndarray,
                                flows: np.ndarray) -> None:
         """_close_bins a bin at a time (where bins of no length are among
@@ -383,13 +388,7 @@ class _Annotator:
         change = np.flatnonzero(flows[1:] != flows[:-1]) + 1
         run_end = np.append(change, count).tolist()
         flow_list, edge_list = flows.tolist(), edges.tolist()
-        k = 0
-        if not self.started:
-            nonzero = np.flatnonzero(flows != 0.0)
-            lead_in = int(nonzero[0]) if nonzero.size else count
-            if lead_in:
-                self._prune(edge_list[lead_in] - self.settings.placement_s)
-                k = lead_in
+        k = self._skip_lead_in(flows, edge_list, count)
         while k < count:
             self.bin_start, self.bin_peak = edge_list[k], 0.0
             p = self.pending

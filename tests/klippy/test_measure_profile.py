@@ -24,21 +24,13 @@ from flowloop.control.hotend import HotendParams
 from flowloop.gcode import measure_part
 from flowloop.material import measure
 from flowloop.material.profile import profile_from_dict
+from tests.samples import TWIN_FLOW, TWIN_SLOPE, TWIN_TEMP, twin_known
 
 HERE = Path(__file__).resolve().parent
 CONFIG = HERE / "measure_profile.cfg"
 # into_air == real_print: the twin melts exactly this line at any working point
-SLOPE, TEMP, FLOW = 0.12, 210.0, 6.0
-KNOWN = {
-    "identity": {"name": "known", "nozzle_diameter_mm": 0.4},
-    "lines": {"into_air": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
-                           "flow_mm3_s": FLOW},
-              "real_print": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
-                             "flow_mm3_s": FLOW}},
-    "bounds": {"min_temp_c": 185.0, "recommended_temp_c": 210.0,
-               "max_temp_c": 250.0},
-    "provenance": {"method": "manual"},
-}
+SLOPE, TEMP, FLOW = TWIN_SLOPE, TWIN_TEMP, TWIN_FLOW
+KNOWN = twin_known()
 # The stated tolerance of the twin test: slope within 5 %, the line's flow at
 # the middle level within 3 %, the intercept within 1.5 mm^3/s.
 SLOPE_TOLERANCE = 0.05

@@ -25,21 +25,13 @@ from flowloop.material.profile import (
 from flowloop.sensor.grip import DEFAULT_WINDOW_MM, GripEstimator
 from flowloop.sensor.twin import SimulatedEms22, scaled_line
 from flowloop.window import FAULT, JUDGED, Window
+from tests.samples import TWIN_FLOW, TWIN_SLOPE, TWIN_TEMP, twin_known
 
 pytestmark = pytest.mark.unit
 
-# The twin melts this line at any working point (the klippy test's)
-SLOPE, TEMP, FLOW = 0.12, 210.0, 6.0
-KNOWN = profile_from_dict({
-    "identity": {"name": "known", "nozzle_diameter_mm": 0.4},
-    "lines": {"into_air": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
-                           "flow_mm3_s": FLOW},
-              "real_print": {"slope_mm3_s_per_c": SLOPE, "temp_c": TEMP,
-                             "flow_mm3_s": FLOW}},
-    "bounds": {"min_temp_c": 185.0, "recommended_temp_c": 210.0,
-               "max_temp_c": 250.0},
-    "provenance": {"method": "manual"},
-})
+# The twin melts this line at any working point (the klippy test's too)
+SLOPE, TEMP, FLOW = TWIN_SLOPE, TWIN_TEMP, TWIN_FLOW
+KNOWN = profile_from_dict(twin_known())
 AREA = 2.405
 HARDWARE = proc.Hardware(filament_area_mm2=AREA, nozzle_diameter_mm=0.4,
                          max_power=1.0, window_mm=DEFAULT_WINDOW_MM)
