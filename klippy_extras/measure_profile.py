@@ -50,8 +50,9 @@ class MeasurementStopped(Exception):
 
 class FixedPowerControl:
     """A heater control that holds one PWM (runs in the heater's thread:
-    no reactor or G-code calls). On every reading it applies the watchdog's
-    temperature and host rules and cuts the power if one says stop.
+    no reactor or G-code calls). On every reading the watchdog's cutoff
+    (flowloop.control.watchdog.FixedPowerCutoff: the temperature and host
+    rules) says what power to apply.
 
     Klipper's heater calls temperature_update and check_busy; Kalico's
     calls more of its control (get_profile, get_type, check_valid,
@@ -62,19 +63,21 @@ class FixedPowerControl:
 
     def __init__(self, heater, pwm, limits):
         self.heater = heater
-        self.pwm = pwm
-        self.limits = limits
-        self.heartbeat = None    # print time of the reactor's last heartbeat
-        self.stopped = None      # why the power was cut (the reactor reports)
+        self.cutoff = watchdog.FixedPowerCutoff(limits, pwm)
+
+    @property
+    def stopped(self):
+        """Why the power was cut, or None (the reactor reports it)."""
+        return self.cutoff.stopped
+
+    def heartbeat(self, print_time):
+        """The reactor is alive at print_time."""
+        self.cutoff.heartbeat_s = print_time
 
     def temperature_update(self, read_time, temp, target_temp,
                            secondary_temp=None):
         # (Kalico's dual-sensor heaters pass secondary_temp; not used)
-        if self.stopped is None:
-            self.stopped = (watchdog.temperature_stop(self.limits, temp)
-                            or watchdog.host_stop(self.limits, read_time,
-                                                  self.heartbeat))
-        self.heater.set_pwm(read_time, 0. if self.stopped else self.pwm)
+        self.heater.set_pwm(read_time, self.cutoff.power_at(read_time, temp))
 
     def check_busy(self, eventtime, smoothed_temp, target_temp):
         return False
@@ -466,7 +469,7 @@ class Run:
         control = self.control
         if control is not None:
             mcu = self.printer.lookup_object('mcu')
-            control.heartbeat = mcu.estimated_print_time(eventtime)
+            control.heartbeat(mcu.estimated_print_time(eventtime))
         return eventtime + HEARTBEAT_INTERVAL
 
     def hold_power(self, pwm):

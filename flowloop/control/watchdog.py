@@ -111,3 +111,24 @@ def stop_reason(limits: WatchdogLimits, *, temp_c: float, now_s: float,
         reason = trend_stop(limits, settled_c, previous, (now_s, temp_c))
     return (reason or sensor_stop(sensor_fault)
             or host_stop(limits, now_s, heartbeat_s))
+
+
+class FixedPowerCutoff:
+    """The rules a fixed-power heater control applies on every reading, in
+    the heater's own thread (no reactor needed): the power asked for until
+    the temperature or the host rule says stop, then 0 for good (`stopped`
+    says why; the reactor reports it). The host sets `heartbeat_s` (print
+    time) as it runs; None: no host rule yet."""
+
+    def __init__(self, limits: WatchdogLimits, power: float):
+        self.limits = limits
+        self.power = power
+        self.heartbeat_s: Optional[float] = None
+        self.stopped: Optional[str] = None
+
+    def power_at(self, read_time_s: float, temp_c: float) -> float:
+        if self.stopped is None:
+            self.stopped = (temperature_stop(self.limits, temp_c)
+                            or host_stop(self.limits, read_time_s,
+                                         self.heartbeat_s))
+        return 0.0 if self.stopped else self.power

@@ -86,3 +86,25 @@ def test_the_temperature_rule_comes_first():
 def test_bad_limits_are_refused(kwargs, message):
     with pytest.raises(FlowloopError, match=message):
         watchdog.WatchdogLimits(**kwargs)
+
+
+def test_the_fixed_power_cutoff_holds_the_power_until_a_rule_says_stop():
+    cutoff = watchdog.FixedPowerCutoff(LIMITS, 0.6)
+    assert cutoff.power_at(10.0, 215.0) == 0.6     # no heartbeat yet: no host rule
+    cutoff.heartbeat_s = 10.0
+    assert cutoff.power_at(14.0, 215.0) == 0.6 and cutoff.stopped is None
+    # the host went quiet: cut, and cut for good (a late heartbeat or a good
+    # reading does not bring the power back)
+    assert cutoff.power_at(15.5, 215.0) == 0.0
+    assert cutoff.stopped.startswith("the host has not answered for 5.5 s")
+    cutoff.heartbeat_s = 15.5
+    assert cutoff.power_at(16.0, 215.0) == 0.0
+
+
+@given(st.floats(allow_nan=True, allow_infinity=True))
+def test_the_fixed_power_cutoff_never_heats_outside_the_limits(temp):
+    cutoff = watchdog.FixedPowerCutoff(LIMITS, 1.0)
+    power = cutoff.power_at(0.0, temp)
+    inside = math.isfinite(temp) and LIMITS.min_temp_c <= temp <= LIMITS.max_temp_c
+    assert power == (1.0 if inside else 0.0)
+    assert (cutoff.stopped is None) == inside
