@@ -133,6 +133,7 @@ class SensorPipeline:
 
     def set_filament_area(self, area_mm2: float) -> None:
         self.grip.filament_area_mm2 = area_mm2
+        self._status = None    # the flows are in mm^3/s
 
     def feed(self, messages, timing: SampleTiming, motion: Motion) -> Batch:
         """Decode (sequence, payload) pairs from the source and judge them."""

@@ -40,7 +40,6 @@ REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: install "
                "(cd ~/klipper; make menuconfig; make flash)")
 
 
-
 class FlowSensor:
     def __init__(self, config):
         self.printer = printer = config.get_printer()

@@ -19,13 +19,14 @@
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, Dict, List, Optional, Set, Tuple
+from typing import TYPE_CHECKING, Any, Dict, Optional, Set, Tuple
 
 from flowloop.errors import FlowloopError
 from flowloop.material import spoolman_field as sf
 from flowloop.material.active import ActiveProfile, follow_spool
 from flowloop.material.profile import Profile
 
+from ...utils import json_wrapper as jsonw
 from .args import refusal
 from .errors import quoted
 from .profiles import NOTIFICATION, Profiles
@@ -98,7 +99,7 @@ class SpoolmanLink:
             raise SpoolmanDown(f"HTTP {resp.status_code}")
         try:
             return resp.status_code, resp.json() if resp.content else None
-        except Exception:
+        except jsonw.JSONDecodeError:    # not JSON
             return resp.status_code, None
 
     # --- loading a spool --------------------------------------------------------
@@ -242,6 +243,10 @@ class SpoolmanLink:
                     self._lost_to(fid, profile, kept)
                     break
                 # another printer wrote the field from an older read: again
+            else:
+                self._problem(f"Spoolman filament {fid}: other printers kept"
+                              f" writing it; {quoted(profile.name)} is put back"
+                              " at this printer's next spool of it")
             self.unwritten.discard(profile.name)
         except SpoolmanDown as e:
             self.unwritten.add(profile.name)
@@ -298,6 +303,3 @@ class SpoolmanLink:
             logging.info(f"flowloop: Spoolman is back: looking up spool "
                          f"{spool_id} again")
             await self._on_active_spool_set({"spool_id": spool_id})
-
-    def pending(self) -> List[str]:
-        return sorted(self.unwritten)

@@ -77,7 +77,7 @@ def test_windows_carry_the_twins_grip_and_status_reports_it():
     assert status["samples"] == 1000
 
 
-def test_a_fault_reaches_subscribers_only_as_the_window_reason():
+def test_a_fault_is_reported_once_and_hides_the_grip():
     pipeline = SensorPipeline(Settings(sample_period_s=PERIOD_S, fault_samples=50))
     twin = weak_twin(1.0)
     run(pipeline, twin, 1.0)
@@ -130,7 +130,7 @@ def test_status_is_recomputed_after_each_change_only():
     assert pipeline.status()["calibration"] == 1.05
 
 
-def test_dump_rows_and_positions_are_in_extruder_mm():
+def test_dump_rows_are_in_extruder_mm_positions_in_sensor_mm():
     pipeline = SensorPipeline(Settings(sample_period_s=PERIOD_S))
     twin = SimulatedEms22(sensor_scale=1.1, noise_counts=0)
     pipeline.set_calibration(1.1)
