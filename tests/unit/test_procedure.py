@@ -230,14 +230,27 @@ def test_the_heaters_own_cut_and_the_trend_rule_stop_a_level():
     procedure = make()
     twin = Twin()
     twin.run(procedure, until=lambda a: isinstance(a, proc.Extrude))
-    # the reading before the first step was read: a reading 11 degC above
-    # where the level settled ends it
+    # the reading before the first step was read: a reading 12 degC above
+    # where the level settled (and below the bounds' 250) ends it
     action = procedure.send(twin.answer(twin.actions[-1], procedure))
     assert isinstance(action, proc.Say)
     action = procedure.send()
     assert isinstance(action, proc.Read)
-    stop = procedure.send(proc.Reading(twin.time, 300.0, 0.3))
-    assert isinstance(stop, proc.Stop) and "above the limit 250" in stop.reason
+    stop = procedure.send(proc.Reading(twin.time, 212.5, 0.3))
+    assert isinstance(stop, proc.Stop)
+    assert "more than 10 degC above where it settled" in stop.reason, stop
+    # and one that falls faster than a hotend cools (20 degC/s) too
+    procedure = make()
+    twin = Twin()
+    twin.run(procedure, until=lambda a: isinstance(a, proc.Extrude))
+    procedure.send(twin.answer(twin.actions[-1], procedure))
+    action = procedure.send()                   # the reading after the step
+    assert isinstance(action, proc.Read)
+    action = procedure.send(proc.Reading(twin.time, 200.0, 0.3))
+    assert isinstance(action, proc.Read)        # the next step's first
+    stop = procedure.send(proc.Reading(twin.time + 0.1, 198.0, 0.3))
+    assert isinstance(stop, proc.Stop)
+    assert "degC/s at fixed power" in stop.reason, stop
     procedure = make()
     Twin().run(procedure, until=lambda a: isinstance(a, proc.HoldPower))
     procedure.send()
