@@ -67,6 +67,12 @@ class SlicerNumbers(NamedTuple):
     notes: str
 
 
+
+def _quoted(text: str) -> str:
+    """text in double quotes as JSON writes it, letters left as they are
+    (a slicer shows the notes as text: not 'gr\\u00fcn')."""
+    return json.dumps(text, ensure_ascii=False)
+
 def whole_degrees(profile: Profile) -> range:
     """The whole-degree temperatures within the profile's bounds."""
     b = profile.bounds
@@ -125,8 +131,8 @@ def slicer_numbers(profile: Profile, temp_c: Optional[float] = None,
                             f"choose a higher temperature")
     degrees = whole_degrees(profile)
     ident = profile.identity
-    notes = (f"flowloop {__version__}: profile {json.dumps(ident.name)}"
-             + (f" (printer {json.dumps(ident.printer)})" if ident.printer else "")
+    notes = (f"flowloop {__version__}: profile {_quoted(ident.name)}"
+             + (f" (printer {_quoted(ident.printer)})" if ident.printer else "")
              + f", nozzle {ident.nozzle_diameter_mm:g} mm, working point {wp:g}"
              f" (0 real print, 1 into air): {flow:.2f} mm^3/s at {temp} degC")
     return SlicerNumbers(
@@ -164,7 +170,7 @@ def prusaslicer_settings(numbers: SlicerNumbers) -> Dict[str, str]:
 def prusaslicer_ini(numbers: SlicerNumbers) -> str:
     """A PrusaSlicer / SuperSlicer filament config (.ini)."""
     header = [f"# PrusaSlicer filament settings written by flowloop {__version__}",
-              f"# profile {json.dumps(numbers.name)}, working point "
+              f"# profile {_quoted(numbers.name)}, working point "
               f"{numbers.working_point:g}"]
     body = [f"{key} = {value}"
             for key, value in sorted(prusaslicer_settings(numbers).items())]

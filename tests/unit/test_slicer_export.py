@@ -73,6 +73,13 @@ def test_the_notes_name_the_profile_the_working_point_and_flowloop():
     assert "working point 0.25" in n.notes and "at 230 degC" in n.notes
 
 
+def test_a_name_with_letters_beyond_ascii_reads_as_written():
+    n = slicer.slicer_numbers(herz(name="pla grün", identity={"printer": "Prüfer"}))
+    assert '"pla grün"' in n.notes and '"Prüfer"' in n.notes
+    assert '# profile "pla grün"' in slicer.prusaslicer_ini(n)
+    assert "\\u00fc" not in slicer.prusaslicer_ini(n) + slicer.orcaslicer_json(n)
+
+
 @pytest.mark.parametrize("temp", [189, 261, 189.9999, 500, -5])
 def test_a_temperature_outside_the_bounds_is_refused(temp):
     with pytest.raises(FlowloopError, match=r"outside the profile's bounds 190\.\.260"):
