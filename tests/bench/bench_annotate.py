@@ -27,8 +27,9 @@ process, without the annotation, against the same whole-process figure.
 Both run with their bytecode cached, as installed packages do (pip compiles
 them; Python caches what it imports): this environment sets
 PYTHONDONTWRITEBYTECODE, under which flowloop, an editable install here,
-would be compiled from source in every process (about 25 ms) while
-preprocess_cancellation has pip's bytecode. So both processes cache theirs
+would be compiled from source in every process (the figure "compiled
+from source" says what that costs) while preprocess_cancellation has pip's
+bytecode. So both processes cache theirs
 under a PYTHONPYCACHEPREFIX of the test's own, each run once first; the
 start-up compiled from source is reported beside, as a figure.
 """

@@ -268,3 +268,29 @@ def test_an_empty_history_file_is_a_history_of_no_rounds(tmp_path, capsys):
                      "--rotation-distance-b", "40", "--a1", "9.93", "--a2", "149.9",
                      "--b1", "9.95", "--b2", "149.9", "--history", str(history)]) == 0
     assert len(json.loads(history.read_text())) == 1
+
+
+def test_annotate_as_a_program_skips_what_it_does_not_need_and_ends_cleanly(tmp_path):
+    # as Moonraker runs it per upload: start-up without msgspec (profiles),
+    # klipper_config (--printer-cfg) or the other commands; the program's
+    # own exit (os._exit after flushing) leaves the file written and says so
+    source = Path(__file__).resolve().parents[1] / "data" / "gcode"
+    gcode = tmp_path / "part.gcode"
+    gcode.write_bytes((source / "block_layers_1_2.gcode").read_bytes())
+    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "flowloop",
+                           "annotate", str(gcode)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    imported = {line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines()
+                if line.startswith("import time:")}
+    assert "flowloop.gcode.annotate" in imported
+    assert not imported & {"msgspec", "flowloop.material.profile",
+                           "flowloop.host.klipper_config"}
+    assert done.stdout.strip()            # its summary line
+    from flowloop.gcode.annotate import is_annotated
+    assert is_annotated(gcode.read_bytes()[:65536])
+    # a refused file: one line, exit 2, nothing written
+    missing = tmp_path / "none.gcode"
+    refused = subprocess.run([sys.executable, "-m", "flowloop", "annotate",
+                              str(missing)], capture_output=True, text=True)
+    assert refused.returncode == 2
+    assert len(refused.stderr.strip().splitlines()) == 1 and not missing.exists()
