@@ -294,9 +294,8 @@ class _Annotator:
         steps = np.ceil(peaks / FLOW_STEP_MM3_S - 1e-6)
         # quantise_flow's values (+ 0.0: never -0.0)
         flows = np.maximum(steps, 0.0) * FLOW_STEP_MM3_S + 0.0
-        if not (edges[1:] > edges[:-1]).all():
-            self._close_bins_one_by_one(edges, peaks, flows)
-            return
+        # edges rise by window_s (>= MIN_WINDOW_S) from bin_start: always
+        # apart, no bin of no length
         lead = self.settings.lead_s
         edge_list = edges.tolist()
         k = self._skip_lead_in(flows, edge_list, count)
@@ -377,33 +376,6 @@ class _Annotator:
         if lead_in:
             self._prune(edge_list[lead_in] - self.settings.placement_s)
         return lead_in
-
-    def _close_bins_one_by_one(self, edges: np.ndarray, peaks: np.ndarray,
-                               flows: np.ndarray) -> None:
-        """_close_bins a bin at a time (where bins of no length are among
-        them): a run of bins that only lengthens the pending window is
-        taken at once."""
-        count = len(peaks)
-        # where the flow changes: a run of equal flows ends before it
-        change = np.flatnonzero(flows[1:] != flows[:-1]) + 1
-        run_end = np.append(change, count).tolist()
-        flow_list, edge_list = flows.tolist(), edges.tolist()
-        k = self._skip_lead_in(flows, edge_list, count)
-        while k < count:
-            self.bin_start, self.bin_peak = edge_list[k], 0.0
-            p = self.pending
-            if p is not None and p.flow == flow_list[k] \
-                    and p.end_s == edge_list[k]:
-                stop = run_end[bisect.bisect_right(run_end, k)]
-                n = self._absorb(edge_list, k, stop, p.start_s) - k
-                if n:
-                    p.end_s = edge_list[k + n]
-                    k += n
-                    continue
-            self.bin_peak = peaks[k]
-            self._close_bin(edge_list[k + 1])
-            k += 1
-        self.bin_start, self.bin_peak = edge_list[count], 0.0
 
     def _write_windows(self, start_s, end_s, flow, insert_s, insert_at) -> None:
         """_finish_pending for windows that are over, given as arrays."""
