@@ -279,8 +279,10 @@ class FastPlanner:
             cmd = head[0] if head else b""
             if cmd[1:].isdigit() and cmd not in _M_HANDLED:
                 kinds[i] = _SKIP
-        if b"\0" in data or b"\t" in data or not data.isascii() \
-                or (b"\r" in data and data.count(b"\r") > len(starts)):
+        # the chunk's own bytes (data runs on a little into the next one)
+        chunk = data if len(data) == self._size else data[:self._size]
+        if b"\0" in chunk or b"\t" in chunk or not chunk.isascii() \
+                or (b"\r" in chunk and chunk.count(b"\r") > len(starts)):
             # binary, tabs, non-ASCII, stray CRs: such lines the slow way
             odd = ~_ascii_plain(buf[:self._size])
             odd_lines = np.searchsorted(starts, np.flatnonzero(odd), "right") - 1
