@@ -222,12 +222,8 @@ def _export_texts(args, profile: Profile, formats: List[str]) -> Dict[str, str]:
         first = _temp_option(profile, "--first-layer-temp", args.first_layer_temp)
         numbers = slicer.slicer_numbers(profile, temp, first, wp)
     for fmt in formats:
-        if fmt == "ddprint":
-            texts[fmt] = ddprint.export_text(profile)
-        elif fmt == "orcaslicer":
-            texts[fmt] = slicer.orcaslicer_json(numbers, args.inherits or "")
-        else:
-            texts[fmt] = slicer.prusaslicer_ini(numbers)
+        texts[fmt] = (ddprint.export_text(profile) if fmt == "ddprint" else
+                      slicer.format_text(numbers, fmt, args.inherits or ""))
     return texts
 
 

@@ -226,6 +226,11 @@ def export_text(profile: Profile, fmt: str, temp_c: Optional[float] = None,
     """The file for one slicer format (see FORMATS)."""
     fmt = check_format(fmt)
     numbers = slicer_numbers(profile, temp_c, first_layer_temp_c, working_point)
+    return format_text(numbers, fmt, inherits)
+
+
+def format_text(numbers: SlicerNumbers, fmt: str, inherits: str = "") -> str:
+    """The file of a checked format (check_format) for these numbers."""
     if fmt == "orcaslicer":
         return orcaslicer_json(numbers, inherits)
     return prusaslicer_ini(numbers)
