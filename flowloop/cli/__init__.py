@@ -29,6 +29,7 @@ COMMANDS = {
     "delta-endstops": "flowloop.cli.delta",
     "annotate": "flowloop.cli.annotate",
     "measure-part": "flowloop.cli.measure",
+    "report": "flowloop.cli.report",
 }
 COMMAND_MODULES = tuple(dict.fromkeys(COMMANDS.values()))
 

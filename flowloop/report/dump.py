@@ -1,0 +1,162 @@
+"""A flow report's data as a small JSON file, and back.
+
+The file is what Moonraker stores per job and what `flowloop report` renders
+offline. It carries its format and version; a file this version cannot read
+is refused with one line saying what it is and what was expected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+from ..errors import FlowloopError
+from .recorder import (
+    CHANNELS,
+    Bins,
+    Event,
+    Job,
+    Layer,
+    Recorder,
+    Sample,
+    Span,
+    Spans,
+)
+
+FORMAT = "flowloop-flow-report"
+VERSION = 1
+# totals kept as they are (everything else is rebuilt)
+_COUNTS = ("samples", "sensor_samples", "faulted_samples", "planned_samples",
+           "events_dropped")
+
+
+def to_dict(rec: Recorder) -> Dict[str, Any]:
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "job": dataclasses.asdict(rec.job),
+        "filament_diameter_mm": rec.filament_diameter_mm,
+        "grip_noise": rec.grip_noise,
+        **{name: getattr(rec, name) for name in _COUNTS},
+        "last_time_s": None if rec.last is None else round(rec.last.time_s, 4),
+        "commanded_mm": round(rec.commanded_mm, 4),
+        "under_mm": round(rec.under_mm, 4),
+        "bins": {"width_s": rec.bins.width_s, "max_bins": rec.bins.max_bins,
+                 "channels": list(CHANNELS), "rows": _rounded_rows(rec.bins)},
+        "layers": [_rounded(dataclasses.asdict(layer))
+                   for _, layer in sorted(rec.layers.items())],
+        "slowdowns": [_rounded(dataclasses.asdict(s)) for s in rec.slowdowns.items],
+        "faults": [_rounded(dataclasses.asdict(s)) for s in rec.faults.items],
+        "profiles": [_rounded(dataclasses.asdict(s)) for s in rec.profiles.items],
+        "events": [_rounded(dataclasses.asdict(e)) for e in rec.events],
+    }
+
+
+def dumps(rec: Recorder) -> str:
+    return json.dumps(to_dict(rec), separators=(",", ":"), allow_nan=False)
+
+
+def _rounded(d: Dict[str, Any]) -> Dict[str, Any]:
+    return {k: round(v, 4) if isinstance(v, float) else v for k, v in d.items()}
+
+
+def _rounded_rows(bins: Bins) -> List[Any]:
+    return [None if row is None else
+            [None if cell is None else [int(cell[0])] + [round(v, 4) for v in cell[1:]]
+             for cell in row]
+            for row in bins.rows]
+
+
+def from_dict(data: Any, source: str = "the dump") -> Recorder:
+    """A Recorder as it was dumped (FlowloopError: not one this version reads)."""
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise FlowloopError(f"{source} is not a flowloop flow report dump (no "
+                            f"\"format\": \"{FORMAT}\")")
+    version = data.get("version")
+    if version != VERSION:
+        raise FlowloopError(f"{source} is a flow report dump of version "
+                            f"{version!r}; this flowloop reads version {VERSION}")
+    try:
+        return _recorder(data)
+    except (KeyError, TypeError, ValueError, IndexError) as e:
+        raise FlowloopError(f"{source} is a damaged flow report dump "
+                            f"({type(e).__name__}: {e})") from None
+
+
+def _recorder(data: Dict[str, Any]) -> Recorder:
+    bins_data = data["bins"]
+    if list(bins_data["channels"]) != list(CHANNELS):
+        raise ValueError(f"channels {bins_data['channels']} are not {list(CHANNELS)}")
+    bins = Bins(int(bins_data["max_bins"]), float(bins_data["width_s"]))
+    bins.rows = [None if row is None else
+                 [None if cell is None else [float(v) for v in cell] for cell in row]
+                 for row in bins_data["rows"]]
+    rec = Recorder(job=Job(**data["job"]),
+                   filament_diameter_mm=float(data["filament_diameter_mm"]),
+                   grip_noise=float(data["grip_noise"]), bins=bins,
+                   commanded_mm=float(data["commanded_mm"]),
+                   under_mm=float(data["under_mm"]))
+    for name in _COUNTS:
+        setattr(rec, name, int(data[name]))
+    rec.layers = {int(d["layer"]): Layer(**d) for d in data["layers"]}
+    for name in ("slowdowns", "faults", "profiles"):
+        spans = Spans()
+        spans.items = [Span(**d) for d in data[name]]
+        setattr(rec, name, spans)
+    rec.events = [Event(**d) for d in data["events"]]
+    if data["last_time_s"] is not None:
+        rec.last = Sample(float(data["last_time_s"]), print_state="")
+    return rec
+
+
+def loads(text: str, source: str = "the dump") -> Recorder:
+    try:
+        data = json.loads(text)
+    except ValueError as e:
+        raise FlowloopError(f"{source} is not JSON ({e})") from None
+    return from_dict(data, source)
+
+
+def load(path: Path) -> Recorder:
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise FlowloopError(f"cannot read {path}: {e}") from None
+    return loads(text, str(path))
+
+
+def save(path: Path, text: str) -> None:
+    """Write a dump or report whole or not at all (OSError as raised: a full
+    disk leaves the file that was there, and no partial one)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp",
+                               dir=path.parent if str(path.parent) else ".")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as out:
+            out.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def summary(rec: Recorder) -> Dict[str, Optional[Any]]:
+    """The few figures a list of reports shows per job."""
+    return {
+        "job_id": rec.job.job_id,
+        "filename": rec.job.filename,
+        "state": rec.job.state,
+        "started_at": rec.job.started_at,
+        "duration_s": round(rec.duration_s(), 1),
+        "under_extruded_mm": round(rec.under_mm, 2),
+        "slowed_s": round(sum(rec.slowdown_by_reason().values()), 1),
+        "lost_s": round(rec.lost_s(), 1),
+        "lacks": rec.lacks(),
+    }
