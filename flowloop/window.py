@@ -34,6 +34,11 @@ class Window:
     temp_c: Optional[float] = None       # hotend temperature at end_time
     # the planned (commanded) flow over it, in equal pieces (window_flows)
     commanded_flows: Tuple[float, ...] = ()
+    # the sensor's fault when it closed, as the sensor's status names it
+    # (None: none). A fault that starts or clears in a batch that closes no
+    # window comes in a window of no filament (commanded_mm 0, grip None,
+    # reason TOO_LITTLE_MOTION) that carries only this.
+    fault: Optional[str] = None
 
     @property
     def faulted(self) -> bool:

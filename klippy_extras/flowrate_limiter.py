@@ -111,7 +111,7 @@ class FlowrateLimiter:
 
     def _handle_window(self, window):
         # In the reactor, possibly inside a flush: no pauses here. A window
-        # closed while the sensor is faulted says so itself (Window.faulted).
+        # says whether the sensor is faulted (Window.faulted, Window.fault).
         self.limiter.on_window(window)
 
     # --- the move transform --------------------------------------------------
@@ -127,7 +127,9 @@ class FlowrateLimiter:
         melted_mm3 = 0.
         if shape.extrude_mm > 0. \
                 and self.toolhead.get_extruder() is self.extruder:
-            self._update_inputs()
+            if self.nozzle is None:
+                temp_c, _ = self.heater.get_temp(self.reactor.monotonic())
+                self.limiter.set_temperature(temp_c)
             speed = self.limiter.limit(shape, speed)
             melted_mm3 = shape.extrude_mm * self.filament_area
         nozzle = self.nozzle
@@ -137,15 +139,6 @@ class FlowrateLimiter:
             self.limiter.set_temperature(nozzle.read(
                 self.heater.get_status(None)['target']))
         self.next_transform.move(newpos, speed)
-
-    def _update_inputs(self):
-        if self.sensor is not None:
-            # the fault's name, for the status (no window may come while
-            # the sensor is faulted: samples that are all bad close none)
-            self.limiter.set_sensor_fault(self.sensor.get_status()['fault'])
-        if self.nozzle is None:
-            temp_c, _ = self.heater.get_temp(self.reactor.monotonic())
-            self.limiter.set_temperature(temp_c)
 
     # --- status and commands -------------------------------------------------
     def get_status(self, eventtime=None):

@@ -16,9 +16,9 @@ max_flow and temperature are hard caps; the grip caps never slow a move
 below min_speed_factor of the speed the hard caps leave it. A cap that lacks
 its input (no profile, no temperature) is off, and the status says why; a
 sensor fault freezes the grip caps (never raising one): it reaches the
-caps only as the reason of the windows the sensor closes while faulted
-(Window.faulted), which no rule judges; the sensor's fault as its status
-names it is for the status only (set_sensor_fault).
+limiter by one path, the windows: those the sensor closes while faulted
+say so (Window.faulted) and no rule judges them; every window carries the
+fault's name (Window.fault), which only the status shows.
 
 `limit` runs once per G-code move: what it needs (the lowest cap, the hard
 one, the floor) is worked out when a cap changes, and a move under the
@@ -179,19 +179,15 @@ class FlowLimiter:
             if temp_c != old:
                 self._update()
 
-    def set_sensor_fault(self, fault: Optional[str]) -> None:
-        """The sensor's fault as its status names it (None: none), for the
-        status only: the caps learn of a fault from the windows (a faulted
-        one is never judged, so the grip caps neither lower, a dead sensor
-        is not a slip, nor recover, nothing shows the hotend keeps up; a cap
-        in force stays, so a fault never raises one)."""
-        if fault == self.sensor_fault:
-            return
-        self.sensor_fault = fault
-        self._update()
-
     def on_window(self, window: Window) -> None:
-        """One closed grip window of the sensor, as it delivered it."""
+        """One closed grip window of the sensor, as it delivered it. A
+        faulted one is never judged, so the grip caps neither lower (a dead
+        sensor is not a slip) nor recover (nothing shows the hotend keeps
+        up): a cap in force stays, so a fault never raises one. Its fault's
+        name is for the status only."""
+        if window.fault != self.sensor_fault:
+            self.sensor_fault = window.fault
+            self._update()
         if judged_flow_mm3_s(window, self.filament_area_mm2) is None:
             return  # faulted, not judged, or no forward flow: nothing to judge
         self.windows_judged += 1

@@ -5,7 +5,10 @@ decode (ems22.Decoder: records, unwrapped counts, error kinds) -> time
 (each record's MCU clock, then print time) -> filament (sign, counts per mm)
 -> grip windows (grip.GripEstimator) -> faults (ems22.FaultMonitor) -> the
 status policy (grip is not reported while the sensor is faulted, and a
-window closed while faulted goes out unjudged, reason FAULT).
+window closed while faulted goes out unjudged, reason FAULT). Every window
+carries the fault's name (Window.fault): subscribers learn of a fault by
+that one path, from a window of no filament when none closed (samples that
+are all bad close none).
 
 Both of [flow_sensor]'s sources feed it the same way: the real EMS22 the
 payloads its MCU sent, the simulated twin the payloads it made. What it needs
@@ -23,7 +26,7 @@ from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 
-from ..window import FAULT, Window
+from ..window import FAULT, TOO_LITTLE_MOTION, Window
 from . import ems22
 from . import grip as fl_grip
 
@@ -118,6 +121,7 @@ class SensorPipeline:
         # whether windows get their commanded flows (a subscriber wants them)
         self.want_flows = False
         self._status: Optional[dict] = None   # until the next change
+        self._fault_told: Optional[str] = None  # the last window's fault
 
     # --- what the adapter drives -----------------------------------------------
     def restart(self) -> None:
@@ -143,7 +147,9 @@ class SensorPipeline:
         valid = samples.valid
         windows: List[Window] = []
         if not valid.any():
-            return Batch((), started, calibration=self.grip.calibration)
+            windows = self._fault_change(samples, timing, windows)
+            return Batch(tuple(windows), started,
+                         calibration=self.grip.calibration)
         clocks = ems22.sample_clocks(samples, timing.start_clock,
                                      timing.rest_ticks,
                                      timing.time_shift)[valid]
@@ -158,6 +164,7 @@ class SensorPipeline:
                                     samples.breaks[valid]):
             started = self.faults.note_window(window.reason) or started
             windows.append(self._judged(window, motion))
+        windows = self._fault_change(samples, timing, windows)
         self.rate.add(times)
         return Batch(tuple(windows), started, times, sensor_mm,
                      np.asarray(commanded), self.grip.calibration)
@@ -166,14 +173,32 @@ class SensorPipeline:
         """The window as subscribers get it: unjudged while faulted, else
         with what it asked for over time (read while the trapq still holds
         the moves) if a subscriber learns the capacity from it."""
-        if self.faults.fault is not None:
-            return dataclasses.replace(window, grip=None, reason=FAULT)
+        fault = self.faults.fault
+        if fault is not None:
+            return dataclasses.replace(window, grip=None, reason=FAULT,
+                                       fault=fault)
         if window.grip is not None and self.want_flows:
             return dataclasses.replace(window, commanded_flows=fl_grip.window_flows(
                 motion.planned_moves(window.start_time, window.end_time),
                 window.start_time, window.end_time,
                 self.grip.filament_area_mm2))
         return window
+
+    def _fault_change(self, samples, timing: SampleTiming,
+                      windows: List[Window]) -> List[Window]:
+        """The batch's windows, and a window of no filament at its last
+        record if the fault started or cleared and no window says so."""
+        fault = self.faults.fault
+        if windows:
+            self._fault_told = windows[-1].fault
+        if fault == self._fault_told or not len(samples.status):
+            return windows
+        self._fault_told = fault
+        clock = ems22.sample_clocks(samples, timing.start_clock,
+                                    timing.rest_ticks, timing.time_shift)[-1:]
+        at = float(ems22.print_times(clock, timing.clock_to_print_time)[0])
+        return windows + [Window(at, at, 0.0, 0.0, None, TOO_LITTLE_MOTION,
+                                 fault=fault)]
 
     # --- what the adapter reads ------------------------------------------------
     @property

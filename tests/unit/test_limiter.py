@@ -23,13 +23,14 @@ def flow(speed):
     return FAST.flow_mm3_s(speed, AREA)
 
 
-def window(duration_s, commanded_mm, grip, temp_c, flows=(), reason=None):
+def window(duration_s, commanded_mm, grip, temp_c, flows=(), reason=None,
+           fault=None):
     """A closed grip window as [flow_sensor] delivers it."""
     if reason is None:
         reason = TOO_LITTLE_MOTION if grip is None else JUDGED
     return Window(0.0, duration_s, commanded_mm,
                   0.0 if grip is None else grip * commanded_mm, grip, reason,
-                  temp_c=temp_c, commanded_flows=tuple(flows))
+                  temp_c=temp_c, commanded_flows=tuple(flows), fault=fault)
 
 
 def test_max_flow_alone_caps_without_sensor_or_profile():
@@ -133,21 +134,25 @@ def test_a_sensor_fault_freezes_the_grip_caps_and_says_so():
     lim.on_window(window(0.1, 1.25, 0.5, None))
     capped = lim.status()["caps"]["grip"]
     assert lim.status()["reason"] == "grip"
-    lim.set_sensor_fault("magnet")  # the name the sensor's status gives it
+    # samples that are all bad close no window: one of no filament names it
+    lim.on_window(window(0.0, 0.0, None, None, fault="magnet"))
     s = lim.status()
     # never raised: the cap in force stays
     assert s["reason"] == "grip" and s["caps"]["grip"] == capped
     assert "sensor fault 'magnet': grip caps frozen" in s["why"]
     # the windows a faulted sensor closes neither lower nor recover it: the
     # fault reaches the caps as their reason, whatever else they carry
-    lim.on_window(window(0.1, 1.25, None, None, reason=FAULT))
-    lim.on_window(window(0.1, 1.25, 0.1, None, reason=FAULT))
+    lim.on_window(window(0.1, 1.25, None, None, reason=FAULT, fault="magnet"))
+    lim.on_window(window(0.1, 1.25, 0.1, None, reason=FAULT, fault="magnet"))
     for _ in range(40):
-        lim.on_window(window(1.0, 12.5, 1.0, None, reason=FAULT))
+        lim.on_window(window(1.0, 12.5, 1.0, None, reason=FAULT,
+                             fault="magnet"))
     assert lim.status()["caps"]["grip"] == capped
     assert lim.status()["grip_windows"]["judged"] == 1
-    # cleared: the rule goes on from where it was
-    lim.set_sensor_fault(None)
+    assert "sensor fault 'magnet'" in lim.status()["why"]
+    # cleared (a window of no filament says so): the rule goes on from
+    # where it was
+    lim.on_window(window(0.0, 0.0, None, None))
     assert "sensor fault" not in lim.status()["why"]
     for _ in range(40):
         lim.on_window(window(1.0, 12.5, 1.0, None))

@@ -104,7 +104,30 @@ def test_windows_closed_while_faulted_go_out_unjudged():
     assert [b.fault_started for b in batches if b.fault_started] == ["stuck"]
     after = windows[reasons.index(FAULT):]
     assert all(w.reason == FAULT and w.grip is None and w.faulted for w in after)
+    assert {w.fault for w in after} == {"stuck"}
+    assert {w.fault for w in windows[:reasons.index(FAULT)]} == {None}
     assert pipeline.status()["grip"] is None
+
+
+def test_a_fault_that_closes_no_window_still_reaches_subscribers_in_one():
+    # samples that are all bad close no window: one of no filament carries
+    # the fault's name when it starts, and None when it clears
+    pipeline = SensorPipeline(Settings(sample_period_s=PERIOD_S, fault_samples=50))
+    twin = weak_twin(1.0)
+    run(pipeline, twin, 1.0)
+    twin.set_fault("magnet")
+    faulted = [w for b in run(pipeline, twin, 1.0, start_s=1.0)
+               for w in b.windows]
+    assert [w.fault for w in faulted] == ["magnet"]     # once
+    told = faulted[0]
+    assert (told.commanded_mm, told.grip, told.faulted) == (0.0, None, False)
+    assert 1.0 < told.end_time == told.start_time < 2.0
+    twin.set_fault(None)
+    back = [w for b in run(pipeline, twin, 2.0, start_s=2.0) for w in b.windows]
+    assert back[0].fault is None and back[0].commanded_mm == 0.0
+    assert [w.fault for w in back] == [None] * len(back)
+    assert [w.commanded_mm for w in back[1:]].count(0.0) == 0
+    assert back[-1].reason == JUDGED
 
 
 def test_the_fault_clears_with_the_next_good_samples():
