@@ -13,6 +13,7 @@
 #   api.py            the HTTP/JSON-RPC endpoints and klippy's remote method
 #   processor.py      uploaded G-code annotated for [autotemp]
 #   page.py           the live page (/server/flowloop/page/) and what it asks
+#   reports.py        a flow report per job of Moonraker's history
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -31,6 +32,7 @@ from .klippy_sync import KlippySync
 from .page import Page
 from .processor import Processor
 from .profiles import Profiles
+from .reports import DEFAULT_REPORTS_TO_KEEP, Reports
 from .spoolman_link import SpoolmanLink
 from .store import ProfileStore
 
@@ -69,6 +71,8 @@ class Flowloop:
                          self.processor.registered_name)
         self.api = Api(self.server, self.store, self.profiles, self.info, default_wp)
         self.page = Page(self.server, self.store)
+        self.reports = Reports(self.server, config.getint(
+            "number_of_reports_to_keep", DEFAULT_REPORTS_TO_KEEP, minval=1))
 
     async def component_init(self) -> None:
         await self.store.load()

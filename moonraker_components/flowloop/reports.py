@@ -1,0 +1,189 @@
+# flowloop component: a flow report for every job of Moonraker's history.
+#
+# While a job runs, the klippy objects flowloop publishes are read from
+# Moonraker's own subscription and fed to the core's recorder every
+# SAMPLE_PERIOD_S; when the job ends its dump and its HTML report are
+# written under the data path (flowloop/reports/JOB.json, JOB.html), the
+# newest number_of_reports_to_keep kept. Everything that decides (what a
+# sample is, what the report says) is in flowloop.report.
+#
+# This file may be distributed under the terms of the GNU GPLv3 license.
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Dict, List, Optional
+
+from flowloop.errors import FlowloopError
+from flowloop.report import dump, render
+from flowloop.report.recorder import (
+    DEFAULT_FILAMENT_DIAMETER_MM,
+    Job,
+    Recorder,
+    sample_from_status,
+    status_objects,
+)
+
+from ...common import RequestType, TransportType, WebRequest
+from . import args
+from .endpoints import register_endpoint
+from .errors import one_line, quoted
+
+if TYPE_CHECKING:
+    from ...server import Server
+
+SAMPLE_PERIOD_S = 0.25
+DEFAULT_REPORTS_TO_KEEP = 10
+REPORTS_FOLDER = ("flowloop", "reports")
+# Moonraker's job ids: the history's row id as (at least) 6 hex digits
+JOB_ID = re.compile(r"^[0-9A-F]{1,16}$")
+
+
+class Reports:
+    def __init__(self, server: Server, keep: int) -> None:
+        self.server = server
+        self.keep = keep
+        self.eventloop = server.get_event_loop()
+        self.klippy_apis = server.lookup_component("klippy_apis")
+        self.folder = Path(server.get_app_args()["data_path"]).joinpath(
+            *REPORTS_FOLDER)
+        self.status: Dict[str, Dict[str, Any]] = {}
+        self.sensor_name: Optional[str] = None
+        self.filament_diameter_mm = DEFAULT_FILAMENT_DIAMETER_MM
+        self.recorder: Optional[Recorder] = None
+        self._started = 0.0
+        self._sampler: Optional[asyncio.Task] = None
+        server.register_event_handler("server:klippy_ready", self._on_klippy_ready)
+        server.register_event_handler("history:history_changed", self._on_history)
+        register_endpoint(server, "/server/flowloop/reports", RequestType.GET,
+                          self._handle_list)
+        register_endpoint(server, "/server/flowloop/report", RequestType.GET,
+                          self._handle_report, transports=TransportType.HTTP,
+                          wrap_result=False, content_type="text/html; charset=utf-8")
+
+    # --- klippy's objects --------------------------------------------------------
+    async def _on_klippy_ready(self) -> None:
+        try:
+            objects = await self.klippy_apis.get_object_list(default=[])
+            sensors = sorted(o.split(" ", 1)[1] for o in objects
+                             if o.startswith("flow_sensor "))
+            self.sensor_name = sensors[0] if sensors else None
+            answer = await self.klippy_apis.query_objects(
+                {"configfile": ["settings"]}, default={})
+            extruder = answer.get("configfile", {}).get("settings", {}).get(
+                "extruder", {})
+            self.filament_diameter_mm = float(extruder.get(
+                "filament_diameter", DEFAULT_FILAMENT_DIAMETER_MM))
+            status = await self.klippy_apis.subscribe_objects(
+                status_objects(self.sensor_name), self._on_status, default={})
+        except self.server.error as e:
+            logging.info(f"flowloop: flow reports get no klippy status: "
+                         f"{one_line(e)}")
+            return
+        self.status = {name: dict(fields) for name, fields in status.items()}
+
+    async def _on_status(self, data: Dict[str, Any], eventtime: float) -> None:
+        for name, fields in data.items():
+            self.status.setdefault(name, {}).update(fields)
+
+    # --- jobs --------------------------------------------------------------------
+    async def _on_history(self, event: Dict[str, Any]) -> None:
+        job = event.get("job") or {}
+        if event.get("action") == "added":
+            self._start(job)
+        elif event.get("action") == "finished" and self.recorder is not None \
+                and self.recorder.job.job_id == job.get("job_id"):
+            await self._finish(job.get("status") or "unknown")
+
+    def _start(self, job: Dict[str, Any]) -> None:
+        self._stop_sampler()
+        self.recorder = Recorder(
+            job=Job(job_id=job.get("job_id"), filename=job.get("filename"),
+                    started_at=job.get("start_time"), sensor_name=self.sensor_name),
+            filament_diameter_mm=self.filament_diameter_mm)
+        self._started = time.monotonic()
+        self._sampler = self.eventloop.create_task(self._sample_loop())
+
+    async def _sample_loop(self) -> None:
+        while self.recorder is not None:
+            self.recorder.sample(sample_from_status(
+                time.monotonic() - self._started, self.status, self.sensor_name))
+            await asyncio.sleep(SAMPLE_PERIOD_S)
+
+    def _stop_sampler(self) -> None:
+        if self._sampler is not None:
+            self._sampler.cancel()
+            self._sampler = None
+
+    async def _finish(self, state: str) -> None:
+        self._stop_sampler()
+        rec, self.recorder = self.recorder, None
+        if rec is None:
+            return
+        rec.finish(state, time.monotonic() - self._started)
+        try:
+            await self.eventloop.run_in_thread(self._store, rec)
+        except OSError as e:  # a full disk: the job's history is Moonraker's, kept
+            logging.error(f"flowloop: the flow report of job {rec.job.job_id} was "
+                          f"not stored: {one_line(e)}")
+        except Exception as e:  # never take Moonraker's job handling down with it
+            logging.exception(f"flowloop: the flow report of job {rec.job.job_id} "
+                              f"failed: {one_line(e)}")
+
+    def _store(self, rec: Recorder) -> None:
+        """The dump and the report, whole or not at all; then the oldest
+        beyond `keep` removed (in a thread: rendering is some ms of Python)."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        job_id = rec.job.job_id or "unknown"
+        dump.save(self.folder / f"{job_id}.json", dump.dumps(rec))
+        dump.save(self.folder / f"{job_id}.html", render.html(rec))
+        for old in self._stored()[self.keep:]:
+            for suffix in (".json", ".html"):
+                old.with_suffix(suffix).unlink(missing_ok=True)
+
+    def _stored(self) -> List[Path]:
+        """The stored dumps, newest job first."""
+        if not self.folder.is_dir():
+            return []
+        dumps = [p for p in self.folder.glob("*.json") if JOB_ID.match(p.stem)]
+        return sorted(dumps, key=lambda p: int(p.stem, 16), reverse=True)
+
+    # --- endpoints ---------------------------------------------------------------
+    def _summaries(self) -> List[Dict[str, Any]]:
+        out = []
+        for path in self._stored():
+            try:
+                entry = dump.summary(dump.load(path))
+            except FlowloopError as e:
+                entry = {"job_id": path.stem, "problem": one_line(e)}
+            out.append(entry)
+        return out
+
+    async def _handle_list(self, web_request: WebRequest) -> Dict[str, Any]:
+        reports = await self.eventloop.run_in_thread(self._summaries)
+        recording = None if self.recorder is None else self.recorder.job.job_id
+        return {"reports": reports, "recording": recording,
+                "number_of_reports_to_keep": self.keep}
+
+    async def _handle_report(self, web_request: WebRequest) -> bytes:
+        given = args.text(web_request.get_args(), "job_id", "job id")
+        job_id = given.upper()
+        if not JOB_ID.match(job_id):
+            raise args.refusal(f"job id {quoted(given)} is not a job of "
+                               f"Moonraker's history (hex digits, e.g. 00002A)")
+        rec = self.recorder
+        if rec is not None and rec.job.job_id == job_id:  # the print running now
+            # a copy taken here: the sampler goes on changing the recorder
+            copy = dump.dumps(rec)
+            return (await self.eventloop.run_in_thread(
+                lambda: render.html(dump.loads(copy)))).encode()
+        path = self.folder / f"{job_id}.html"
+        try:
+            return await self.eventloop.run_in_thread(path.read_bytes)
+        except FileNotFoundError:
+            raise args.refusal(f"no flow report for job {quoted(job_id)}",
+                               404) from None
