@@ -20,11 +20,13 @@ the heater's control and says why).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 from ..errors import FlowloopError
+from ..material.profile import Bounds
 
 DEFAULT_MAX_RISE_C = 10.0
 DEFAULT_MAX_FALL_C_PER_S = 5.0
@@ -111,6 +113,18 @@ def stop_reason(limits: WatchdogLimits, *, temp_c: float, now_s: float,
         reason = trend_stop(limits, settled_c, previous, (now_s, temp_c))
     return (reason or sensor_stop(sensor_fault)
             or host_stop(limits, now_s, heartbeat_s))
+
+
+def for_measurement(bounds: Bounds,
+                    host_timeout_s: float = DEFAULT_HOST_TIMEOUT_S
+                    ) -> Tuple[WatchdogLimits, Callable[..., Optional[str]]]:
+    """A profile measurement's watchdog: its limits (the bounds' min..max;
+    the fixed-power heater's cutoff applies them) and its rules with them
+    (stop_reason, what the procedure asks on every reading)."""
+    limits = WatchdogLimits(min_temp_c=bounds.min_temp_c,
+                            max_temp_c=bounds.max_temp_c,
+                            host_timeout_s=host_timeout_s)
+    return limits, functools.partial(stop_reason, limits)
 
 
 class FixedPowerCutoff:

@@ -1,7 +1,7 @@
 """MEASURE_MATERIAL_PROFILE as a procedure: what the printer does next,
 decided from what it reports.
 
-The klippy adapter (klippy_extras/measure_profile.py) executes and this
+The klippy adapter (klippy_extras/measure_profile/) executes and this
 module decides. `Procedure` is built from the plan, the bounds, the
 [measure_profile] settings, the base profile and the extruder's hardware;
 it answers each event with the next action, a small frozen value:
@@ -36,6 +36,7 @@ again, up to MAX_STEP_RETRIES times.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 from dataclasses import dataclass
 from typing import (
@@ -61,6 +62,7 @@ MAX_STEP_RETRIES = 2        # a step without a judged window runs again
 RECENT_WINDOWS = 8
 NAME = "MEASURE_MATERIAL_PROFILE"
 PRINT_NAME = "MEASURE_MATERIAL_PROFILE_PRINT"
+SHUT_DOWN = "Klipper shut down"
 
 
 # --- the actions -------------------------------------------------------------
@@ -205,22 +207,55 @@ def missing_sensor(sensor_name: Optional[str], extruder_name: str) -> str:
     return f"EXTRUDER: {which} is needed to judge grip"
 
 
+def start_refusal(busy: bool, printing: bool = False,
+                  paused: bool = False) -> Optional[str]:
+    """Why a measurement may not start, or None: one runs already (or a
+    print is watched), a print is running, or the printer is paused (the
+    real-print measurement asks only the first)."""
+    if busy:
+        return "a measurement is running already"
+    if printing:
+        return "a print is running; nothing changed"
+    if paused:
+        return ("the printer is paused (RESUME or CLEAR_PAUSE first);"
+                " nothing changed")
+    return None
+
+
+def check_active(extruder_name: str, active: bool) -> None:
+    """FlowloopError unless the extruder measured is the toolhead's."""
+    if not active:
+        raise FlowloopError(f"{extruder_name} is not the active extruder"
+                            " (activate it first)")
+
+
+def handed_over(command: str, name: str, extruder_name: str,
+                activate: bool) -> str:
+    """What is said once Moonraker took a measured profile."""
+    return (f"{command}: profile '{name}' handed to Moonraker"
+            + (f" and activated on {extruder_name}" if activate else ""))
+
+
+def not_stored(command: str, name: str, error: str) -> str:
+    """What is said when Moonraker did not take it."""
+    return (f"{command}: profile '{name}' measured but not stored ({error}):"
+            " is Moonraker's [flowloop] component loaded?")
+
+
 # What a run relies on between two of its turns on the G-code queue:
 # (toolhead position, extruder heater's target, the heater's control object)
 Held = Tuple[Tuple[float, ...], float, object]
 
 
-def turn_stop(extruder_name: str, cancel_reason: Optional[str],
-              shut_down: bool, paused: bool, left: Optional[Held],
-              now: Optional[Held]) -> Optional[str]:
-    """Why a run must end before its next turn, or None: a cancel, a
-    shutdown, PAUSE, or a command since the last turn that moved the
-    toolhead, changed the heater's target or replaced its control (left:
-    what the last turn left, None before the first)."""
-    if cancel_reason:
-        return cancel_reason
-    if shut_down:
-        return "Klipper shut down"
+def turn_stop(extruder_name: str, stop_reason: Optional[str], paused: bool,
+              left: Optional[Held], now: Optional[Held]) -> Optional[str]:
+    """Why a run must end before its next turn, or None: the procedure's
+    stop (a cancel, a shutdown: Procedure.stop_reason), PAUSE, or a command
+    since the last turn that moved the toolhead, changed the heater's
+    target or replaced its control (left: what the last turn left, None
+    before the first)."""
+    if stop_reason:
+        return stop_reason
     if paused:
         return "PAUSE cancels a measurement"
     if left is None or now is None:
@@ -265,11 +300,20 @@ class Progress:
     points: Tuple[MeasuredPoint, ...] = ()
 
 
+class State(str, enum.Enum):
+    """What [measure_profile] is doing (the value is what the status says)."""
+    IDLE = "idle"
+    RUNNING = "running"             # MEASURE_MATERIAL_PROFILE
+    WATCHING = "watching"           # MEASURE_MATERIAL_PROFILE_PRINT's print
+    MEASURED = "measured"           # not (yet) stored
+    STORED = "stored"               # handed to Moonraker
+    ABORTED = "aborted"             # ended early: nothing stored
+
+
 @dataclass(frozen=True)
 class Status:
-    """[measure_profile]'s status. state: idle, running, watching (a
-    print), measured (not stored), stored or aborted."""
-    state: str = "idle"
+    """[measure_profile]'s status; each change is one of its transitions."""
+    state: State = State.IDLE
     name: Optional[str] = None
     level: Optional[int] = None
     flow: Optional[float] = None
@@ -285,9 +329,42 @@ class Status:
             self, level=progress.level, flow=progress.flow,
             levels=progress.levels, points=progress.points)
 
+    def with_heater(self, control: Optional[str],
+                    pwm: Optional[float] = None) -> Status:
+        """The heater's control (its class name), at pwm while held."""
+        return dataclasses.replace(self, heater_control=control,
+                                   heater_pwm=pwm)
+
+    def running(self, name: str) -> Status:
+        """A MEASURE_MATERIAL_PROFILE started (its progress follows)."""
+        return dataclasses.replace(self, state=State.RUNNING, name=name,
+                                   result=None, message="")
+
+    def watching(self, name: str, message: str) -> Status:
+        """A MEASURE_MATERIAL_PROFILE_PRINT started: nothing of a run left."""
+        return dataclasses.replace(
+            self, state=State.WATCHING, name=name, level=None, levels=0,
+            flow=None, points=(), result=None, message=message)
+
+    def aborted(self, message: str) -> Status:
+        return dataclasses.replace(self, state=State.ABORTED, message=message)
+
+    def measured(self, done: Done, kind: str) -> Status:
+        """A profile measured (kind: its line), before the hand-over."""
+        return dataclasses.replace(self, state=State.MEASURED,
+                                   points=done.points,
+                                   result=Result.of(done.profile, kind))
+
+    def stored(self, message: str) -> Status:
+        return dataclasses.replace(self, state=State.STORED, message=message)
+
+    def not_stored(self, message: str) -> Status:
+        """Moonraker did not take it: still measured, and why."""
+        return dataclasses.replace(self, message=message)
+
     def as_dict(self) -> dict:
         return {
-            'state': self.state, 'name': self.name, 'level': self.level,
+            'state': self.state.value, 'name': self.name, 'level': self.level,
             'flow': self.flow, 'levels': self.levels, 'message': self.message,
             'points': [{'temp_c': p.temp_c, 'flow_mm3_s': p.flow_mm3_s,
                         'grip': p.grip, 'heater_pwm': p.heater_pwm}
@@ -318,6 +395,7 @@ class Procedure:
         self.watchdog, self.source = watchdog, source
         self.progress = Progress(levels=len(plan.levels))
         self.cancel_reason: Optional[str] = None
+        self.shut_down = False
         self.windows: List[Window] = []
         self.holds: List[Tuple[float, float]] = []  # (mean power, temp) heated
         self.last: Optional[Action] = None
@@ -345,6 +423,16 @@ class Procedure:
     def cancel(self, reason: str) -> None:
         """Stop at the next reading (the latest reason is the one said)."""
         self.cancel_reason = reason
+
+    def shutdown(self) -> None:
+        """Klipper shut down: stop at the next reading (a cancel before it
+        is still the reason said)."""
+        self.shut_down = True
+
+    @property
+    def stop_reason(self) -> Optional[str]:
+        """Why the run must stop now (a cancel, a shutdown), or None."""
+        return self.cancel_reason or (SHUT_DOWN if self.shut_down else None)
 
     def _next(self, step: Callable[[], Action]) -> Action:
         try:
@@ -406,21 +494,24 @@ class Procedure:
         bounds = self.bounds
         if not self.holds:
             recommended = bounds.recommended_temp_c
-            yield Say(f"{where}: heating to {recommended:g} degC for the power"
-                      " that holds it")
-            power = yield from self._heat_and_settle(
-                recommended, fl_measure.POWER_LEVEL_WAITS)
-            self.holds.append((power, recommended))
+            yield from self._hold_at(recommended, f"{where}: heating to"
+                                     f" {recommended:g} degC for the power"
+                                     " that holds it")
         for _ in range(fl_measure.POWER_LEVEL_TRIES):
             temp_c = fl_measure.power_level_target(
                 pwm, self.holds, bounds.min_temp_c, bounds.max_temp_c)
             if temp_c is None:
                 return
-            yield Say(f"{where}: heating to {temp_c:.1f} degC, where"
-                      f" {pwm:.1%} power should hold")
-            power = yield from self._heat_and_settle(
-                temp_c, fl_measure.POWER_LEVEL_WAITS)
-            self.holds.append((power, temp_c))
+            yield from self._hold_at(temp_c, f"{where}: heating to"
+                                     f" {temp_c:.1f} degC, where {pwm:.1%}"
+                                     " power should hold")
+
+    def _hold_at(self, temp_c, say):
+        """Say so, heat to temp_c and note the power that holds it."""
+        yield Say(say)
+        power = yield from self._heat_and_settle(
+            temp_c, fl_measure.POWER_LEVEL_WAITS)
+        self.holds.append((power, temp_c))
 
     def _heat_and_settle(self, temp_c, waits=1):
         """Heat with the heater's own control; the mean power that held
@@ -454,11 +545,14 @@ class Procedure:
             yield Dwell(READING_INTERVAL_S)
 
     def _read(self, watch=True, settled_c=None, previous=None):
-        """A reading; FlowloopError when the run must end (a cancel, and
-        at a fixed power the heater's cut or the watchdog)."""
+        """A reading; FlowloopError when the run must end (a cancel or a
+        shutdown, then none is asked for; at a fixed power the heater's
+        cut or the watchdog)."""
+        if self.stop_reason:
+            raise FlowloopError(self.stop_reason)
         reading = yield Read()
-        if self.cancel_reason:
-            raise FlowloopError(self.cancel_reason)
+        if self.stop_reason:
+            raise FlowloopError(self.stop_reason)
         if watch:
             reason = reading.heater_stop or self.watchdog(
                 temp_c=reading.temp_c, now_s=reading.time_s,
@@ -470,19 +564,19 @@ class Procedure:
 
     def _ramp(self, where, pwm, settled_c):
         plan = self.plan
-        previous = None
         expected = None
         if self.base is not None:
             expected = profile_line(self.base, 1.0).flow_mm3_s(settled_c)
         start = plan.ramp_start(expected)
+        # One reading before the first step; after that, the one after a
+        # step is the one before the next
+        reading = yield from self._read(True, settled_c)
         for flow in plan.flows(start):
             self._progress(flow=flow)
-            reading = yield from self._read(True, settled_c, previous)
             previous = (reading.time_s, reading.temp_c)
             step = yield from self._step(flow, plan.step_windows(flow, expected))
             yield Say(f"{where}: {step.describe()}")
             reading = yield from self._read(True, settled_c, previous)
-            previous = (reading.time_s, reading.temp_c)
             if step.grip < plan.min_grip:
                 if flow == start and not plan.start_given:
                     yield Say(f"{where}: the first step slipped already; the"

@@ -15,15 +15,15 @@
 # The fixed power is a heater control object swapped in as PID_CALIBRATE
 # swaps its own, and given back on every way out (success, error,
 # CANCEL_MATERIAL_PROFILE, shutdown, restart). What to do next, the
-# settling, step judging, retries, fits and status are decided in flowloop
-# (material.procedure, with material.measure, material.fit and
-# control.watchdog); this module does it on the printer.
+# settling, step judging, retries, fits, refusals and status are decided in
+# flowloop (material.procedure, with material.measure, material.fit,
+# control.watchdog and host.fixed_power); this module does it on the printer.
+#
+# This module is the section (commands, status, the hand-over to Moonraker);
+# run.py carries out a run's actions on the printer.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import collections
-import contextlib
-import dataclasses
-import functools
 import logging
 
 from flowloop.control import watchdog
@@ -36,65 +36,13 @@ from flowloop.material import profile as fl_profile
 from flowloop.numbers import parse_numbers
 from flowloop.sensor import grip as flow_grip
 
-HEARTBEAT_INTERVAL = 0.5
-TURN_PAUSE_S = 0.001        # the reactor's moment between two turns
-SLEEP_S = 0.1               # longest pause while the printer runs a step
+# A package (this file and run.py): klippy/extras/measure_profile/ on
+# Klipper, klippy/plugins/measure_profile/ on Kalico
+from .run import MeasurementStopped, Run
+
 STORE_METHOD = "flowloop_store_profile"
 NAME = fl_proc.NAME
 PRINT_NAME = fl_proc.PRINT_NAME
-
-
-class MeasurementStopped(Exception):
-    """The run ends early: nothing is stored."""
-
-
-class FixedPowerControl:
-    """A heater control that holds one PWM (runs in the heater's thread:
-    no reactor or G-code calls). On every reading the watchdog's cutoff
-    (flowloop.control.watchdog.FixedPowerCutoff: the temperature and host
-    rules) says what power to apply.
-
-    Klipper's heater calls temperature_update and check_busy; Kalico's
-    calls more of its control (get_profile, get_type, check_valid,
-    update_smooth_time, a second sensor's temperature): those answer as
-    Kalico's own calibration controls do, and a host that never calls them
-    loses nothing."""
-    KIND = 'fixed_power'
-
-    def __init__(self, heater, pwm, limits):
-        self.heater = heater
-        self.cutoff = watchdog.FixedPowerCutoff(limits, pwm)
-
-    @property
-    def stopped(self):
-        """Why the power was cut, or None (the reactor reports it)."""
-        return self.cutoff.stopped
-
-    def heartbeat(self, print_time):
-        """The reactor is alive at print_time."""
-        self.cutoff.heartbeat_s = print_time
-
-    def temperature_update(self, read_time, temp, target_temp,
-                           secondary_temp=None):
-        # (Kalico's dual-sensor heaters pass secondary_temp; not used)
-        self.heater.set_pwm(read_time, self.cutoff.power_at(read_time, temp))
-
-    def check_busy(self, eventtime, smoothed_temp, target_temp):
-        return False
-
-    # --- what Kalico's heaters ask of a control ------------------------------
-    def get_profile(self):
-        # Not a PID profile: PID_PROFILE SAVE refuses it, GET lists it
-        return {'name': self.KIND, 'control': self.KIND}
-
-    def get_type(self):
-        return self.KIND
-
-    def check_valid(self):
-        pass     # a fixed power needs no model constants
-
-    def update_smooth_time(self, *args):
-        pass     # no smoothing: the power is fixed
 
 
 class MeasureProfile:
@@ -128,7 +76,7 @@ class MeasureProfile:
         printer.register_event_handler('klippy:connect', self._handle_connect)
         printer.register_event_handler('klippy:shutdown', self._handle_shutdown)
         printer.register_event_handler('klippy:disconnect',
-                                       self._handle_shutdown)
+                                       self._handle_disconnect)
         gcode = printer.lookup_object('gcode')
         gcode.register_command('MEASURE_MATERIAL_PROFILE',
                                self.cmd_MEASURE_MATERIAL_PROFILE,
@@ -149,9 +97,6 @@ class MeasureProfile:
     def get_status(self, eventtime=None):
         run = self.run
         return (self.status if run is None else run.status()).as_dict()
-
-    def _set_status(self, **changes):
-        self.status = dataclasses.replace(self.status, **changes)
 
     # --- grip windows (every flow sensor; the run keeps its own sensor's) ----
     def _handle_connect(self):
@@ -211,6 +156,11 @@ class MeasureProfile:
 
     def _handle_shutdown(self):
         if self.run is not None:
+            self.run.procedure.shutdown()
+        self._handle_disconnect()
+
+    def _handle_disconnect(self):
+        if self.run is not None:
             self.run.restore_heater()
 
     # --- the command ---------------------------------------------------------
@@ -220,21 +170,23 @@ class MeasureProfile:
         " MIN_GRIP= [ACTIVATE=1] [MIN_TEMP= MAX_TEMP=]")
 
     def cmd_MEASURE_MATERIAL_PROFILE(self, gcmd):
-        if self.run is not None or self.watch is not None:
-            raise gcmd.error(f"{NAME}: a measurement is running already")
         sdcard = self.printer.lookup_object('virtual_sdcard', None)
-        if sdcard is not None and sdcard.is_active():
-            raise gcmd.error(f"{NAME}: a print is running; nothing changed")
         pause_resume = self.printer.lookup_object('pause_resume', None)
-        if pause_resume is not None and pause_resume.is_paused:
-            raise gcmd.error(f"{NAME}: the printer is paused (RESUME or"
-                             " CLEAR_PAUSE first); nothing changed")
+        self._refuse(gcmd, NAME,
+                     printing=sdcard is not None and sdcard.is_active(),
+                     paused=pause_resume is not None and pause_resume.is_paused)
         self.run = run = self._prepare(gcmd)
         levels = len(run.procedure.plan.levels)
         gcmd.respond_info(f"{NAME}: started ({levels} levels);"
                           " CANCEL_MATERIAL_PROFILE stops it")
         # As virtual_sdcard runs a print: the command returns, a timer runs
         self.reactor.register_callback(lambda e: self._run(run))
+
+    def _refuse(self, gcmd, command, **state):
+        busy = self.run is not None or self.watch is not None
+        refusal = fl_proc.start_refusal(busy, **state)
+        if refusal:
+            raise gcmd.error(f"{command}: {refusal}")
 
     def _prepare(self, gcmd):
         """Everything checked before anything changes (bad input: one line)."""
@@ -256,22 +208,16 @@ class MeasureProfile:
                 gcmd.get_float('MAX_FLOW', fl_measure.DEFAULT_MAX_FLOW_MM3_S),
                 fl_profile.min_grip_of(base, gcmd.get_float('MIN_GRIP', None)),
                 bounds.min_temp_c, bounds.max_temp_c)
-            limits = watchdog.WatchdogLimits(
-                min_temp_c=bounds.min_temp_c, max_temp_c=bounds.max_temp_c,
-                host_timeout_s=self.host_timeout)
+            limits, rules = watchdog.for_measurement(bounds, self.host_timeout)
+            toolhead = self.printer.lookup_object('toolhead')
+            fl_proc.check_active(extruder_name,
+                                 toolhead.get_extruder() is extruder)
         except FlowloopError as e:
             raise gcmd.error(f"{NAME}: {e}; nothing changed") from None
-        toolhead = self.printer.lookup_object('toolhead')
-        if toolhead.get_extruder() is not extruder:
-            raise gcmd.error(f"{NAME}: {extruder_name} is not the active"
-                             f" extruder (activate it first); nothing changed")
-        procedure = fl_proc.Procedure(
-            name, plan, bounds, self.settings, base,
-            _hardware(extruder, heater),
-            functools.partial(watchdog.stop_reason, limits))
-        status = dataclasses.replace(
-            self.status, state='running', name=name, result=None, message='')
-        return Run(self.printer, procedure, status, extruder_name, heater,
+        procedure = fl_proc.Procedure(name, plan, bounds, self.settings, base,
+                                      _hardware(extruder, heater), rules)
+        return Run(self.printer, procedure, self.status.running(name),
+                   extruder_name, heater,
                    sensor, limits,
                    bool(gcmd.get_int('ACTIVATE', 0, minval=0, maxval=1)))
 
@@ -289,10 +235,9 @@ class MeasureProfile:
         finally:
             run.finish()
             self.run = None
-        self.status = dataclasses.replace(run.status(),
-                                          heater_control=run.control_name())
+        self.status = run.status().with_heater(run.control_name())
         if error is not None:
-            self._set_status(state='aborted', message=error)
+            self.status = self.status.aborted(error)
             _respond_error(gcode, error)
             return
         self._deliver(NAME, done, 'into_air', run.extruder_name, run.activate,
@@ -305,22 +250,19 @@ class MeasureProfile:
         for line in done.lines:
             gcode.respond_info(f"{command}: {line}")
         profile = done.profile
-        self._set_status(state='measured', points=done.points,
-                         result=fl_proc.Result.of(profile, kind))
+        self.status = self.status.measured(done, kind)
         try:
             self.printer.lookup_object('webhooks').call_remote_method(
                 STORE_METHOD, profile=fl_profile.profile_to_dict(profile),
                 activate_extruder=extruder_name if activate else None)
         except self.printer.command_error as e:
-            message = (f"{command}: profile '{profile.name}' measured but not"
-                       f" stored ({e}): is Moonraker's [flowloop] component"
-                       " loaded?")
-            self._set_status(message=message)
+            message = fl_proc.not_stored(command, profile.name, str(e))
+            self.status = self.status.not_stored(message)
             failed(gcode, message)
             return
-        message = (f"{command}: profile '{profile.name}' handed to Moonraker"
-                   + (f" and activated on {extruder_name}" if activate else ""))
-        self._set_status(state='stored', message=message)
+        message = fl_proc.handed_over(command, profile.name, extruder_name,
+                                      activate)
+        self.status = self.status.stored(message)
         gcode.respond_info(message)
 
     # --- the real-print measurement ------------------------------------------
@@ -330,8 +272,7 @@ class MeasureProfile:
         " [MIN_GRIP=] [ACTIVATE=1]")
 
     def cmd_MEASURE_MATERIAL_PROFILE_PRINT(self, gcmd):
-        if self.run is not None or self.watch is not None:
-            raise gcmd.error(f"{PRINT_NAME}: a measurement is running already")
+        self._refuse(gcmd, PRINT_NAME)
         name = gcmd.get('NAME')
         extruder_name = gcmd.get('EXTRUDER', 'extruder')
         activate = bool(gcmd.get_int('ACTIVATE', 0, minval=0, maxval=1))
@@ -346,9 +287,8 @@ class MeasureProfile:
         except FlowloopError as e:
             raise gcmd.error(f"{PRINT_NAME}: {e}; nothing changed") from None
         self.watch = PrintSession(measurement, extruder_name, sensor, activate)
-        self._set_status(state='watching', name=name, level=None, levels=0,
-                         flow=None, points=(), result=None,
-                         message=f"{PRINT_NAME}: watching the grip")
+        self.status = self.status.watching(name,
+                                           f"{PRINT_NAME}: watching the grip")
         watch = measurement.watch
         gcmd.respond_info(
             f"{PRINT_NAME}: watching {extruder_name}'s grip (median of"
@@ -370,7 +310,7 @@ class MeasureProfile:
 
     def _end_watch(self, why):
         message = f"{PRINT_NAME}: {why}"
-        self._set_status(state='aborted', message=message)
+        self.status = self.status.aborted(message)
         self.printer.lookup_object('gcode').respond_info(message)
 
     def _finish_print(self, session, step):
@@ -436,221 +376,6 @@ def _hardware(extruder, heater):
 # One MEASURE_MATERIAL_PROFILE_PRINT: its decisions, what the watch needs
 PrintSession = collections.namedtuple(
     'PrintSession', 'measurement extruder_name sensor activate')
-
-
-class Run:
-    """One MEASURE_MATERIAL_PROFILE on the printer: the procedure's
-    actions done (the heater swap, turns, moves, readings)."""
-
-    def __init__(self, printer, procedure, status, extruder_name, heater,
-                 sensor, limits, activate):
-        self.printer, self.reactor = printer, printer.get_reactor()
-        self.procedure, self._status = procedure, status
-        self.extruder_name, self.heater, self.sensor = extruder_name, heater, sensor
-        self.limits, self.activate = limits, activate
-        self.toolhead = printer.lookup_object('toolhead')
-        self.gcode = printer.lookup_object('gcode')
-        self.mutex = self.gcode.get_mutex()
-        self.gcode_move = printer.lookup_object('gcode_move')
-        self.pause_resume = printer.lookup_object('pause_resume', None)
-        self.left = None    # (position, heater target, control) after a turn
-        self.pheaters = printer.lookup_object('heaters')
-        self.old_target = heater.get_status(self.reactor.monotonic())['target']
-        self.old_control = self.control = None
-        self.heartbeat_timer = self.reactor.register_timer(
-            self._heartbeat, self.reactor.NOW)
-
-    def status(self):
-        """The run's status: the procedure's progress, the heater's control."""
-        return self._status.with_progress(self.procedure.progress)
-
-    # --- heater --------------------------------------------------------------
-    def _heartbeat(self, eventtime):
-        control = self.control
-        if control is not None:
-            mcu = self.printer.lookup_object('mcu')
-            control.heartbeat(mcu.estimated_print_time(eventtime))
-        return eventtime + HEARTBEAT_INTERVAL
-
-    def hold_power(self, pwm):
-        self.control = FixedPowerControl(self.heater, pwm, self.limits)
-        self._heartbeat(self.reactor.monotonic())
-        self.old_control = self.heater.set_control(self.control)
-        # set_pwm drives nothing without a target; at the profile's minimum
-        # it also keeps verify_heater watching the floor.
-        self.heater.set_temp(self.limits.min_temp_c)
-        self.printer.send_event('flowloop:heater_fixed_power',
-                                self.extruder_name, pwm)
-        self._status = dataclasses.replace(
-            self._status, heater_control=self.control_name(), heater_pwm=pwm)
-
-    def restore_heater(self):
-        """Give the heater its own control back (idempotent; any thread)."""
-        if self.old_control is None:
-            return
-        self.heater.set_control(self.old_control)
-        self.old_control = self.control = None
-        self.printer.send_event('flowloop:heater_fixed_power',
-                                self.extruder_name, None)
-        self._status = dataclasses.replace(
-            self._status, heater_control=self.control_name(), heater_pwm=None)
-
-    def _release(self):
-        with self._turn(check=False):
-            self.restore_heater()
-
-    def control_name(self):
-        return type(self.heater.control).__name__
-
-    def finish(self):
-        self.restore_heater()
-        self.reactor.unregister_timer(self.heartbeat_timer)
-        if not self.printer.is_shutdown():
-            with self.mutex:
-                self.heater.set_temp(self.old_target)
-                self.gcode_move.reset_last_position()
-
-    # --- the procedure's actions ---------------------------------------------
-    def measure(self):
-        """Do the procedure's actions until it is done (its Done);
-        MeasurementStopped when it stops or a command in between ends it."""
-        procedure = self.procedure
-        action = procedure.start()
-        try:
-            while not isinstance(action, (fl_proc.Done, fl_proc.Stop)):
-                action = procedure.send(self._do(action))
-        finally:
-            if not isinstance(action, fl_proc.Done):
-                self._release()
-        if isinstance(action, fl_proc.Stop):
-            raise MeasurementStopped(action.reason)
-        return action
-
-    def _do(self, action):
-        """Do one action; the answer the procedure expects (or None)."""
-        kind = type(action)
-        if kind is fl_proc.Say:
-            self.gcode.respond_info(f"{NAME}: {action.text}")
-        elif kind is fl_proc.Log:
-            logging.info("%s: %s", NAME, action.text)
-        elif kind is fl_proc.Read:
-            return self._reading()
-        elif kind is fl_proc.Extrude:
-            return self._extrude(action)
-        elif kind is fl_proc.Dwell:
-            self._on_printer([lambda: self.toolhead.dwell(action.seconds)])
-        elif kind is fl_proc.Release:
-            self._release()
-        else:
-            with self._turn():
-                if kind is fl_proc.HeatTo:
-                    self.pheaters.set_temperature(self.heater, action.temp_c)
-                else:
-                    self.hold_power(action.pwm)
-        return None
-
-    def _extrude(self, action):
-        speed = action.speed_mm_s
-
-        def extrude(seconds):
-            pos = self.toolhead.get_position()
-            pos[3] += speed * seconds
-            self.toolhead.move(pos, speed)
-        start, end = self._on_printer(
-            [lambda s=seconds: extrude(s) for seconds in action.moves_s])
-        return fl_proc.Extruded(start, end)
-
-    def _reading(self):
-        if self.printer.is_shutdown():
-            raise MeasurementStopped("Klipper shut down")
-        temp, power = self.sensor.hotend_reading(self.reactor.monotonic())
-        now = self.toolhead.get_last_move_time()
-        control = self.control
-        return fl_proc.Reading(
-            now, temp, power, heater_stop=control and control.stopped,
-            sensor_fault=self.sensor.get_status()['fault'])
-
-    # --- turns: the run and the console share the G-code queue ---------------
-    @contextlib.contextmanager
-    def _turn(self, check=True):
-        """Hold the G-code queue for one piece of the run (a step, a
-        reading); commands typed meanwhile run before the next one, and
-        what they changed ends the run (check=False: giving back)."""
-        # Let the reactor read the console and the API (they queue on the
-        # mutex, and go first)
-        self.reactor.pause(self.reactor.monotonic() + TURN_PAUSE_S)
-        with self.mutex:
-            if check:
-                self._check_between()
-            yield
-            # G-code moves go on from where the run left the toolhead
-            self.gcode_move.reset_last_position()
-            self.left = self._state()
-
-    def _state(self):
-        target = self.heater.get_temp(self.reactor.monotonic())[1]
-        return (tuple(self.toolhead.get_position()), target,
-                self.heater.control)
-
-    def _check_between(self):
-        """MeasurementStopped when the run must end before this turn."""
-        paused = self.pause_resume is not None and self.pause_resume.is_paused
-        reason = fl_proc.turn_stop(
-            self.extruder_name, self.procedure.cancel_reason,
-            self.printer.is_shutdown(), paused, self.left,
-            None if self.left is None else self._state())
-        if reason:
-            raise MeasurementStopped(reason)
-
-    # --- time and readings ---------------------------------------------------
-    def _on_printer(self, actions):
-        """Run toolhead actions, then read what the sensor saw; the print
-        times before and after. On a printer each action is a turn of its
-        own (the toolhead holds its caller while it is more than its
-        read-ahead in front) and the wait for them is outside the G-code
-        queue. In batch mode all is one turn, as one G-code command: print
-        time there is not the clock's, and the reactor could flush the
-        lookahead between two turns (a stop mid-step)."""
-        if not self._paced():
-            with self._turn():
-                start = self.toolhead.get_last_move_time()
-                for action in actions:
-                    action()
-                end = self.toolhead.get_last_move_time()
-                self._wait()
-            return start, end
-        with self._turn():
-            start = self.toolhead.get_last_move_time()
-        for action in actions:
-            with self._turn():
-                action()
-        with self._turn():
-            end = self.toolhead.get_last_move_time()
-        self._sleep_until(end)
-        with self._turn():
-            self._wait()
-        return start, end
-
-    def _paced(self):
-        """Print time follows the clock (a printer; not batch mode)."""
-        return getattr(self.toolhead, 'can_pause', True)
-
-    def _sleep_until(self, print_time):
-        """Wait, the G-code queue free, until the printer has run what the
-        run queued (console commands meanwhile need not wait a step)."""
-        if not self._paced():
-            return   # batch mode: print time runs ahead of any clock
-        mcu = self.printer.lookup_object('mcu')
-        while not (self.printer.is_shutdown() or self.procedure.cancel_reason):
-            now = self.reactor.monotonic()
-            left = print_time - mcu.estimated_print_time(now)
-            if left <= 0.:
-                return
-            self.reactor.pause(now + min(left, SLEEP_S))
-
-    def _wait(self):
-        self.toolhead.wait_moves()
-        self.sensor.sync(self.toolhead.get_last_move_time())
 
 
 def _respond_error(gcode, message):

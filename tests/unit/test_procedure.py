@@ -6,7 +6,6 @@ the sensor's estimator), and each decision and way out on its own."""
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
 import pytest
@@ -45,10 +44,9 @@ def make(temps=(200.0, 220.0, 240.0), powers=None, start_flow=4.0, step=0.25,
     bounds = proc.bounds_for(base, min_temp, max_temp, 300.0)
     plan = measure.make_plan(temps, powers, start_flow, step, max_flow,
                              min_grip, bounds.min_temp_c, bounds.max_temp_c)
-    limits = watchdog.WatchdogLimits(min_temp_c=bounds.min_temp_c,
-                                     max_temp_c=bounds.max_temp_c)
+    _, rules = watchdog.for_measurement(bounds)
     return proc.Procedure("measured", plan, bounds, settings, base, hardware,
-                          functools.partial(watchdog.stop_reason, limits))
+                          rules)
 
 
 class Twin:
@@ -246,9 +244,13 @@ def test_the_heaters_own_cut_and_the_trend_rule_stop_a_level():
     procedure.send(twin.answer(twin.actions[-1], procedure))
     action = procedure.send()                   # the reading after the step
     assert isinstance(action, proc.Read)
-    action = procedure.send(proc.Reading(twin.time, 200.0, 0.3))
-    assert isinstance(action, proc.Read)        # the next step's first
-    stop = procedure.send(proc.Reading(twin.time + 0.1, 198.0, 0.3))
+    read_s = twin.time
+    action = procedure.send(proc.Reading(read_s, 200.0, 0.3))
+    assert isinstance(action, proc.Extrude)     # the next step: one reading
+    action = procedure.send(twin.answer(action, procedure))  # between two
+    while not isinstance(action, proc.Read):
+        action = procedure.send()
+    stop = procedure.send(proc.Reading(read_s + 0.1, 198.0, 0.3))
     assert isinstance(stop, proc.Stop)
     assert "degC/s at fixed power" in stop.reason, stop
     procedure = make()
@@ -436,7 +438,7 @@ def test_the_status_has_every_field_in_its_order():
         'result', 'heater_control', 'heater_pwm']
     point = MeasuredPoint(kind="into_air", temp_c=200.0, flow_mm3_s=5.0,
                           grip=0.85, heater_pwm=80.0)
-    status = proc.Status(state='running', name='x').with_progress(
+    status = proc.Status(state=proc.State.RUNNING, name='x').with_progress(
         proc.Progress(levels=2, level=1, flow=5.5, points=(point,)))
     assert status.as_dict()['points'] == [
         {'temp_c': 200.0, 'flow_mm3_s': 5.0, 'grip': 0.85, 'heater_pwm': 80.0}]
@@ -495,12 +497,11 @@ def test_a_run_ends_before_a_turn_on_what_a_command_in_between_changed():
     control = object()
     left = ((0.0, 0.0, 5.0, 12.0), 185.0, control)
 
-    def stop(now=left, cancel=None, shut_down=False, paused=False, last=left):
-        return proc.turn_stop("extruder", cancel, shut_down, paused, last, now)
+    def stop(now=left, cancel=None, paused=False, last=left):
+        return proc.turn_stop("extruder", cancel, paused, last, now)
     assert stop() is None
     assert stop(last=None, now=None) is None
-    assert stop(cancel="cancelled (x)", shut_down=True) == "cancelled (x)"
-    assert stop(shut_down=True, paused=True) == "Klipper shut down"
+    assert stop(cancel="cancelled (x)", paused=True) == "cancelled (x)"
     assert stop(paused=True) == "PAUSE cancels a measurement"
     assert stop(((0.0, 0.0, 10.0, 12.0), 185.0, control)) == (
         "the toolhead was moved by another command: cancelled")
@@ -518,3 +519,94 @@ def test_a_run_without_its_sensor_names_what_is_missing():
         "EXTRUDER: [flow_sensor c] is needed to judge grip")
     assert proc.missing_sensor(None, "extruder2") == (
         "EXTRUDER: a [flow_sensor] on extruder2 is needed to judge grip")
+
+
+def test_the_ramp_reads_the_temperature_once_between_two_steps():
+    procedure = make(temps=(200.0, 220.0))
+    twin = Twin()
+    assert isinstance(twin.run(procedure), proc.Done)
+    first = next(i for i, a in enumerate(twin.actions)
+                 if isinstance(a, proc.Release))
+    twin.actions = twin.actions[:first]    # the first level's ramp
+    steps = [i for i, a in enumerate(twin.actions) if isinstance(a, proc.Extrude)]
+    assert len(steps) >= 3
+    for a, b in zip(steps, steps[1:]):
+        reads = [x for x in twin.actions[a:b] if isinstance(x, proc.Read)]
+        assert len(reads) == 1, twin.actions[a:b]
+    # and one before the first step, after the level settled
+    assert isinstance(twin.actions[steps[0] - 1], proc.Read)
+
+
+# --- what the adapter asks before a start, and says after --------------------
+def test_a_start_is_refused_while_busy_printing_or_paused():
+    assert proc.start_refusal(False) is None
+    assert proc.start_refusal(False, printing=False, paused=False) is None
+    assert proc.start_refusal(True, printing=True, paused=True) == (
+        "a measurement is running already")
+    assert proc.start_refusal(False, printing=True, paused=True) == (
+        "a print is running; nothing changed")
+    assert proc.start_refusal(False, paused=True) == (
+        "the printer is paused (RESUME or CLEAR_PAUSE first); nothing changed")
+
+
+def test_only_the_active_extruder_is_measured():
+    proc.check_active("extruder1", True)
+    with pytest.raises(FlowloopError, match="^extruder1 is not the active"
+                       r" extruder \(activate it first\)$"):
+        proc.check_active("extruder1", False)
+
+
+def test_the_hand_over_is_said_with_the_extruder_only_when_activated():
+    assert proc.handed_over("X", "pla", "extruder", False) == (
+        "X: profile 'pla' handed to Moonraker")
+    assert proc.handed_over("X", "pla", "extruder1", True) == (
+        "X: profile 'pla' handed to Moonraker and activated on extruder1")
+    assert proc.not_stored("X", "pla", "no method") == (
+        "X: profile 'pla' measured but not stored (no method): is"
+        " Moonraker's [flowloop] component loaded?")
+
+
+def test_a_shutdown_stops_the_run_at_its_next_reading_without_reading():
+    procedure = make()
+    action = Twin().run(procedure, until=lambda a: isinstance(a, proc.Dwell))
+    procedure.shutdown()
+    assert procedure.stop_reason == "Klipper shut down"
+    assert procedure.send() == proc.Stop("Klipper shut down")
+    # a cancel before it is the reason said
+    procedure = make()
+    Twin().run(procedure, until=lambda a: isinstance(a, proc.Dwell))
+    procedure.cancel("cancelled (CANCEL_MATERIAL_PROFILE)")
+    procedure.shutdown()
+    assert procedure.send() == proc.Stop("cancelled (CANCEL_MATERIAL_PROFILE)")
+    assert isinstance(action, proc.Dwell)
+
+
+def test_the_status_moves_through_its_states():
+    S = proc.State
+    done = proc.Done(KNOWN, None, (), ())
+    started = proc.Status(message="old", result=proc.Result.of(KNOWN)) \
+        .with_heater("ControlPID").running("pla")
+    assert (started.state, started.name, started.result, started.message,
+            started.heater_control) == (S.RUNNING, "pla", None, "", "ControlPID")
+    held = started.with_heater("FixedPowerControl", 0.4)
+    assert (held.heater_control, held.heater_pwm) == ("FixedPowerControl", 0.4)
+    assert held.as_dict()["state"] == "running"
+    measured = held.measured(done, "into_air")
+    assert measured.state is S.MEASURED and measured.result.name == "known"
+    assert measured.not_stored("why").state is S.MEASURED
+    assert measured.not_stored("why").message == "why"
+    assert measured.stored("kept").as_dict()["state"] == "stored"
+    aborted = held.aborted("stopped")
+    assert (aborted.state, aborted.message) == (S.ABORTED, "stopped")
+    # a print watched: nothing of a run before it is left
+    point = MeasuredPoint(kind="into_air", temp_c=200.0, flow_mm3_s=5.0,
+                          grip=0.85, heater_pwm=0.4)
+    ran = measured.with_progress(proc.Progress(levels=3, level=2, flow=5.5,
+                                               points=(point,)))
+    watching = ran.watching("printed", "watching")
+    assert (watching.state, watching.name, watching.level, watching.levels,
+            watching.flow, watching.points, watching.result,
+            watching.message) == (S.WATCHING, "printed", None, 0, None, (),
+                                  None, "watching")
+    assert [s.value for s in S] == ["idle", "running", "watching", "measured",
+                                    "stored", "aborted"]

@@ -10,6 +10,8 @@ from hypothesis import strategies as st
 
 from flowloop.control import watchdog
 from flowloop.errors import FlowloopError
+from flowloop.host.fixed_power import FixedPowerControl
+from flowloop.material.profile import Bounds
 
 pytestmark = pytest.mark.unit
 
@@ -108,3 +110,48 @@ def test_the_fixed_power_cutoff_never_heats_outside_the_limits(temp):
     inside = math.isfinite(temp) and LIMITS.min_temp_c <= temp <= LIMITS.max_temp_c
     assert power == (1.0 if inside else 0.0)
     assert (cutoff.stopped is None) == inside
+
+
+def test_a_measurements_watchdog_is_built_from_its_bounds_in_one_place():
+    bounds = Bounds(min_temp_c=190.0, max_temp_c=240.0, recommended_temp_c=215.0)
+    limits, rules = watchdog.for_measurement(bounds, host_timeout_s=7.0)
+    assert (limits.min_temp_c, limits.max_temp_c, limits.host_timeout_s) == (
+        190.0, 240.0, 7.0)
+    assert rules(temp_c=215.0, now_s=0.0) is None
+    assert rules(temp_c=241.0, now_s=0.0) == watchdog.temperature_stop(
+        limits, 241.0)
+    assert watchdog.for_measurement(bounds)[0].host_timeout_s == \
+        watchdog.DEFAULT_HOST_TIMEOUT_S
+
+
+class Heater:
+    """What a heater control is given: set_pwm."""
+
+    def __init__(self):
+        self.pwm = []
+
+    def set_pwm(self, read_time, value):
+        self.pwm.append((read_time, value))
+
+
+def test_the_fixed_power_control_holds_its_power_until_a_rule_cuts_it():
+    heater = Heater()
+    control = FixedPowerControl(heater, 0.4, LIMITS)
+    control.heartbeat(10.0)
+    control.temperature_update(10.5, 210.0, 190.0)
+    assert heater.pwm == [(10.5, 0.4)] and control.stopped is None
+    # the host silent too long: cut, and for good
+    control.temperature_update(10.5 + LIMITS.host_timeout_s + 1, 210.0, 190.0)
+    control.heartbeat(20.0)
+    control.temperature_update(20.5, 210.0, 190.0)
+    assert [p for _, p in heater.pwm] == [0.4, 0.0, 0.0]
+    assert control.stopped.startswith("the host has not answered")
+    assert control.check_busy(0.0, 210.0, 190.0) is False
+    # what Kalico's heaters ask of it
+    assert control.get_profile() == {'name': 'fixed_power',
+                                     'control': 'fixed_power'}
+    assert control.get_type() == 'fixed_power'
+    control.check_valid()
+    control.update_smooth_time(1.0)
+    control.temperature_update(21.0, 210.0, 190.0, 205.0)
+    assert heater.pwm[-1] == (21.0, 0.0)
