@@ -117,7 +117,7 @@ class Reports:
                 await asyncio.sleep(SAMPLE_PERIOD_S)
         except (TypeError, ValueError, AttributeError, IndexError) as e:
             # a status of a shape flowloop does not know: one line, the job
-            # goes on (its report then ends here and says it lacks the rest)
+            # goes on (its report has no samples after this point)
             logging.error(f"flowloop: the flow report stopped sampling: "
                           f"{one_line(e)}")
 
