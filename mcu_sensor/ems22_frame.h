@@ -15,15 +15,33 @@
 // shifts out DI), so a frame that arrives one bit late is still whole.
 #define EMS22_READ_BYTES 3
 // sensor_bulk_data payload: 2-byte index of the first record (low 16 bits of
-// the timer event counter), then one 4-byte record per timer event.
+// the timer event counter), then one record per timer event, of three kinds:
+//  - plain, 2 bytes: the 16-bit frame (big-endian) of a read that passed
+//    ems22_frame_good() and started less than EMS22_PLAIN_TCODES tcode
+//    units after its timer event (the usual record);
+//  - EMS22_KIND_READ, 6 bytes: 0x00, kind, tcode, the raw 24-bit read: a read
+//    that is not plain (a bad frame, or a late one), so the host judges it
+//    (a misaligned SPI mode shows in the neighbouring bits) and times it;
+//  - EMS22_KIND_ERROR, 4 bytes: 0x00, kind, error code, count.
+// A first byte 0x00 with a second below EMS22_OCF never starts a plain
+// record: every good frame has OCF set in its low byte.
 #define EMS22_HEADER_BYTES 2
-#define EMS22_RECORD_BYTES (1 + EMS22_READ_BYTES)
-#define EMS22_RECORDS_PER_MSG 12
-#define EMS22_MAX_MSG_BYTES (EMS22_HEADER_BYTES \
-                             + EMS22_RECORDS_PER_MSG * EMS22_RECORD_BYTES)
-// Record: tcode (read time - scheduled time, >> time_shift) then the raw read;
-// tcode EMS22_TCODE_ERROR marks an error record whose next byte is the code.
+#define EMS22_PLAIN_BYTES 2
+#define EMS22_READ_RECORD_BYTES (2 + 1 + EMS22_READ_BYTES)
+#define EMS22_ERROR_RECORD_BYTES 4
+#define EMS22_KIND_READ 1
+#define EMS22_KIND_ERROR 2
+// Klipper's sensor_bulk buffer (src/sensor_bulk.h): a message holds at most
+#define EMS22_MAX_MSG_BYTES 51
+// A message is sent once it holds this many bytes or fewer (the host's
+// max_bytes, clamped here), so that any record still fits before it is
+#define EMS22_MAX_BATCH_BYTES (EMS22_MAX_MSG_BYTES - EMS22_READ_RECORD_BYTES + 1)
+// Time code: read time - scheduled time, >> time_shift, below
+// EMS22_TCODE_ERROR (a read later than that is an EMS22_ERR_SCHEDULE).
 #define EMS22_TCODE_ERROR 0xff
+// A plain record's read started within this many tcode units (the host
+// takes the middle): about 0.1 ms on any MCU, 8 us units at 16 MHz
+#define EMS22_PLAIN_TCODES 16
 enum {
     EMS22_ERR_OVERFLOW = 1,   // timer fired again before the task read; the
                               // next byte counts the events (record slots)
@@ -61,12 +79,15 @@ ems22_parity_odd(uint16_t frame)
     return v & 1;
 }
 
-// The 16-bit frame whose first bit is bit 'offset' (0..8) of a 24-bit read.
+// The 16-bit frame whose first bit is bit 'offset' (0 or 1) of a 24-bit
+// read (every SPI mode puts it at one of the two)
 static inline uint16_t
 ems22_frame_at(const uint8_t *raw, uint_fast8_t offset)
 {
-    uint32_t word = ((uint32_t)raw[0] << 16) | ((uint16_t)raw[1] << 8) | raw[2];
-    return (word >> (8 - offset)) & 0xffff;
+    uint16_t frame = ((uint16_t)raw[0] << 8) | raw[1];
+    if (offset)
+        frame = (frame << 1) | (raw[2] >> 7);
+    return frame;
 }
 
 static inline uint_fast8_t
@@ -86,6 +107,17 @@ ems22_frame_check(uint16_t frame)
         == (EMS22_MAGINC | EMS22_MAGDEC))
         return EMS22_MAGNET;
     return EMS22_OK;
+}
+
+// ems22_frame_check(frame) == EMS22_OK, in fewer instructions (the
+// firmware's test for a plain record): all 1s fails on COF, all 0s on OCF
+static inline uint_fast8_t
+ems22_frame_good(uint16_t frame)
+{
+    uint8_t low = frame;
+    return (low & (EMS22_OCF | EMS22_COF | EMS22_LIN)) == EMS22_OCF
+        && (low & (EMS22_MAGINC | EMS22_MAGDEC)) != (EMS22_MAGINC | EMS22_MAGDEC)
+        && !ems22_parity_odd(frame);
 }
 
 static inline uint16_t

@@ -25,7 +25,7 @@ struct ems22 {
     struct spidev_s *spi;
     uint16_t next_index;
     // Timer events not yet read: more than one means the task fell behind
-    uint8_t pending, time_shift, max_bytes, oid;
+    uint8_t pending, time_shift, max_bytes, oid, bit_offset;
     struct sensor_bulk sb;
 };
 
@@ -61,14 +61,16 @@ command_config_ems22(uint32_t *args)
     // No cs pin check here: the host requires cs_pin (flash is scarce)
     e->spi = spidev_oid_lookup(args[1]);
     e->max_read_ticks = args[2];
+    e->bit_offset = args[3];
 }
 DECL_COMMAND(command_config_ems22,
-             "config_ems22 oid=%c spi_oid=%c max_read_ticks=%u");
+             "config_ems22 oid=%c spi_oid=%c max_read_ticks=%u bit_offset=%c");
 
-// Append one record; a new message starts with the index of its first record
+// Append one record of len bytes; a new message starts with the index of
+// its first record. The host's max_bytes (clamped) leaves room for any
+// record, so a message is only ever sent once it holds max_bytes.
 static void
-ems22_add(struct ems22 *e, uint8_t oid, uint_fast8_t tcode, uint_fast8_t r0
-          , uint_fast8_t r1, uint_fast8_t r2)
+ems22_add(struct ems22 *e, const uint8_t *rec, uint_fast8_t len)
 {
     struct sensor_bulk *sb = &e->sb;
     if (!sb->data_count) {
@@ -77,25 +79,17 @@ ems22_add(struct ems22 *e, uint8_t oid, uint_fast8_t tcode, uint_fast8_t r0
         sb->data_count = EMS22_HEADER_BYTES;
     }
     uint8_t *d = &sb->data[sb->data_count];
-    d[0] = tcode;
-    d[1] = r0;
-    d[2] = r1;
-    d[3] = r2;
-    sb->data_count += EMS22_RECORD_BYTES;
+    sb->data_count += len;
+    while (len--)
+        *d++ = *rec++;
     e->next_index++;
     // Send when full, or when the oldest record would be too old by next poll
     if (sb->data_count >= e->max_bytes) {
-        sensor_bulk_report(sb, oid);
+        sensor_bulk_report(sb, e->oid);
         // sensor_bulk_report empties sb too, but without this line
         // avr-gcc makes the firmware 8 bytes larger
         sb->data_count = 0;
     }
-}
-
-static void
-ems22_add_error(struct ems22 *e, uint8_t oid, uint_fast8_t code)
-{
-    ems22_add(e, oid, EMS22_TCODE_ERROR, code, 0, 0);
 }
 
 // One SPI read of 24 clocks (the chip takes no command: DI idles).
@@ -111,23 +105,43 @@ ems22_read(struct ems22 *e, uint8_t *raw, uint32_t *mtime)
     return mtime2 - mtime1 <= e->max_read_ticks;
 }
 
-// Frames are checked on the host: which bits hold the frame depends on the
-// SPI mode, and every timer event must give one record anyway.
+// A good frame read on time is sent as a plain 2-byte record; any other
+// read goes out whole with its time code, and the host judges it (which
+// neighbouring bits tell a misaligned SPI mode from a fault). Every path
+// ends in the one ems22_add call (flash is scarce on small MCUs).
 static void
-ems22_sample(struct ems22 *e, uint8_t oid, uint32_t stime)
+ems22_sample(struct ems22 *e, uint32_t stime)
 {
-    uint8_t raw[EMS22_READ_BYTES];
+    // 0, kind, tcode or error code, then the raw read or the error count;
+    // a plain record is the last two bytes
+    uint8_t rec[EMS22_READ_RECORD_BYTES];
+    uint8_t *raw = &rec[3], *start = rec;
+    uint_fast8_t len = EMS22_ERROR_RECORD_BYTES;
     uint32_t mtime;
-    if (!ems22_read(e, raw, &mtime)) {
-        ems22_add_error(e, oid, EMS22_ERR_SPI_TIME);
-        return;
+    rec[0] = 0;
+    rec[1] = EMS22_KIND_ERROR;
+    rec[2] = EMS22_ERR_SPI_TIME;
+    if (ems22_read(e, raw, &mtime)) {
+        uint32_t delay = mtime - stime;
+        uint16_t frame = ems22_frame_at(raw, e->bit_offset);
+        uint32_t tdiff = delay >> e->time_shift;
+        if (tdiff < EMS22_PLAIN_TCODES && ems22_frame_good(frame)) {
+            rec[4] = frame >> 8;
+            rec[5] = frame;
+            start = &rec[4];
+            len = EMS22_PLAIN_BYTES;
+        } else if (tdiff < EMS22_TCODE_ERROR) {
+            rec[1] = EMS22_KIND_READ;
+            rec[2] = tdiff;
+            len = EMS22_READ_RECORD_BYTES;
+        } else {
+            rec[2] = EMS22_ERR_SCHEDULE;
+            raw[0] = 0;
+        }
+    } else {
+        raw[0] = 0;
     }
-    uint32_t tdiff = (mtime - stime) >> e->time_shift;
-    if (tdiff >= EMS22_TCODE_ERROR) {
-        ems22_add_error(e, oid, EMS22_ERR_SCHEDULE);
-        return;
-    }
-    ems22_add(e, oid, tdiff, raw[0], raw[1], raw[2]);
+    ems22_add(e, start, len);
 }
 
 void
@@ -145,8 +159,8 @@ command_query_ems22(uint32_t *args)
     e->time_shift = args[3];
     // Message size: the host keeps a batch's first record from waiting long
     uint8_t max_bytes = args[4];
-    if (max_bytes > EMS22_MAX_MSG_BYTES)
-        max_bytes = EMS22_MAX_MSG_BYTES;
+    if (max_bytes > EMS22_MAX_BATCH_BYTES)
+        max_bytes = EMS22_MAX_BATCH_BYTES;
     e->max_bytes = max_bytes;
     e->next_index = 0;
     sensor_bulk_reset(&e->sb);
@@ -172,11 +186,12 @@ ems22_poll(struct ems22 *e)
     // read now belongs to the latest event (waketime points at the next)
     uint_fast8_t overflow = pending - 1;
     if (overflow) {
-        ems22_add(e, e->oid, EMS22_TCODE_ERROR, EMS22_ERR_OVERFLOW
-                  , overflow, 0);
+        uint8_t rec[EMS22_ERROR_RECORD_BYTES] = {
+            0, EMS22_KIND_ERROR, EMS22_ERR_OVERFLOW, overflow };
+        ems22_add(e, rec, sizeof(rec));
         e->next_index += overflow - 1;
     }
-    ems22_sample(e, e->oid, stime - e->rest_ticks);
+    ems22_sample(e, stime - e->rest_ticks);
 }
 
 void

@@ -463,7 +463,40 @@ open_pty(const char *link_path)
 static struct {
     uint32_t idle_start, idle_end;
     uint64_t idle_cycles;
+    // Cycles by flash word address, kept when asked (pcprof on): where the
+    // work goes (devtools/simavr/pcprof.py names the functions)
+    uint64_t *by_pc;
 } prof;
+
+static int reply(const char *fmt, ...);
+
+// pcprof on|off|dump FILE: "word_address cycles" lines of non-zero entries
+static int
+pc_profile(const char *what, const char *path)
+{
+    size_t words = (avr->flashend + 1) / 2;
+    if (!strcmp(what, "on")) {
+        free(prof.by_pc);
+        prof.by_pc = calloc(words, sizeof(*prof.by_pc));
+        return reply(prof.by_pc ? "ok" : "error out of memory");
+    }
+    if (!strcmp(what, "off")) {
+        free(prof.by_pc);
+        prof.by_pc = NULL;
+        return reply("ok");
+    }
+    if (!strcmp(what, "dump") && prof.by_pc && *path) {
+        FILE *f = fopen(path, "w");
+        if (!f)
+            return reply("error cannot write %s", path);
+        for (size_t i = 0; i < words; i++)
+            if (prof.by_pc[i])
+                fprintf(f, "%zu %llu\n", i, (unsigned long long)prof.by_pc[i]);
+        fclose(f);
+        return reply("ok");
+    }
+    return reply("error pcprof on|off|dump FILE (after on)");
+}
 
 // --- the firmware's clock: no Timer1 overflow lost -----------------------------
 // Klipper's AVR clock is timer_high:TCNT1; a wrap timer adds each overflow
@@ -603,6 +636,11 @@ command(char *line)
             return reply("error address %u out of range", addr);
         return reply("value=%u cycle=%llu", avr->data[addr] | (avr->data[addr + 1] << 8),
                      (unsigned long long)avr->cycle);
+    }
+    if (!strcmp(name, "pcprof")) {
+        char what[8] = "", path[200] = "";
+        sscanf(line, "%*s %7s %199s", what, path);
+        return pc_profile(what, path);
     }
     if (!strcmp(name, "reset_lag")) {
         pace.max_lag_s = 0;
@@ -830,6 +868,8 @@ main(int argc, char **argv)
         int state = avr_run(avr);
         if (pc >= prof.idle_start && pc < prof.idle_end)
             prof.idle_cycles += avr->cycle - before;
+        if (prof.by_pc)
+            prof.by_pc[pc / 2] += avr->cycle - before;
         if (state == cpu_Done || state == cpu_Crashed) {
             printf("fil_harness: the AVR stopped (%s) at %.6f s\n",
                    state == cpu_Done ? "done" : "crashed", sim_seconds());

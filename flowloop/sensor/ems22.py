@@ -31,7 +31,8 @@ import numpy as np
 from ..errors import FlowloopError
 from ..window import JUDGED, STUCK
 
-CONFIG_CMD = "config_ems22 oid=%c spi_oid=%c max_read_ticks=%u"
+CONFIG_CMD = ("config_ems22 oid=%c spi_oid=%c max_read_ticks=%u"
+              " bit_offset=%c")
 QUERY_CMD = ("query_ems22 oid=%c clock=%u rest_ticks=%u time_shift=%c"
              " max_bytes=%c")
 BULK_DATA_MSG = "sensor_bulk_data oid=%c sequence=%hu data=%*s"
@@ -39,12 +40,25 @@ BULK_DATA_MSG = "sensor_bulk_data oid=%c sequence=%hu data=%*s"
 # --- mirrors mcu_sensor/ems22_frame.h ----------------------------------------
 READ_BYTES = 3
 HEADER_BYTES = 2
-RECORD_BYTES = 1 + READ_BYTES
-RECORDS_PER_MSG = 12
-MAX_MSG_BYTES = HEADER_BYTES + RECORDS_PER_MSG * RECORD_BYTES
+# Records (see the header): plain (a good frame read on time), a whole read
+# with its time code, an MCU error; the last two start 0x00, kind < OCF
+PLAIN_BYTES = 2
+READ_RECORD_BYTES = 2 + 1 + READ_BYTES
+ERROR_RECORD_BYTES = 4
+KIND_READ, KIND_ERROR = 1, 2
+MAX_MSG_BYTES = 51
+# A message is sent once it holds this many bytes (or the host's fewer), so
+# any record still fits before it is
+MAX_BATCH_BYTES = MAX_MSG_BYTES - READ_RECORD_BYTES + 1
+# The most records a message holds (all plain)
+RECORDS_PER_MSG = (MAX_BATCH_BYTES - HEADER_BYTES + PLAIN_BYTES - 1) // PLAIN_BYTES
 # No record waits longer than this in the MCU (goal: 30 ms at the host)
 MAX_BATCH_AGE_S = 0.020
 TCODE_ERROR = 0xFF
+# A plain record's read started within this many tcode units; the host
+# times it at PLAIN_TCODE (+ half a unit, see sample_clocks): about the middle
+PLAIN_TCODES = 16
+PLAIN_TCODE = PLAIN_TCODES // 2 - 1
 ERR_OVERFLOW, ERR_SCHEDULE, ERR_SPI_TIME = 1, 2, 3
 # The firmware's count of unread timer events stops here: a task that falls
 # further behind loses count of them (see Decoder, time_lost)
@@ -205,16 +219,34 @@ def bit_offset_for_mode(spi_mode: int) -> int:
 # --- MCU record packing (what sensor_ems22.c sends) --------------------------
 
 def pack_messages(first_index: int, records: Sequence[Tuple[int, bytes]],
-                  per_message: int = RECORDS_PER_MSG) -> List[bytes]:
-    """sensor_bulk_data payloads for (tcode, 3-byte read) records, as the MCU
-    packs them: a 2-byte little-endian first-record index, then records."""
-    out = []
-    for start in range(0, len(records), per_message):
-        index = (first_index + start) & 0xFFFF
-        payload = bytearray((index & 0xFF, index >> 8))
-        for tcode, raw in records[start:start + per_message]:
-            payload.append(tcode)
-            payload += bytes(raw)
+                  bit_offset: int = 1,
+                  max_bytes: int = MAX_MSG_BYTES) -> List[bytes]:
+    """sensor_bulk_data payloads for (tcode, 3-byte read) records and
+    error_record()s, as sensor_ems22.c packs them: a 2-byte little-endian
+    first-record index, then a plain record for a good frame (at
+    bit_offset) read within PLAIN_TCODES, a whole-read record otherwise.
+    A message is sent once it holds max_bytes (at most MAX_BATCH_BYTES)."""
+    out: List[bytes] = []
+    payload = bytearray()
+    index = first_index
+    max_bytes = min(max_bytes, MAX_BATCH_BYTES)
+    for tcode, raw in records:
+        if tcode == TCODE_ERROR:
+            rec = bytes((0, KIND_ERROR, raw[0], raw[1]))
+        else:
+            frame = frame_at(raw, bit_offset)
+            if tcode < PLAIN_TCODES and frame_status(frame) == OK:
+                rec = frame.to_bytes(2, "big")
+            else:
+                rec = bytes((0, KIND_READ, tcode)) + bytes(raw)
+        if not payload:
+            payload += (index & 0xFFFF).to_bytes(2, "little")
+        payload += rec
+        index += int(record_slots_of(tcode, raw))
+        if len(payload) >= max_bytes:
+            out.append(bytes(payload))
+            payload = bytearray()
+    if payload:
         out.append(bytes(payload))
     return out
 
@@ -225,11 +257,40 @@ def error_record(code: int, count: int = 1) -> Tuple[int, bytes]:
     return TCODE_ERROR, bytes((code, count if code == ERR_OVERFLOW else 0, 0))
 
 
-def record_slots(rec: np.ndarray) -> np.ndarray:
-    """Timer events (record indices) each raw record stands for: an
-    overflow record its count, every other record one."""
-    overflow = (rec[:, 0] == TCODE_ERROR) & (rec[:, 1] == ERR_OVERFLOW)
-    return np.where(overflow, np.maximum(rec[:, 2], 1), 1)
+def record_slots_of(tcode, raw) -> int:
+    """Timer events (record indices) a record stands for: an overflow
+    record its count, every other record one."""
+    if tcode == TCODE_ERROR and raw[0] == ERR_OVERFLOW:
+        return max(raw[1], 1)
+    return 1
+
+
+def parse_records(body: bytes, bit_offset: int) -> Tuple[List[int], List[int]]:
+    """(tcodes, 24-bit words) of a message body's records, one per record:
+    a plain record's frame placed at bit_offset of its word, an error
+    record's code and count in the word's top two bytes (tcode
+    TCODE_ERROR). A malformed record ends the body."""
+    tcodes: List[int] = []
+    words: List[int] = []
+    shift = 8 - bit_offset
+    i, n = 0, len(body)
+    while i + 1 < n:
+        b0, b1 = body[i], body[i + 1]
+        if b0 or b1 >= OCF:
+            tcodes.append(PLAIN_TCODE)
+            words.append(((b0 << 8) | b1) << shift)
+            i += PLAIN_BYTES
+        elif b1 == KIND_READ and i + READ_RECORD_BYTES <= n:
+            tcodes.append(body[i + 2])
+            words.append((body[i + 3] << 16) | (body[i + 4] << 8) | body[i + 5])
+            i += READ_RECORD_BYTES
+        elif b1 == KIND_ERROR and i + ERROR_RECORD_BYTES <= n:
+            tcodes.append(TCODE_ERROR)
+            words.append((body[i + 2] << 16) | (body[i + 3] << 8))
+            i += ERROR_RECORD_BYTES
+        else:
+            break
+    return tcodes, words
 
 
 # --- host decoder ------------------------------------------------------------
@@ -299,13 +360,13 @@ class Decoder:
     counts: int = 0           # unwrapped position of the last good frame
     time_lost: bool = False
     last_good_index: Optional[int] = None  # record index of the last good frame
-    _other: int = field(init=False, default=0)
+    _other: int = field(init=False, default=0)   # the neighbouring offset
     _overflow_run: int = field(init=False, default=0)
 
     def __post_init__(self):
-        if not 0 <= self.bit_offset <= 8:
-            raise FlowloopError(f"bit_offset must be 0..8, not {self.bit_offset}")
-        self._other = 1 - self.bit_offset if self.bit_offset < 2 else -1
+        if self.bit_offset not in (0, 1):
+            raise FlowloopError(f"bit_offset must be 0 or 1, not {self.bit_offset}")
+        self._other = 1 - self.bit_offset
 
     def reset(self) -> None:
         """A new query: the MCU counts records and messages from 0 again.
@@ -316,64 +377,73 @@ class Decoder:
 
     def decode(self, messages: Sequence[Tuple[int, bytes]]) -> Samples:
         """Decode (sequence, payload) pairs, in arrival order."""
-        starts, bodies, lost = [], [], 0
+        starts, tcodes, words, lost = [], [], [], 0
         first_index, contiguous = None, True
         for sequence, payload in messages:
             if self.last_sequence >= 0 and (
                     (sequence - self.last_sequence) & 0xFFFF) != 1:
                 lost += 1
             self.last_sequence = sequence
-            n = (len(payload) - HEADER_BYTES) // RECORD_BYTES
-            if n <= 0:
+            tcode, word = self._records(payload[HEADER_BYTES:])
+            n = len(tcode)
+            if not n:
                 continue
             first = payload[0] | (payload[1] << 8)
             index = self.next_index + ((first - self.next_index) & 0xFFFF)
-            body = payload[HEADER_BYTES:HEADER_BYTES + n * RECORD_BYTES]
-            if body[0::RECORD_BYTES].count(TCODE_ERROR):
+            errors = tcode == TCODE_ERROR
+            if errors.any():
                 # an overflow record stands for several record slots
-                rec = np.frombuffer(body, dtype=np.uint8).reshape(-1, RECORD_BYTES)
-                slots = record_slots(rec)
-                body = np.repeat(rec, slots, axis=0).tobytes()
-                n = int(slots.sum())
+                overflow = errors & (((word >> 16) & 0xFF) == ERR_OVERFLOW)
+                slots = np.where(overflow, np.maximum((word >> 8) & 0xFF, 1), 1)
+                tcode, word = np.repeat(tcode, slots), np.repeat(word, slots)
+                n = len(tcode)
             if first_index is None:
                 first_index = index
             elif index != self.next_index:
                 contiguous = False
             starts.append((index, n))
-            bodies.append(body)
+            tcodes.append(tcode)
+            words.append(word)
             self.next_index = index + n
-        if not bodies:
+        if not tcodes:
             return _empty()
-        rec = np.frombuffer(b"".join(bodies), dtype=np.uint8).reshape(-1, RECORD_BYTES)
+        tcode = np.concatenate(tcodes) if len(tcodes) > 1 else tcodes[0]
+        word = np.concatenate(words) if len(words) > 1 else words[0]
         if contiguous:   # the usual batch: one run of record slots
-            index = np.arange(first_index, first_index + len(rec), dtype=np.int64)
+            index = np.arange(first_index, first_index + len(tcode), dtype=np.int64)
         else:
             first = np.array([i for i, _ in starts], dtype=np.int64)
             count = np.array([n for _, n in starts], dtype=np.int64)
             offset = np.cumsum(count) - count
-            index = (np.arange(len(rec), dtype=np.int64)
+            index = (np.arange(len(tcode), dtype=np.int64)
                      + np.repeat(first - offset, count))
-        samples = self._decode_records(index, rec, contiguous)
+        samples = self._decode_records(index, tcode, word, contiguous)
         samples.lost_messages = lost
         return samples
 
-    def _decode_records(self, index: np.ndarray, rec: np.ndarray,
-                        contiguous: bool = False) -> Samples:
-        # a record is big-endian tcode:24-bit read
-        packed = rec.view(">u4")[:, 0].astype(np.int64)
-        tcode = packed >> 24
-        word = packed & 0xFFFFFF
+    def _records(self, body: bytes) -> Tuple[np.ndarray, np.ndarray]:
+        """(tcode, 24-bit word) arrays of one message body (parse_records)."""
+        if not len(body) % PLAIN_BYTES:
+            frames = np.frombuffer(body, dtype=">u2")
+            if not (frames < OCF).any():   # the usual message: all plain
+                return (np.full(len(frames), PLAIN_TCODE, dtype=np.int64),
+                        frames.astype(np.int64) << (8 - self.bit_offset))
+        tcode, word = parse_records(body, self.bit_offset)
+        return np.array(tcode, dtype=np.int64), np.array(word, dtype=np.int64)
+
+    def _decode_records(self, index: np.ndarray, tcode: np.ndarray,
+                        word: np.ndarray, contiguous: bool = False) -> Samples:
         frame = (word >> (8 - self.bit_offset)) & 0xFFFF
         status = _STATUS_OF_FRAME[frame]
         all_good = not status.any()     # OK is 0
-        if not all_good and self._other >= 0:
+        if not all_good:
             bad = status != OK
             other = _STATUS_OF_FRAME[(word >> (8 - self._other)) & 0xFFFF]
             status[bad & (other == OK) & (status != MISSING)] = MISALIGNED
         is_error = tcode == TCODE_ERROR
         if is_error.any():
             all_good = False
-            codes = rec[is_error, 1]
+            codes = (word[is_error] >> 16) & 0xFF
             status[is_error] = [_MCU_ERRORS.get(int(c), SPI_TIME) for c in codes]
         if not all_good or self._overflow_run or self.time_lost:
             self._mark_time_lost(status)
@@ -521,8 +591,9 @@ def min_sample_period_s(spi_speed_hz: float, software_spi: bool,
 
 
 def records_per_message(rest_ticks: int, ticks_per_s: float) -> int:
-    """Records the MCU batches per message (query_ems22's max_bytes): as
-    many as fit, unless the first would then wait MAX_BATCH_AGE_S or more."""
+    """Plain records the MCU batches per message (query_ems22's max_bytes):
+    as many as fit, unless the first would then wait MAX_BATCH_AGE_S or
+    more. Larger records fill a message sooner, so they wait less."""
     count, age = 1, rest_ticks
     while count < RECORDS_PER_MSG and age < MAX_BATCH_AGE_S * ticks_per_s:
         age += rest_ticks
@@ -531,7 +602,7 @@ def records_per_message(rest_ticks: int, ticks_per_s: float) -> int:
 
 
 def message_bytes(rest_ticks: int, ticks_per_s: float) -> int:
-    return HEADER_BYTES + RECORD_BYTES * records_per_message(rest_ticks,
+    return HEADER_BYTES + PLAIN_BYTES * records_per_message(rest_ticks,
                                                              ticks_per_s)
 
 
@@ -549,7 +620,8 @@ def sample_clocks(samples: Samples, start_clock: int, rest_ticks: int,
 
     The MCU truncates the delay to tcode << time_shift (no rounding: it
     costs flash), so the read lies in the next 1 << time_shift ticks: take
-    the middle of that span.
+    the middle of that span. A plain record says only that the read started
+    within PLAIN_TCODES units (its tcode is PLAIN_TCODE).
     """
     tcode = np.where(samples.tcode == TCODE_ERROR, 0, samples.tcode)
     centre = (1 << time_shift) / 2.0 if time_shift else 0.0

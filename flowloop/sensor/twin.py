@@ -150,7 +150,7 @@ class SimulatedEms22:
         if self.fault == "missing":
             raws[:] = 0xFF
         records = [(0, bytes(r)) for r in raws]
-        payloads = ems22.pack_messages(self.next_index, records)
+        payloads = ems22.pack_messages(self.next_index, records, self.bit_offset)
         self.next_index += len(records)
         out = []
         for payload in payloads:

@@ -448,9 +448,11 @@ class Ems22Source:
         self._check_read_time(mcu_freq)
         max_read_ticks = ems22.max_read_ticks(self.spi_speed, self.software_spi,
                                               mcu_freq)
+        bit_offset = ems22.bit_offset_for_mode(self.sensor.spi_mode)
         mcu.add_config_cmd(f"config_ems22 oid={self.oid}"
                            f" spi_oid={self.spi.get_oid()}"
-                           f" max_read_ticks={max_read_ticks}")
+                           f" max_read_ticks={max_read_ticks}"
+                           f" bit_offset={bit_offset}")
         mcu.add_config_cmd(f"query_ems22 oid={self.oid} clock=0 rest_ticks=0"
                            " time_shift=0 max_bytes=0", on_restart=True)
         self.time_shift = ems22.time_shift_for(mcu_freq)

@@ -186,7 +186,7 @@ def test_worst_sample_age_at_the_host(bench):
         sends = _replay_firmware(period, 5.0, 0.0005, rng)
         worst = 0.
         for sample_time, sent, count in sends:
-            wire = (ems22.HEADER_BYTES + count * ems22.RECORD_BYTES + 10) * 10 / 250000
+            wire = (ems22.HEADER_BYTES + count * ems22.PLAIN_BYTES + 10) * 10 / 250000
             worst = max(worst, sent - sample_time + wire + per_message)
         goal = "<= 30 ms" if period == 0.001 else ""
         bench.figure(f"flow_sensor worst sample age at {period * 1000:g} ms period",
@@ -208,7 +208,6 @@ def _feed_run(klipper_build, klippy_venv, workdir, period_s, seconds,
     """PROCESS_CPU (cpu seconds, samples) of one harnessed klippy run."""
     from devtools.klippy_test import run_file
     rest = round(period_s * TICKS_PER_S)
-    per_message = ems22.records_per_message(rest, TICKS_PER_S)
     n = int(seconds / period_s)
     positions = np.rint(np.arange(n) * 5.0 * period_s
                         * ems22.DEFAULT_COUNTS_PER_MM).astype(int) % 1024
@@ -216,7 +215,8 @@ def _feed_run(klipper_build, klippy_venv, workdir, period_s, seconds,
     frames |= ems22.parity_bits(frames)
     records = [(3, ems22.spi_read_model(int(f), 2)) for f in frames]
     lines = []
-    for i, payload in enumerate(ems22.pack_messages(0, records, per_message)):
+    max_bytes = ems22.message_bytes(rest, TICKS_PER_S)
+    for i, payload in enumerate(ems22.pack_messages(0, records, 1, max_bytes)):
         lines.append(f"FLOW_SENSOR_FEED SENSOR=filament SEQUENCE={i & 0xffff}"
                      f" DATA={payload.hex()} SYNC=0")
         if (i + 1) % messages_per_sync == 0:
@@ -272,7 +272,7 @@ def link_bytes_per_s(period_s, ticks_per_s=TICKS_PER_S, msg_id=80):
     """sensor_bulk_data bytes per second on the wire for one sensor."""
     rest = round(period_s * ticks_per_s)
     records = ems22.records_per_message(rest, ticks_per_s)
-    data = ems22.HEADER_BYTES + records * ems22.RECORD_BYTES
+    data = ems22.message_bytes(rest, ticks_per_s)   # all plain records
     messages_per_s = 1.0 / (records * period_s)
     # block: length, sequence, crc16, sync; message: id, oid, sequence
     # (average over 0..65535), data length, data

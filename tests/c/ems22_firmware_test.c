@@ -3,7 +3,7 @@
 // script on stdin so that test_ems22_frame.py can decode what it sends with
 // flowloop.ems22 and compare it with what really happened:
 //
-//   c MAX_READ_TICKS                config_ems22 (first)
+//   c MAX_READ_TICKS BIT_OFFSET     config_ems22 (first)
 //   q CLOCK REST_TICKS TIME_SHIFT MAX_BYTES
 //                                   query_ems22 (REST_TICKS 0 stops)
 //   t N                             the timer fires N times
@@ -108,8 +108,8 @@ main(void)
     char op;
     while (scanf(" %c", &op) == 1) {
         unsigned long a, b, c, d;
-        if (op == 'c' && scanf("%lu", &a) == 1) {
-            uint32_t args[3] = { 0, 0, a };
+        if (op == 'c' && scanf("%lu %lu", &a, &b) == 2) {
+            uint32_t args[4] = { 0, 0, a, b };
             command_config_ems22(args);
         } else if (op == 'q'
                    && scanf("%lu %lu %lu %lu", &a, &b, &c, &d) == 4) {

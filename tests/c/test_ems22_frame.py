@@ -34,6 +34,8 @@ def test_header_decodes_shared_vectors_and_the_bit_model(frame_test):
     assert proc.returncode == 0, proc.stdout
     assert f"vectors: {len(vectors)} checked" in proc.stdout
     assert "model: 262144 reads checked" in proc.stdout
+    # 1024 positions x 3 flag sets (none, MagINC, MagDEC) with OCF
+    assert "good: 3072 of 65536 frames" in proc.stdout
 
 
 def test_the_c_test_notices_a_wrong_vector(frame_test):
@@ -49,13 +51,28 @@ def test_header_and_python_agree_on_the_record_layout():
     header = (PROJECT / "mcu_sensor" / "ems22_frame.h").read_text()
     for name, value in (("READ_BYTES", ems22.READ_BYTES),
                         ("HEADER_BYTES", ems22.HEADER_BYTES),
-                        ("RECORDS_PER_MSG", ems22.RECORDS_PER_MSG),
+                        ("PLAIN_BYTES", ems22.PLAIN_BYTES),
+                        ("ERROR_RECORD_BYTES", ems22.ERROR_RECORD_BYTES),
+                        ("KIND_READ", ems22.KIND_READ),
+                        ("KIND_ERROR", ems22.KIND_ERROR),
+                        ("MAX_MSG_BYTES", ems22.MAX_MSG_BYTES),
                         ("TCODE_ERROR", f"0x{ems22.TCODE_ERROR:x}"),
+                        ("PLAIN_TCODES", ems22.PLAIN_TCODES),
                         ("POSITION_SHIFT", ems22.POSITION_SHIFT)):
         assert f"#define EMS22_{name} {value}\n" in header
-    # 2-byte header + records fill Klipper's 51-byte sensor_bulk buffer
-    assert ems22.HEADER_BYTES + ems22.RECORDS_PER_MSG * ems22.RECORD_BYTES <= 51
-    assert ems22.HEADER_BYTES + (ems22.RECORDS_PER_MSG + 1) * ems22.RECORD_BYTES > 51
+    assert ("#define EMS22_READ_RECORD_BYTES (2 + 1 + EMS22_READ_BYTES)\n"
+            in header and ems22.READ_RECORD_BYTES == 2 + 1 + ems22.READ_BYTES)
+    assert ("#define EMS22_MAX_BATCH_BYTES (EMS22_MAX_MSG_BYTES"
+            " - EMS22_READ_RECORD_BYTES + 1)\n" in header
+            and ems22.MAX_BATCH_BYTES
+            == ems22.MAX_MSG_BYTES - ems22.READ_RECORD_BYTES + 1)
+    # kinds are below OCF: no good frame starts like a whole-read or error record
+    assert max(ems22.KIND_READ, ems22.KIND_ERROR) < ems22.OCF
+
+
+def test_a_message_is_as_long_as_klippers_sensor_bulk_buffer(klipper_build):
+    header = (klipper_build.tree / "src" / "sensor_bulk.h").read_text()
+    assert f"uint8_t data[{ems22.MAX_MSG_BYTES}];" in header
 
 
 @pytest.mark.parametrize("target", ["linuxprocess", "atmega2560"])

@@ -94,9 +94,14 @@ def test_a_frame_read_one_bit_off_is_never_accepted(position, mode, idle):
             assert ems22.frame_status(ems22.frame_at(raw, wrong)) != ems22.OK
 
 
-def _messages(frames, mode=2, first_index=0, tcode=3, first_sequence=0):
+def _messages(frames, mode=2, first_index=0, tcode=3, first_sequence=0,
+              offset=None):
+    """What the MCU sends for frames on a bus in `mode`, cutting them at
+    `offset` (the configured spi_mode's; by default `mode`'s)."""
+    if offset is None:
+        offset = ems22.bit_offset_for_mode(mode)
     records = [(tcode, ems22.spi_read_model(f, mode)) for f in frames]
-    payloads = ems22.pack_messages(first_index, records)
+    payloads = ems22.pack_messages(first_index, records, offset)
     return [(first_sequence + i, p) for i, p in enumerate(payloads)]
 
 
@@ -139,8 +144,80 @@ def test_bad_frames_are_counted_and_skipped_without_losing_position():
 
 def test_a_wrong_spi_mode_is_reported_as_misaligned():
     frames = [ems22.make_frame(p) for p in range(0, 600, 7)]
-    s = ems22.Decoder(bit_offset=0).decode(_messages(frames, mode=2))
+    # spi_mode 1 configured, the bus behaves as mode 2: no frame passes the
+    # MCU's check at the configured offset, so every read goes out whole
+    messages = _messages(frames, mode=2, offset=0)
+    assert all(len(p) > ems22.HEADER_BYTES + ems22.PLAIN_BYTES * 8
+               for _, p in messages[:-1])
+    s = ems22.Decoder(bit_offset=0).decode(messages)
     assert (s.status == ems22.MISALIGNED).all()
+
+
+_RECORD = st.one_of(
+    st.tuples(st.just("read"), st.integers(0, 1023), st.integers(0, 31),
+              st.integers(0, 3), st.integers(0, ems22.TCODE_ERROR - 1)),
+    st.tuples(st.just("error"), st.sampled_from([ems22.ERR_SPI_TIME,
+                                                 ems22.ERR_SCHEDULE]),
+              st.just(0), st.just(0), st.just(0)),
+    st.tuples(st.just("raw"), st.integers(0, 0xFFFFFF), st.just(0),
+              st.just(0), st.integers(0, ems22.TCODE_ERROR - 1)))
+
+
+@settings(max_examples=80)
+@given(st.lists(_RECORD, min_size=1, max_size=120), st.integers(0, 3))
+def test_any_mix_of_records_decodes_as_each_read_alone_would(recs, mode):
+    """Plain, whole-read and error records in any order and any message
+    cut: each read gets the status of its own frame (or misaligned), and a
+    time code exactly when it was not sent plain."""
+    offset = ems22.bit_offset_for_mode(mode)
+    records, expect_status, expect_tcode = [], [], []
+    for kind, a, flags, bus_mode, tcode in recs:
+        if kind == "error":
+            records.append(ems22.error_record(a))
+            expect_status.append({ems22.ERR_SPI_TIME: ems22.SPI_TIME,
+                                  ems22.ERR_SCHEDULE: ems22.SCHEDULE}[a])
+            expect_tcode.append(ems22.TCODE_ERROR)
+            continue
+        if kind == "read":
+            frame = ems22.make_frame(a, ocf=bool(flags & 16), cof=bool(flags & 8),
+                                     lin=bool(flags & 4), mag_inc=bool(flags & 2),
+                                     mag_dec=bool(flags & 1))
+            raw = ems22.spi_read_model(frame, bus_mode)
+        else:
+            raw = a.to_bytes(3, "big")
+        records.append((tcode, raw))
+        status = ems22.frame_status(ems22.frame_at(raw, offset))
+        other = ems22.frame_status(ems22.frame_at(raw, 1 - offset))
+        if status not in (ems22.OK, ems22.MISSING) and other == ems22.OK:
+            status = ems22.MISALIGNED
+        plain = status == ems22.OK and tcode < ems22.PLAIN_TCODES
+        expect_status.append(status)
+        expect_tcode.append(ems22.PLAIN_TCODE if plain else tcode)
+    payloads = ems22.pack_messages(0, records, offset)
+    assert all(len(p) <= ems22.MAX_MSG_BYTES for p in payloads)
+    s = ems22.Decoder(bit_offset=offset).decode(list(enumerate(payloads)))
+    assert s.index.tolist() == list(range(len(records)))
+    assert s.status.tolist() == expect_status
+    assert s.tcode.tolist() == expect_tcode
+
+
+def test_plain_frames_of_the_first_positions_start_with_a_zero_byte():
+    # positions 0..3 put 0x00 in a plain record's first byte: the OCF bit in
+    # the second byte tells them from a whole-read or error record
+    frames = [ems22.make_frame(p) for p in (0, 1, 2, 3, 2, 1, 0)]
+    messages = _messages(frames)
+    assert messages[0][1][ems22.HEADER_BYTES] == 0
+    assert len(messages[0][1]) == ems22.HEADER_BYTES + 7 * ems22.PLAIN_BYTES
+    s = ems22.Decoder().decode(messages)
+    assert s.valid.all() and s.counts.tolist() == [0, 1, 2, 3, 2, 1, 0]
+
+
+def test_a_truncated_record_ends_its_message():
+    good = (0, ems22.spi_read_model(ems22.make_frame(5), 2))
+    late = (40, good[1])
+    payload = ems22.pack_messages(0, [good, late])[0]
+    s = ems22.Decoder().decode([(0, payload[:-2])])
+    assert s.index.tolist() == [0] and s.valid.all()
 
 
 def test_mcu_error_records_keep_their_time_slot():
@@ -192,19 +269,36 @@ def test_fewer_overflows_keep_their_time():
 
 
 def test_time_is_rebuilt_exactly_after_a_lost_message():
-    frames = [ems22.make_frame(p) for p in range(40)]
+    per = ems22.RECORDS_PER_MSG
+    frames = [ems22.make_frame(p) for p in range(3 * per + 8)]
     msgs = _messages(frames, first_index=65530, first_sequence=7)
+    assert [len(p) for _, p in msgs] == [ems22.MAX_BATCH_BYTES] * 3 + [18]
     decoder = ems22.Decoder()
     decoder.next_index = 65530
     s = decoder.decode([msgs[0], msgs[2], msgs[3]])  # msgs[1] dropped by the MCU
     assert s.lost_messages == 1 and s.error_counts() == {"lost_messages": 1}
-    expect = list(range(65530, 65542)) + list(range(65554, 65570))
+    expect = (list(range(65530, 65530 + per))
+              + list(range(65530 + 2 * per, 65530 + 3 * per + 8)))
     assert s.index.tolist() == expect
     clocks = ems22.sample_clocks(s, start_clock=1000, rest_ticks=16000, time_shift=2)
-    # the MCU truncated the delay to 3 << 2 ticks: the read was in 12..15
-    assert clocks[0] == 1000 + 65530 * 16000 + (3 << 2) + 2
+    # plain records: the read started within PLAIN_TCODES << 2 ticks
+    assert clocks[0] == 1000 + 65530 * 16000 + (ems22.PLAIN_TCODE << 2) + 2
     # the absolute encoder loses nothing across the gap
-    assert s.counts[12] - s.counts[11] == 24 - 11
+    assert s.counts[per] - s.counts[per - 1] == 2 * per - (per - 1)
+
+
+def test_a_late_read_keeps_its_time_code():
+    # the first tcode too late for a plain record goes out whole
+    late = ems22.PLAIN_TCODES
+    frames = [ems22.make_frame(p) for p in range(3)]
+    for tcode, size in ((late - 1, ems22.PLAIN_BYTES),
+                        (late, ems22.READ_RECORD_BYTES)):
+        messages = _messages(frames, tcode=tcode)
+        assert len(messages[0][1]) == ems22.HEADER_BYTES + 3 * size
+    s = ems22.Decoder().decode(messages)
+    assert s.valid.all() and s.tcode.tolist() == [late] * 3
+    clocks = ems22.sample_clocks(s, start_clock=1000, rest_ticks=16000, time_shift=2)
+    assert clocks[1] == 1000 + 16000 + (late << 2) + 2
 
 
 # 1 ms reads of the default shaft: 120 mm/s is 12.3 counts per read
