@@ -1,0 +1,410 @@
+"""Nozzle health from grip: the hotend's melt capacity against its profile,
+print after print.
+
+With a profile, every judged grip window measures the hotend: the profile
+says the hotend melts C_p(T) = min_grip * line(T) at temperature T (the
+flow at which slip starts, the grip model's seed), and a hotend that melts
+r * C_p(T) instead passes g(r) = mean(min(f, r * C_p(T))) / mean(f) of the
+flow f it was asked for over the window. A print's ratio r = measured /
+profile capacity is the r whose g(r) fits the windows' grips best (least
+squares); windows that kept up far below the capacity say nothing about r,
+windows near or above it pin it down.
+
+The noise is measured, not assumed: windows whose peak flow the profile
+says the hotend easily melts (below EASY_SHARE of C_p) should read grip 1,
+and their scatter around 1 (RMS) is the sensor's grip noise sigma for this
+print, feeder and calibration error included. The ratio's standard error
+is sigma / sqrt(sum over windows of g'(r)^2), the least-squares error of a
+one-parameter fit (its Fisher information).
+
+A print gives no estimate, with the reason, when it had no profile, no
+judged windows, too few easy windows to measure the noise, no window that
+asked for more than the hotend melts (then it says only "at least"), or a
+standard error above MAX_STANDARD_ERROR.
+
+The evidence is a fixed-size sum (PrintEvidence: the squared residual and
+the information at each ratio of RATIO_GRID, and the noise sums), so it is
+kept for a print of any length, and the evidence between two moments is
+the difference of two snapshots (`evidence_between`): klippy keeps one sum
+per active profile, Moonraker takes it at a job's start and end.
+
+Across prints (`judge`, per hotend and profile) a warning needs one of:
+- persistence: the last PERSISTENT_PRINTS estimates each below
+  1 - HEALTHY_MARGIN by more than Z_ONE_SIDED standard errors, or
+- a trend: a weighted line through the last TREND_PRINTS estimates falls
+  significantly (its slope Z_ONE_SIDED standard errors below 0, the error
+  scaled up by the line's own scatter) and reaches the ratio at which the
+  prints' own highest flows would slip below min_grip within
+  TREND_HORIZON_PRINTS more prints, while the latest estimate is itself
+  significantly below 1 - HEALTHY_MARGIN.
+One print never warns: both need at least PERSISTENT_PRINTS estimates.
+docs/nozzle_health.md works the numbers through.
+"""
+
+from __future__ import annotations
+
+import math
+import uuid
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..errors import FlowloopError
+from ..material.profile import Line, Profile, min_grip_of, profile_line
+from ..window import Window
+from .grip_model import DEFAULT_FILAMENT_AREA_MM2, judged_flow_mm3_s
+
+# The ratios a print is judged at: measured / profile capacity.
+RATIO_GRID = np.round(np.arange(0.30, 1.5001, 0.01), 4)
+# A window whose peak flow is at most this share of the profile's capacity
+# kept up on any hotend not worse than half its profile: its grip is noise.
+EASY_SHARE = 0.5
+MIN_NOISE_WINDOWS = 20
+# One count of a ~128-count window: the least scatter a reading can have
+# (a noiseless simulation would otherwise claim infinite precision).
+MIN_GRIP_NOISE = 0.002
+MAX_STANDARD_ERROR = 0.05
+# A hotend within this of its profile is as the profile says: a profile's
+# own measurement repeats to a few % (the window model itself reads the
+# twin's ratio 0.2-0.5 % high, tests/unit/test_nozzle_health.py).
+HEALTHY_MARGIN = 0.03
+# One-sided 1 % per print: three prints in a row by chance, 1e-6.
+Z_ONE_SIDED = 2.326
+PERSISTENT_PRINTS = 3
+TREND_PRINTS = 8
+TREND_HORIZON_PRINTS = 5.0
+EVIDENCE_VERSION = 1
+GRID_SUMS = ("cross", "model_sq", "information")
+
+
+def _grid_zeros() -> np.ndarray:
+    return np.zeros(len(RATIO_GRID))
+
+
+def profile_capacity(line: Line, min_grip: float, temp_c: float) -> float:
+    """The flow the profile says the hotend melts at temp_c before it slips."""
+    return min_grip * line.flow_mm3_s(temp_c)
+
+
+def window_grips(shares: np.ndarray, ratios: np.ndarray = RATIO_GRID
+                 ) -> Tuple[np.ndarray, np.ndarray]:
+    """g(r) and g'(r) at each ratio for one window whose equal pieces asked
+    for `shares` of the profile's capacity."""
+    mean = float(shares.mean())
+    clipped = np.minimum(shares[None, :], ratios[:, None])
+    grips = clipped.mean(axis=1) / mean
+    slopes = (shares[None, :] > ratios[:, None]).mean(axis=1) / mean
+    return grips, slopes
+
+
+@dataclass
+class PrintEvidence:
+    """What a print's windows say about its hotend, as sums over windows."""
+
+    profile: str
+    working_point: float
+    min_grip: float
+    epoch: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
+    windows: int = 0          # judged windows at a known temperature
+    unjudged: int = 0         # not judged: retraction, too little motion, stuck
+    faulted: int = 0          # closed while the sensor was faulted
+    no_temperature: int = 0
+    noise_windows: int = 0
+    noise_sum: float = 0.0      # of grip - 1 over the easy windows
+    noise_sum_sq: float = 0.0
+    grip_sq: float = 0.0        # of grip^2 over the windows that asked
+    # per ratio of RATIO_GRID, over the windows that asked for more than
+    # its lowest: grip * g(r), g(r)^2, g'(r)^2
+    cross: np.ndarray = field(default_factory=lambda: _grid_zeros())
+    model_sq: np.ndarray = field(default_factory=lambda: _grid_zeros())
+    information: np.ndarray = field(default_factory=lambda: _grid_zeros())
+
+    def add(self, window: Window, line: Line,
+            filament_area_mm2: float = DEFAULT_FILAMENT_AREA_MM2) -> None:
+        """One closed grip window, judged against the profile line in force."""
+        if window.faulted:
+            self.faulted += 1
+            return
+        flow = judged_flow_mm3_s(window, filament_area_mm2)
+        if flow is None:
+            self.unjudged += 1
+            return
+        if window.temp_c is None:
+            self.no_temperature += 1
+            return
+        capacity = profile_capacity(line, self.min_grip, float(window.temp_c))
+        if capacity <= 0.0:
+            self.no_temperature += 1  # below the profile's zero: no claim
+            return
+        self.windows += 1
+        shares = _pieces(window.commanded_flows, flow) / capacity
+        grip = float(window.grip)
+        if shares.max() <= EASY_SHARE:
+            self.noise_windows += 1
+            self.noise_sum += grip - 1.0
+            self.noise_sum_sq += (grip - 1.0) ** 2
+        if shares.max() <= RATIO_GRID[0]:
+            return  # kept up at every ratio judged: no ratio fits it better
+        grips, slopes = window_grips(shares)
+        self.grip_sq += grip * grip
+        self.cross += grip * grips
+        self.model_sq += grips * grips
+        self.information += slopes * slopes
+
+    def residual_sq(self, grip_scale: float = 1.0) -> np.ndarray:
+        """The sum of squared residuals at each ratio, the grips divided by
+        grip_scale (the sensor's calibration error, read where grip is 1)."""
+        return (self.grip_sq / grip_scale ** 2 - 2.0 * self.cross / grip_scale
+                + self.model_sq)
+
+    def to_dict(self) -> Dict[str, Any]:
+        """JSON-able (klippy's status, Moonraker's database)."""
+        return {"version": EVIDENCE_VERSION, "profile": self.profile,
+                "working_point": self.working_point, "min_grip": self.min_grip,
+                "epoch": self.epoch, "windows": self.windows,
+                "unjudged": self.unjudged, "faulted": self.faulted,
+                "no_temperature": self.no_temperature,
+                "noise_windows": self.noise_windows,
+                "noise_sum": self.noise_sum, "noise_sum_sq": self.noise_sum_sq,
+                "grip_sq": self.grip_sq, "cross": self.cross.tolist(),
+                "model_sq": self.model_sq.tolist(),
+                "information": self.information.tolist()}
+
+    @classmethod
+    def from_dict(cls, data: Any) -> PrintEvidence:
+        try:
+            if data.get("version") != EVIDENCE_VERSION:
+                raise FlowloopError(f"nozzle evidence version "
+                                    f"{data.get('version')!r} is not "
+                                    f"{EVIDENCE_VERSION}")
+            out = cls(str(data["profile"]), float(data["working_point"]),
+                      float(data["min_grip"]), str(data["epoch"]))
+            for name in ("windows", "unjudged", "faulted", "no_temperature",
+                         "noise_windows"):
+                setattr(out, name, int(data[name]))
+            for name in ("noise_sum", "noise_sum_sq", "grip_sq"):
+                setattr(out, name, float(data[name]))
+            for name in GRID_SUMS:
+                values = np.asarray(data[name], dtype=np.float64)
+                if values.shape != RATIO_GRID.shape:
+                    raise FlowloopError(f"nozzle evidence {name} has "
+                                        f"{values.size} values, not "
+                                        f"{RATIO_GRID.size}")
+                setattr(out, name, values)
+        except (AttributeError, KeyError, TypeError, ValueError) as e:
+            raise FlowloopError(f"not nozzle evidence: {e!r}") from None
+        return out
+
+
+def _pieces(commanded_flows: Sequence[float], mean_mm3_s: float) -> np.ndarray:
+    """The window's commanded flow over time, scaled to its mean (the planned
+    motion leaves out pressure advance); one piece when it has none."""
+    flows = np.asarray(commanded_flows, dtype=np.float64)
+    total = flows.mean() if len(flows) else 0.0
+    if total <= 0.0:
+        return np.array([mean_mm3_s])
+    return flows * (mean_mm3_s / total)
+
+
+def evidence_between(start: Optional[PrintEvidence],
+                     end: Optional[PrintEvidence]) -> Optional[PrintEvidence]:
+    """The evidence gathered between two snapshots of one sum; all of `end`
+    when it is a sum begun after `start` was taken (another profile, or
+    klippy restarted), None when there is none at the end."""
+    if end is None:
+        return None
+    if start is None or start.epoch != end.epoch:
+        return end
+    out = PrintEvidence(end.profile, end.working_point, end.min_grip, end.epoch)
+    for name in ("windows", "unjudged", "faulted", "no_temperature",
+                 "noise_windows", "noise_sum", "noise_sum_sq",
+                 "grip_sq") + GRID_SUMS:
+        setattr(out, name, getattr(end, name) - getattr(start, name))
+    return out
+
+
+@dataclass(frozen=True)
+class PrintEstimate:
+    """One print's melt capacity against its profile, or why there is none."""
+
+    profile: str
+    ratio: Optional[float] = None            # measured / profile capacity
+    standard_error: Optional[float] = None
+    grip_noise: Optional[float] = None       # the measured sigma of grip
+    at_least: Optional[float] = None         # the highest share any window asked
+    windows: int = 0
+    min_grip: float = 0.9
+    reason: str = ""                         # why no estimate ("" : one)
+
+    @property
+    def limit_ratio(self) -> Optional[float]:
+        """The ratio below which this print's highest flows would read grip
+        below min_grip (grip = r / share)."""
+        return None if self.at_least is None else self.min_grip * self.at_least
+
+    def to_dict(self) -> Dict[str, Any]:
+        def rounded(v: Optional[float], digits: int = 4) -> Optional[float]:
+            return None if v is None else round(v, digits)
+        return {"profile": self.profile, "ratio": rounded(self.ratio),
+                "standard_error": rounded(self.standard_error, 5),
+                "grip_noise": rounded(self.grip_noise, 5),
+                "at_least": rounded(self.at_least), "windows": self.windows,
+                "min_grip": self.min_grip, "reason": self.reason}
+
+    @classmethod
+    def from_dict(cls, data: Dict[str, Any]) -> PrintEstimate:
+        try:
+            return cls(profile=str(data["profile"]), ratio=_opt(data.get("ratio")),
+                       standard_error=_opt(data.get("standard_error")),
+                       grip_noise=_opt(data.get("grip_noise")),
+                       at_least=_opt(data.get("at_least")),
+                       windows=int(data.get("windows", 0)),
+                       min_grip=float(data.get("min_grip", 0.9)),
+                       reason=str(data.get("reason", "")))
+        except (AttributeError, KeyError, TypeError, ValueError) as e:
+            raise FlowloopError(f"not a nozzle health estimate: {e!r}") from None
+
+
+def _opt(value: Any) -> Optional[float]:
+    return None if value is None else float(value)
+
+
+def estimate(evidence: Optional[PrintEvidence]) -> PrintEstimate:
+    """The print's ratio and its standard error, or the reason there is none."""
+    if evidence is None:
+        return PrintEstimate("", reason="no active profile during the print: "
+                             "nothing to compare the hotend with")
+    ev = evidence
+    base = dict(profile=ev.profile, windows=ev.windows, min_grip=ev.min_grip)
+    if ev.windows == 0:
+        if ev.faulted:
+            why = (f"the sensor was faulted for all {ev.faulted} windows: "
+                   f"grip was never judged")
+        else:
+            why = "no judged grip window at a known temperature"
+        return PrintEstimate(**base, reason=why)
+    if ev.noise_windows < MIN_NOISE_WINDOWS:
+        return PrintEstimate(**base, reason=(
+            f"{ev.noise_windows} windows below {EASY_SHARE:.0%} of the profile's "
+            f"capacity, {MIN_NOISE_WINDOWS} needed to measure the sensor's noise"))
+    noise = max(MIN_GRIP_NOISE, math.sqrt(ev.noise_sum_sq / ev.noise_windows))
+    asked = np.nonzero(ev.information > 0.0)[0]
+    at_least = (float(RATIO_GRID[min(asked[-1] + 1, len(RATIO_GRID) - 1)])
+                if len(asked) else None)
+    base.update(grip_noise=noise, at_least=at_least)
+    residual = ev.residual_sq(1.0 + ev.noise_sum / ev.noise_windows)
+    k = int(np.argmin(residual))
+    kept_up = ev.information <= 0.0
+    share = "none" if at_least is None else f"{at_least:.0%}"
+    said = (f"every window kept up within the sensor's noise (the highest "
+            f"asked for {share} of the profile's capacity): the hotend melts "
+            f"at least that")
+    # a slip must fit better than keeping up by more than the noise allows
+    flat = float(residual[kept_up].min()) if kept_up.any() else float(residual[-1])
+    if kept_up[k] or (flat - residual[k]) / noise ** 2 < Z_ONE_SIDED ** 2:
+        return PrintEstimate(**base, reason=said)
+    ratio = _refined(residual, k)
+    information = float(np.interp(ratio, RATIO_GRID, ev.information))
+    se = noise / math.sqrt(max(information, ev.information[k] * 1e-3))
+    if se > MAX_STANDARD_ERROR:
+        return PrintEstimate(**base, ratio=ratio, standard_error=se, reason=(
+            f"too little evidence: standard error {se:.3f} above "
+            f"{MAX_STANDARD_ERROR:g} (few windows near the capacity, or a "
+            f"noisy sensor: grip noise {noise:.4f})"))
+    return PrintEstimate(**base, ratio=ratio, standard_error=float(se))
+
+
+def _refined(residual: np.ndarray, k: int) -> float:
+    """The minimum between grid ratios: a parabola through three."""
+    if k == 0 or k == len(residual) - 1:
+        return float(RATIO_GRID[k])
+    a, b, c = residual[k - 1], residual[k], residual[k + 1]
+    bend = a - 2 * b + c
+    step = float(RATIO_GRID[1] - RATIO_GRID[0])
+    offset = 0.5 * (a - c) / bend if bend > 0 else 0.0
+    return float(RATIO_GRID[k] + max(-0.5, min(0.5, offset)) * step)
+
+
+def evidence_of(windows: Sequence[Window], profile: Optional[Profile],
+                working_point: float = 0.5, min_grip: Optional[float] = None,
+                filament_area_mm2: float = DEFAULT_FILAMENT_AREA_MM2
+                ) -> Optional[PrintEvidence]:
+    """The evidence of a print's windows under one profile (None: none)."""
+    if profile is None:
+        return None
+    grip = min_grip_of(profile, min_grip)
+    evidence = PrintEvidence(profile.name, working_point, grip)
+    line = profile_line(profile, working_point)
+    for window in windows:
+        evidence.add(window, line, filament_area_mm2)
+    return evidence
+
+
+# --- across prints -------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Verdict:
+    """Whether the hotend's capacity is persistently below its profile."""
+
+    warn: bool
+    rule: str            # "persistent", "trend" or "" (no warning)
+    text: str            # one line for the user
+    prints: int          # estimates judged
+
+
+def _significantly_low(e: PrintEstimate) -> bool:
+    return (e.ratio is not None and e.standard_error is not None
+            and e.ratio + Z_ONE_SIDED * e.standard_error < 1.0 - HEALTHY_MARGIN)
+
+
+def judge(history: Sequence[PrintEstimate]) -> Verdict:
+    """The verdict over one hotend's estimates for one profile, oldest first
+    (prints without an estimate are left out)."""
+    known = [e for e in history if e.ratio is not None and not e.reason]
+    latest = known[-PERSISTENT_PRINTS:]
+    if len(known) < PERSISTENT_PRINTS:
+        return Verdict(False, "", f"{len(known)} prints with an estimate, "
+                       f"{PERSISTENT_PRINTS} needed", len(known))
+    now = known[-1]
+    said = (f"melt capacity {now.ratio:.0%} of the profile "
+            f"(+/- {now.standard_error:.1%})")
+    if all(_significantly_low(e) for e in latest):
+        return Verdict(True, "persistent", (
+            f"{said}; the last {PERSISTENT_PRINTS} prints each below "
+            f"{1 - HEALTHY_MARGIN:.0%} beyond their noise: a partial clog, a "
+            f"worn nozzle or the wrong nozzle?"), len(known))
+    trend = _trend(known[-TREND_PRINTS:])
+    if trend is not None and _significantly_low(now):
+        return Verdict(True, "trend", (
+            f"{said}, falling {-trend[0]:.1%} a print: the print's highest "
+            f"flows slip below min_grip in about {trend[1]:.1f} prints"),
+            len(known))
+    return Verdict(False, "", said, len(known))
+
+
+def _trend(recent: Sequence[PrintEstimate]) -> Optional[Tuple[float, float]]:
+    """(slope per print, prints until the limit) of a significant fall that
+    reaches the prints' limit ratio within TREND_HORIZON_PRINTS; else None."""
+    if len(recent) < PERSISTENT_PRINTS + 1:
+        return None
+    x = np.arange(len(recent), dtype=np.float64)
+    y = np.array([e.ratio for e in recent])
+    w = 1.0 / np.array([e.standard_error for e in recent]) ** 2
+    xm = np.sum(w * x) / np.sum(w)
+    sxx = np.sum(w * (x - xm) ** 2)
+    slope = float(np.sum(w * (x - xm) * (y - np.sum(w * y) / np.sum(w))) / sxx)
+    intercept = float(np.sum(w * y) / np.sum(w)) - slope * xm
+    chi2 = float(np.sum(w * (y - intercept - slope * x) ** 2))
+    scale = max(1.0, math.sqrt(chi2 / (len(recent) - 2)))
+    slope_se = scale / math.sqrt(sxx)
+    if slope + Z_ONE_SIDED * slope_se >= 0.0:
+        return None
+    limits = [e.limit_ratio for e in recent if e.limit_ratio is not None]
+    if not limits:
+        return None
+    now = intercept + slope * x[-1]
+    prints_left = (now - max(limits)) / -slope
+    if prints_left > TREND_HORIZON_PRINTS:
+        return None
+    return slope, max(0.0, prints_left)

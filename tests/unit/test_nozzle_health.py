@@ -1,0 +1,142 @@
+"""Nozzle health from grip (flowloop.control.nozzle_health): a print's melt
+capacity against its profile with the error its own sensor noise allows,
+and the verdict over prints, on the simulated twin and hotend model."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from flowloop.control import nozzle_health as nh
+from flowloop.window import FAULT, Window
+from tests.nozzle_prints import MIN_GRIP, PROFILE, simulate_print
+
+pytestmark = pytest.mark.unit
+
+# 2 % of the capacity lost per print: the print's highest flows (the
+# profile's capacity) slip below min_grip once the ratio is under 0.9
+DEGRADE_PER_PRINT = 0.02
+
+
+def estimate_of(windows, profile=PROFILE):
+    return nh.estimate(nh.evidence_of(windows, profile))
+
+
+def degrading_prints(seed=0, prints=10):
+    """(true ratio, estimate, verdict after it) print by print."""
+    history, out = [], []
+    for k in range(prints):
+        ratio = 1.0 - DEGRADE_PER_PRINT * k
+        e = estimate_of(simulate_print(ratio, seed=seed + k))
+        history.append(e)
+        out.append((ratio, e, nh.judge(history)))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 100])
+def test_a_degrading_hotend_warns_before_grip_falls_below_min_grip(seed):
+    prints = degrading_prints(seed)
+    warned = [ratio for ratio, _, verdict in prints if verdict.warn]
+    assert warned, [(r, e.ratio, v.text) for r, e, v in prints]
+    # grip at the print's highest flow (the profile's capacity) is the ratio
+    assert warned[0] > MIN_GRIP
+    first = next(e for _, e, v in prints if v.warn)
+    assert first.limit_ratio == pytest.approx(MIN_GRIP * first.at_least)
+
+
+def test_each_estimate_finds_the_twins_ratio_within_its_error():
+    for ratio in (0.95, 0.9, 0.8):
+        e = estimate_of(simulate_print(ratio, seed=3))
+        assert e.reason == ""
+        # the window model against the twin's smoothed melt: < 1 % high
+        assert ratio - 3 * e.standard_error < e.ratio < ratio + 0.01
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_healthy_noisy_hotend_never_warns(seed):
+    history = []
+    for k in range(12):
+        history.append(estimate_of(simulate_print(1.0, seed=1000 * seed + k)))
+        assert not nh.judge(history).warn, history[-1]
+
+
+def test_a_healthy_hotend_printing_slowly_is_at_least_what_it_was_asked():
+    # a sensor that reads 1 % low would otherwise look like a slip at the top
+    windows = [dataclasses.replace(w, grip=w.grip * 0.99)
+               if w.grip is not None else w
+               for w in simulate_print(1.0, seed=4)]
+    e = estimate_of(windows)
+    assert e.ratio is None and "kept up" in e.reason
+
+
+def test_one_very_noisy_print_never_warns_alone():
+    noisy = estimate_of(simulate_print(0.9, seed=5, noise_counts=6.0))
+    quiet = [estimate_of(simulate_print(1.0, seed=6 + k)) for k in range(5)]
+    assert not nh.judge(quiet + [noisy]).warn
+    assert not nh.judge([noisy]).warn
+    # its error is its own noise's: twenty times the quiet prints'
+    assert noisy.grip_noise > 20 * max(e.grip_noise for e in quiet)
+    assert noisy.reason or noisy.standard_error > 20 * max(
+        e.standard_error or 0.0 for e in quiet)
+
+
+def test_a_print_without_windows_has_no_estimate():
+    e = estimate_of([])
+    assert e.ratio is None and e.reason == \
+        "no judged grip window at a known temperature"
+
+
+def test_a_print_without_a_profile_has_no_estimate():
+    e = estimate_of(simulate_print(0.9, layers=1), profile=None)
+    assert e.ratio is None and "no active profile" in e.reason
+
+
+def test_a_sensor_faulted_the_whole_print_has_no_estimate():
+    windows = [dataclasses.replace(w, grip=None, reason=FAULT, fault="magnet")
+               for w in simulate_print(0.9, layers=1)]
+    e = estimate_of(windows)
+    assert e.ratio is None
+    assert e.reason.startswith(f"the sensor was faulted for all {len(windows)}")
+
+
+def test_a_print_too_short_to_measure_the_noise_says_so():
+    e = estimate_of(simulate_print(0.9, layers=1)[:10])
+    assert e.ratio is None and "needed to measure the sensor's noise" in e.reason
+
+
+def test_windows_without_temperature_are_counted_not_judged():
+    w = Window(0.0, 1.0, 2.0, 2.0, 1.0, "judged", temp_c=None)
+    ev = nh.evidence_of([w], PROFILE)
+    assert ev.no_temperature == 1 and ev.windows == 0
+
+
+def test_evidence_between_two_snapshots_is_the_print_between():
+    first = simulate_print(0.9, seed=7, layers=3)
+    second = simulate_print(0.8, seed=8, layers=3)
+    start = nh.evidence_of(first, PROFILE)
+    end = nh.PrintEvidence.from_dict(start.to_dict())
+    line = nh.profile_line(PROFILE)
+    for w in second:
+        end.add(w, line)
+    between = nh.evidence_between(start, end)
+    alone = nh.evidence_of(second, PROFILE)
+    assert between.windows == alone.windows
+    assert nh.estimate(between).ratio == pytest.approx(nh.estimate(alone).ratio)
+    # a sum begun after the start (a profile activated at print start) is whole
+    assert nh.evidence_between(start, alone) is alone
+    assert nh.evidence_between(None, alone) is alone
+    assert nh.evidence_between(start, None) is None
+
+
+def test_evidence_that_is_not_evidence_is_refused_in_one_line():
+    with pytest.raises(nh.FlowloopError, match="not nozzle evidence"):
+        nh.PrintEvidence.from_dict({"version": 1})
+    with pytest.raises(nh.FlowloopError, match="version"):
+        nh.PrintEvidence.from_dict({"version": 99})
+
+
+def test_prints_without_an_estimate_neither_warn_nor_count():
+    none = nh.PrintEstimate("known", reason="no judged grip window")
+    verdict = nh.judge([none] * 10)
+    assert not verdict.warn and verdict.prints == 0
