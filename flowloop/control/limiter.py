@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional
 
 from ..errors import FlowloopError
-from ..material.profile import Profile, min_grip_of, profile_line
+from ..material.profile import Line, Profile, min_grip_of, profile_line
 from ..window import Window
 from . import caps as fl_caps
 from .grip_model import (
@@ -43,6 +43,7 @@ from .grip_model import (
     GripModel,
     judged_flow_mm3_s,
 )
+from .nozzle_health import PrintEvidence
 from .reactive import (
     DEFAULT_HYSTERESIS,
     DEFAULT_MIN_GRIP,
@@ -104,6 +105,10 @@ class FlowLimiter:
         self.profile: Optional[Profile] = None
         self.working_point = 0.5
         self.model: Optional[GripModel] = None
+        # what the windows say of the hotend against the active profile
+        # (flowloop.control.nozzle_health), summed since it was activated
+        self.evidence: Optional[PrintEvidence] = None
+        self._line: Optional[Line] = None
         self.temp_c: Optional[float] = None
         self.sensor_fault: Optional[str] = None
         self.reactive = self._reactive_rule()
@@ -161,9 +166,12 @@ class FlowLimiter:
         self.profile = profile
         self.working_point = working_point
         self.model = None
+        self.evidence = None
         if profile is not None:
             line = profile_line(profile, working_point)
             seed_grip = min_grip_of(profile)
+            self._line = line
+            self.evidence = PrintEvidence(profile.name, working_point, seed_grip)
             self.model = GripModel(CapacityLine.from_profile_line(
                 line, seed_grip, profile.bounds.recommended_temp_c),
                 filament_area_mm2=self.filament_area_mm2)
@@ -188,6 +196,8 @@ class FlowLimiter:
         if window.fault != self.sensor_fault:
             self.sensor_fault = window.fault
             self._update()
+        if self.evidence is not None and self._line is not None:
+            self.evidence.add(window, self._line, self.filament_area_mm2)
         if judged_flow_mm3_s(window, self.filament_area_mm2) is None:
             return  # faulted, not judged, or no forward flow: nothing to judge
         self.windows_judged += 1

@@ -14,6 +14,7 @@
 #   processor.py      uploaded G-code annotated for [autotemp]
 #   page.py           the live page (/server/flowloop/page/) and what it asks
 #   reports.py        a flow report per job of Moonraker's history
+#   nozzle_health.py  the hotend's melt capacity per job, a warning when it falls
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -29,6 +30,7 @@ from flowloop.material.active import extruder_arg
 from .api import Api
 from .info import Info
 from .klippy_sync import KlippySync
+from .nozzle_health import NozzleHealth
 from .page import Page
 from .processor import Processor
 from .profiles import Profiles
@@ -73,6 +75,7 @@ class Flowloop:
         self.page = Page(self.server, self.store)
         self.reports = Reports(self.server, config.getint(
             "number_of_reports_to_keep", DEFAULT_REPORTS_TO_KEEP, minval=1))
+        self.nozzle_health = NozzleHealth(self.server, self.store.db, hotend)
 
     async def component_init(self) -> None:
         await self.store.load()

@@ -140,3 +140,35 @@ def test_prints_without_an_estimate_neither_warn_nor_count():
     none = nh.PrintEstimate("known", reason="no judged grip window")
     verdict = nh.judge([none] * 10)
     assert not verdict.warn and verdict.prints == 0
+
+
+def worked_example_rows():
+    """docs/nozzle_health.md's table: the degrading hotend, seed 0."""
+    rows = []
+    for k, (ratio, e, verdict) in enumerate(degrading_prints(0, prints=6)):
+        found = "none: all kept up" if e.ratio is None else \
+            f"{e.ratio:.3f} ± {e.standard_error:.4f}"
+        rows.append(f"| {k + 1} | {ratio:.2f} | {e.grip_noise:.4f} | {found} | "
+                    f"{'**warn** (' + verdict.rule + ')' if verdict.warn else 'no'} |")
+    return rows
+
+
+def test_the_docs_worked_example_is_what_the_twin_gives():
+    from pathlib import Path
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "nozzle_health.md").read_text()
+    for row in worked_example_rows():
+        assert row in doc, row
+
+
+def test_the_limiter_sums_the_evidence_of_the_active_profile():
+    from flowloop.control.limiter import FlowLimiter
+    limiter = FlowLimiter()
+    windows = simulate_print(0.9, seed=9, layers=2)
+    for w in windows:
+        limiter.on_window(w)
+    assert limiter.evidence is None        # no profile: nothing to compare
+    limiter.set_profile(PROFILE)
+    for w in windows:
+        limiter.on_window(w)
+    assert limiter.evidence.to_dict() == nh.evidence_of(
+        windows, PROFILE).to_dict() | {"epoch": limiter.evidence.epoch}
