@@ -624,9 +624,15 @@ def sample_clocks(samples: Samples, start_clock: int, rest_ticks: int,
     within PLAIN_TCODES units (its tcode is PLAIN_TCODE).
     """
     tcode = np.where(samples.tcode == TCODE_ERROR, 0, samples.tcode)
-    centre = (1 << time_shift) / 2.0 if time_shift else 0.0
     return (start_clock + samples.index * rest_ticks
-            + (tcode << time_shift) + centre).astype(np.float64)
+            + read_delay_ticks(tcode, time_shift)).astype(np.float64)
+
+
+def read_delay_ticks(tcode, time_shift: int):
+    """Ticks from a record's timer event to its read, as the host takes it
+    from the record's tcode: the middle of the tcode's span."""
+    centre = (1 << time_shift) / 2.0 if time_shift else 0.0
+    return (tcode << time_shift) + centre
 
 
 def print_times(clocks: np.ndarray, clock_to_print_time) -> np.ndarray:

@@ -48,10 +48,12 @@ def due_times(timing: SampleTiming, next_index: int,
               before: float) -> List[float]:
     """Print times of the reads the MCU's timer schedules from record
     next_index on, up to (not at) print time `before`: when a twin that
-    samples as the MCU would owes its next records."""
+    samples as the MCU would owes its next records. Each read comes when
+    the host will time a plain record's (ems22.PLAIN_TCODE)."""
     times: List[float] = []
-    to_time, start, rest = (timing.clock_to_print_time, timing.start_clock,
-                            timing.rest_ticks)
+    to_time, rest = timing.clock_to_print_time, timing.rest_ticks
+    start = timing.start_clock + ems22.read_delay_ticks(ems22.PLAIN_TCODE,
+                                                        timing.time_shift)
     while True:
         t = to_time(start + (next_index + len(times)) * rest)
         if t >= before:

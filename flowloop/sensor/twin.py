@@ -149,7 +149,8 @@ class SimulatedEms22:
         raws = raw_reads(frames, self.bit_offset)
         if self.fault == "missing":
             raws[:] = 0xFF
-        records = [(0, bytes(r)) for r in raws]
+        # read when the host will time them (pipeline.due_times): plain
+        records = [(ems22.PLAIN_TCODE, bytes(r)) for r in raws]
         payloads = ems22.pack_messages(self.next_index, records, self.bit_offset)
         self.next_index += len(records)
         out = []
