@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Dict, List, Optional
@@ -29,6 +30,8 @@ from .recorder import (
 
 FORMAT = "flowloop-flow-report"
 VERSION = 1
+# A stored report's name: its job's id in Moonraker's history (hex digits)
+JOB_ID = re.compile(r"^[0-9A-F]{1,16}$")
 # totals kept as they are (everything else is rebuilt)
 _COUNTS = ("samples", "sensor_samples", "faulted_samples", "planned_samples",
            "events_dropped")
@@ -145,6 +148,29 @@ def save(path: Path, text: str) -> None:
         except OSError:
             pass
         raise
+
+
+def stored(folder: Path) -> List[Path]:
+    """The dumps stored in a folder (JOB.json), newest job first."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    dumps = [p for p in folder.glob("*.json") if JOB_ID.match(p.stem)]
+    return sorted(dumps, key=lambda p: int(p.stem, 16), reverse=True)
+
+
+def prune(folder: Path, keep: int) -> List[str]:
+    """Remove the dumps (and their .html) beyond the newest `keep` jobs; the
+    job ids removed."""
+    removed = []
+    for old in stored(folder)[keep:]:
+        for suffix in (".json", ".html"):
+            try:
+                old.with_suffix(suffix).unlink()
+            except FileNotFoundError:
+                pass
+        removed.append(old.stem)
+    return removed
 
 
 def summary(rec: Recorder) -> Dict[str, Optional[Any]]:

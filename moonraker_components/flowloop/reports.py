@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import re
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Dict, List, Optional
@@ -39,8 +38,6 @@ if TYPE_CHECKING:
 SAMPLE_PERIOD_S = 0.25
 DEFAULT_REPORTS_TO_KEEP = 10
 REPORTS_FOLDER = ("flowloop", "reports")
-# Moonraker's job ids: the history's row id as (at least) 6 hex digits
-JOB_ID = re.compile(r"^[0-9A-F]{1,16}$")
 
 
 class Reports:
@@ -148,21 +145,12 @@ class Reports:
         job_id = rec.job.job_id or "unknown"
         dump.save(self.folder / f"{job_id}.json", dump.dumps(rec))
         dump.save(self.folder / f"{job_id}.html", render.html(rec))
-        for old in self._stored()[self.keep:]:
-            for suffix in (".json", ".html"):
-                old.with_suffix(suffix).unlink(missing_ok=True)
-
-    def _stored(self) -> List[Path]:
-        """The stored dumps, newest job first."""
-        if not self.folder.is_dir():
-            return []
-        dumps = [p for p in self.folder.glob("*.json") if JOB_ID.match(p.stem)]
-        return sorted(dumps, key=lambda p: int(p.stem, 16), reverse=True)
+        dump.prune(self.folder, self.keep)
 
     # --- endpoints ---------------------------------------------------------------
     def _summaries(self) -> List[Dict[str, Any]]:
         out = []
-        for path in self._stored():
+        for path in dump.stored(self.folder):
             try:
                 entry = dump.summary(dump.load(path))
             except FlowloopError as e:
@@ -179,7 +167,7 @@ class Reports:
     async def _handle_report(self, web_request: WebRequest) -> bytes:
         given = args.text(web_request.get_args(), "job_id", "job id")
         job_id = given.upper()
-        if not JOB_ID.match(job_id):
+        if not dump.JOB_ID.match(job_id):
             raise args.refusal(f"job id {quoted(given)} is not a job of "
                                f"Moonraker's history (hex digits, e.g. 00002A)")
         rec = self.recorder

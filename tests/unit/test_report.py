@@ -350,3 +350,31 @@ def test_the_flow_report_worked_example(tmp_path, capsys):
         in zip((("12", "2.4", "149.7"), ("13", "2.6", "174.6"),
                 ("14", "2.8", "199.6")), figures)]
     assert "a 20-minute print of 30 layers" in section
+
+
+# --- storing ----------------------------------------------------------------------
+
+def test_only_the_newest_jobs_reports_are_kept_and_other_files_are_left(tmp_path):
+    for job_id in ("000009", "00000A", "000010", "0000FF"):
+        (tmp_path / f"{job_id}.json").write_text("{}")
+        (tmp_path / f"{job_id}.html").write_text("")
+    (tmp_path / "notes.json").write_text("{}")
+    assert [p.stem for p in dump.stored(tmp_path)] == [
+        "0000FF", "000010", "00000A", "000009"]   # by number, not by name
+    assert dump.prune(tmp_path, 2) == ["00000A", "000009"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "000010.html", "000010.json", "0000FF.html", "0000FF.json", "notes.json"]
+    assert dump.stored(tmp_path / "none") == []
+
+
+def test_a_full_disk_leaves_the_old_file_and_no_partial_one(tmp_path, monkeypatch):
+    target = tmp_path / "00002A.json"
+    target.write_text("the stored one")
+
+    def full(*args):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr("flowloop.report.dump.os.replace", full)
+    with pytest.raises(OSError, match="No space left"):
+        dump.save(target, dump.dumps(scenario()))
+    assert [p.name for p in tmp_path.iterdir()] == ["00002A.json"]
+    assert target.read_text() == "the stored one"
