@@ -308,8 +308,8 @@ def html(rec: Recorder) -> str:
         _table("summary", (), summary_rows(rec), ""),
         "<h2>What this report lacks</h2>",
         ('<ul id="lacks">' + "".join(f"<li>{escape(x)}</li>" for x in lacks)
-         + "</ul>") if lacks else '<p id="lacks">Nothing: the print completed '
-        'with sensor, limiter and autotemp data throughout.</p>',
+         + "</ul>") if lacks else '<p id="lacks">Nothing: the print completed and '
+        'every series was recorded (faults and gaps are listed below).</p>',
         "<h2>Flow</h2>", flow_svg(rec, time),
         "<h2>Grip and the limiter</h2>", grip_svg(rec, time),
         _table("slowdowns", ("reason", "time it cost [s]", "stretches"),
