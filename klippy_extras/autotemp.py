@@ -6,12 +6,24 @@
 # heater targets, set as the motion is generated. A file without
 # annotations falls back to the moves Klipper has queued (reactive).
 #
+# On a toolchanger or IDEX machine, one section per extruder ([autotemp] for
+# `extruder`, [autotemp extruder1] for extruder1, as Klipper's per-tool
+# sections are named): each drives its tool's heater only while that tool
+# prints (flowloop.control.tools: M104 T<n>, the hand-back at a tool change);
+# one transform, one M104/M109 take-over and one set of commands serve them
+# all (klippy_extras/flowloop.py ToolMoves).
+#
 # This file may be distributed under the terms of the GNU GPLv3 license.
 from flowloop.control import autotemp as fl_autotemp
 from flowloop.control import caps as fl_caps
+from flowloop.control import tools as fl_tools
 from flowloop.control.hotend import HotendParams
 from flowloop.errors import FlowloopError
-from flowloop.host.klipper_config import extruder_for, option_error
+from flowloop.host.klipper_config import (
+    extruder_for,
+    option_error,
+    section_extruder,
+)
 from flowloop.material.active import working_point_arg
 
 from . import flowloop as flowloop_host
@@ -25,7 +37,10 @@ class Autotemp:
         self.printer = printer = config.get_printer()
         self.host = printer.load_object(config, 'flowloop')
         self.section = config.get_name()
-        self.extruder_name = config.get('extruder', 'extruder')
+        # [autotemp extruder1]: the name says the extruder
+        self.extruder_name = section_extruder(self.section) \
+            if self.section != 'autotemp' \
+            else config.get('extruder', 'extruder')
         self.override_m104 = config.getboolean('override_m104', True)
         enabled = config.getboolean('enable', True)
         values = {'time_constant': ('time_constant_s', config.getfloat(
@@ -51,18 +66,25 @@ class Autotemp:
         self.heater = self.toolhead = self.extruder = None
         self.next_transform = None
         self.last_flush = None
+        # the last M104/M109 target asked for this tool: its heater's at a
+        # tool change (flowloop.control.tools.hand_back_target)
+        self.user_target_c = None
         printer.register_event_handler('klippy:connect', self._handle_connect)
         printer.register_event_handler('flowloop:profile_activated',
                                        self._handle_profile)
-        gcode = printer.lookup_object('gcode')
-        self.gcode = gcode
-        gcode.register_command('AUTOTEMP_FLOW', self.cmd_AUTOTEMP_FLOW,
-                               desc=self.cmd_AUTOTEMP_FLOW_help)
-        gcode.register_command('SET_AUTOTEMP', self.cmd_SET_AUTOTEMP,
-                               desc=self.cmd_SET_AUTOTEMP_help)
-        gcode.register_command('QUERY_AUTOTEMP', self.cmd_QUERY_AUTOTEMP,
-                               desc=self.cmd_QUERY_AUTOTEMP_help)
-        self.prev_m104 = None
+        self.gcode = printer.lookup_object('gcode')
+        self.tools = self.host.tool_moves('autotemp')
+        self.first = self.tools.add(config, self.extruder_name, self)
+        if self.first:
+            # one command for every tool: the printing one's, or EXTRUDER=
+            self.gcode.register_command('AUTOTEMP_FLOW', self.cmd_AUTOTEMP_FLOW,
+                                        desc=self.cmd_AUTOTEMP_FLOW_help)
+            self.gcode.register_command('SET_AUTOTEMP', self.cmd_SET_AUTOTEMP,
+                                        desc=self.cmd_SET_AUTOTEMP_help)
+            self.gcode.register_command('QUERY_AUTOTEMP',
+                                        self.cmd_QUERY_AUTOTEMP,
+                                        desc=self.cmd_QUERY_AUTOTEMP_help)
+        self.prev_m104 = self.prev_m109 = None
 
     # --- setup ---------------------------------------------------------------
     def _handle_connect(self):
@@ -74,12 +96,18 @@ class Autotemp:
         # the read-ahead the annotations' LEAD allows for is this host's
         self.core.set_host(flowloop_host.host_facts(self.printer, self.toolhead,
                                                     self.heater))
-        if self.override_m104:
+        if self.first:
             # The extruder registers M104 after the extras load: take it over
-            # here, as gcode_macro's rename_existing does.
+            # here, as gcode_macro's rename_existing does; one section for
+            # all the tools (M104 T1 is extruder1's).
             self.prev_m104 = self.gcode.register_command('M104', None)
             self.gcode.register_command('M104', self.cmd_M104,
                                         desc=self.cmd_M104_help)
+            self.prev_m109 = self.gcode.register_command('M109', None)
+            self.gcode.register_command('M109', self.cmd_M109,
+                                        desc=self.cmd_M109_help)
+            self.printer.register_event_handler('extruder:activate_extruder',
+                                                self._handle_tool_change)
         self.core.set_working_point(self.working_point)
         active = self.host.get_active_profile(self.extruder_name)
         if active is not None:
@@ -91,8 +119,7 @@ class Autotemp:
             # Kalico: the toolhead's step generators see each flush time
             self.toolhead.register_step_generator(
                 lambda flush_time: self._flush(flush_time, flush_time))
-        gcode_move = self.printer.lookup_object('gcode_move')
-        self.next_transform = gcode_move.set_move_transform(self, force=True)
+        self.tools.join(extruder, self)
 
     def _handle_profile(self, extruder, profile, working_point):
         if extruder == self.extruder_name:
@@ -113,6 +140,8 @@ class Autotemp:
         hold = fl_autotemp.GRID_S if self.last_flush is None \
             else min(1., max(fl_autotemp.GRID_S, step_gen_time - self.last_flush))
         self.last_flush = step_gen_time
+        if self.toolhead.get_extruder() is not self.extruder:
+            return   # an idle tool's heater is the user's
         if self.core.source is not None \
                 and self.heater.get_status(None)['target'] == 0.:
             # Turned off (M104 S0, TURN_OFF_HEATERS, a fault): autotemp never
@@ -127,10 +156,23 @@ class Autotemp:
         if target != self.heater.get_status(None)['target']:
             self.heater.set_temp(target)
 
-    # --- the move transform: the lookahead fallback ---------------------------
-    def get_position(self):
-        return self.next_transform.get_position()
+    # --- tool changes ---------------------------------------------------------
+    def _handle_tool_change(self):
+        # ACTIVATE_EXTRUDER flushed the old tool's motion first: every other
+        # tool stands down and gets its user's target back (never higher).
+        printing = self.tools.printing()
+        for member in self.tools.by_extruder.values():
+            if member is not printing:
+                member.stand_down()
 
+    def stand_down(self):
+        self.core.stop()
+        current = self.heater.get_status(None)['target']
+        target = fl_tools.hand_back_target(self.user_target_c, current)
+        if target is not None:
+            self.heater.set_temp(target)
+
+    # --- the move transform: the lookahead fallback ---------------------------
     def move(self, newpos, speed):
         if self.core.source != 'annotation' and self.core.active:
             shape = fl_caps.move_shape(self.next_transform.get_position(),
@@ -150,6 +192,12 @@ class Autotemp:
         " long (written by flowloop annotate)")
 
     def cmd_AUTOTEMP_FLOW(self, gcmd):
+        # the file's flow is the printing tool's (none: nothing to plan)
+        member = self.tools.printing()
+        if member is not None:
+            member.announce(gcmd)
+
+    def announce(self, gcmd):
         flow = gcmd.get_float('FLOW')
         lead = gcmd.get_float('LEAD')
         duration = gcmd.get_float('DURATION')
@@ -163,6 +211,12 @@ class Autotemp:
         " (WP=0..1, or WP=profile for the active profile's)")
 
     def cmd_SET_AUTOTEMP(self, gcmd):
+        self._tool(gcmd).set_autotemp(gcmd)
+
+    def _tool(self, gcmd):
+        return self.tools.pick(gcmd.get('EXTRUDER', None), gcmd)
+
+    def set_autotemp(self, gcmd):
         enable = gcmd.get_int('ENABLE', None, minval=0, maxval=1)
         wp = gcmd.get('WP', None)
         try:
@@ -177,42 +231,70 @@ class Autotemp:
             self.core.set_working_point(wp, self._print_time())
         if enable is not None:
             self.core.set_enabled(bool(enable))
-        self._report(gcmd)
+        self.report(gcmd)
 
     cmd_QUERY_AUTOTEMP_help = "Report autotemp's state, source and target"
 
     def cmd_QUERY_AUTOTEMP(self, gcmd):
-        self._report(gcmd)
+        self._tool(gcmd).report(gcmd)
 
     cmd_M104_help = ("Set the extruder temperature (ignored while autotemp"
                      " plans the print)")
 
     def cmd_M104(self, gcmd):
-        index = gcmd.get_int('T', None, minval=0)
-        ours = index is None or (
-            ('extruder' if index == 0 else f'extruder{index}')
-            == self.extruder_name)
-        if ours and gcmd.get_float('S', 0.) == 0.:
-            self.core.stop()   # turning the heater off is always obeyed
-        elif ours and self.core.overrides_m104():
-            gcmd.respond_info(
-                f"autotemp: M104 S{gcmd.get_float('S', 0.):g} overridden"
-                " (SET_AUTOTEMP ENABLE=0 hands the heater back)")
+        member, temp_c = self._m104_member(gcmd)
+        if member is not None and member.m104(gcmd, temp_c) == 'override':
             return
         self.prev_m104(gcmd)
 
-    def _report(self, gcmd):
+    cmd_M109_help = "Set the extruder temperature and wait for it"
+
+    def cmd_M109(self, gcmd):
+        # always waits (the start G-code's M109 heats as before); the target
+        # is kept as the user's for that tool
+        member, temp_c = self._m104_member(gcmd)
+        if member is not None:
+            member.user_target_c = temp_c
+            if temp_c <= 0.:
+                member.core.stop()
+        self.prev_m109(gcmd)
+
+    def _m104_member(self, gcmd):
+        """The autotemp of the tool an M104/M109 sets (None: that tool has
+        none, or is not configured: Klipper's own M104 answers), its S."""
+        name = fl_tools.m104_extruder(gcmd.get_int('T', None, minval=0),
+                                      self.tools.active_name())
+        return self.tools.table.get(name), gcmd.get_float('S', 0.)
+
+    def m104(self, gcmd, temp_c):
+        action = fl_tools.m104_action(
+            temp_c, self.toolhead.get_extruder() is self.extruder,
+            self.override_m104 and self.core.overrides_m104())
+        self.user_target_c = temp_c
+        if action == 'stop':
+            self.core.stop()   # turning the heater off is always obeyed
+        elif action == 'override':
+            gcmd.respond_info(
+                f"{self.section}: M104 S{temp_c:g} overridden"
+                " (SET_AUTOTEMP ENABLE=0 hands the heater back)")
+        return action
+
+    def report(self, gcmd):
         s = self.core.status
         state = "enabled" if s['enabled'] else "disabled"
         target = "none" if s['target'] is None else f"{s['target']:.1f} C"
         flow = "none" if s['planned_flow'] is None \
             else f"{s['planned_flow']:.1f} mm^3/s"
         gcmd.respond_info(
-            f"autotemp: {state}, source {s['source'] or 'none'}, target"
+            f"{self.section}: {state}, source {s['source'] or 'none'}, target"
             f" {target}, planned flow {flow}, profile {s['profile'] or 'none'}"
             f" at working point {s['working_point']}"
             + (f"; {s['why']}" if s['why'] else ""))
 
 
 def load_config(config):
+    return Autotemp(config)
+
+
+def load_config_prefix(config):
     return Autotemp(config)

@@ -11,6 +11,7 @@ import logging
 import sys
 
 import flowloop
+from flowloop.control.tools import PerTool
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
 from flowloop.material import profile as fl_profile
@@ -29,6 +30,7 @@ class FlowloopHost:
         # extruder name -> Activation; status is rebuilt on change
         self.active_profiles = {}
         self.status = self._status({})
+        self.tools = {}   # kind -> ToolMoves: the per-tool sections of a kind
         self.printer.register_event_handler('klippy:connect',
                                             self._handle_connect)
         webhooks = self.printer.lookup_object('webhooks')
@@ -111,12 +113,78 @@ class FlowloopHost:
                 'sensor_firmware': dict(self.sensor_firmware),
                 'profiles': profiles}
 
+    def tool_moves(self, kind):
+        """The one ToolMoves of a kind ('flowrate_limiter', 'autotemp')."""
+        if kind not in self.tools:
+            self.tools[kind] = ToolMoves(self.printer, kind)
+        return self.tools[kind]
+
     def get_active_profile(self, extruder='extruder'):
         """The Activation (profile, working_point) of an extruder, or None."""
         return self.active_profiles.get(extruder)
 
     def get_status(self, eventtime=None):
         return self.status
+
+
+class ToolMoves:
+    """One move transform for all the sections of a kind, one section per
+    extruder: each G-code move goes to the section of the extruder that
+    prints (the toolhead's, which ACTIVATE_EXTRUDER and T0/T1 macros change),
+    so a move is handled once however many tools there are. Registered at
+    klippy:connect by the first section to join, chaining the transform it
+    replaces (as skew_correction.py)."""
+
+    def __init__(self, printer, kind):
+        self.printer = printer
+        self.table = PerTool(kind)
+        self.by_extruder = {}    # extruder object -> its section
+        self.next_transform = self.toolhead = None
+
+    def add(self, config, extruder_name, member):
+        """At config time: refuse a second section for one extruder. True
+        for the first section, which registers the kind's commands (they go
+        to the section pick() names)."""
+        try:
+            self.table.add(config.get_name(), extruder_name, member)
+        except FlowloopError as e:
+            raise config.error(str(e)) from None
+        return len(self.table.extruders) == 1
+
+    def join(self, extruder, member):
+        """At klippy:connect, once the section found its extruder."""
+        self.by_extruder[extruder] = member
+        if self.next_transform is None:
+            self.toolhead = self.printer.lookup_object('toolhead')
+            gcode_move = self.printer.lookup_object('gcode_move')
+            self.next_transform = gcode_move.set_move_transform(self,
+                                                                force=True)
+        member.next_transform = self.next_transform
+
+    def printing(self):
+        """The section of the extruder that prints, or None."""
+        return self.by_extruder.get(self.toolhead.get_extruder())
+
+    def active_name(self):
+        return self.toolhead.get_extruder().get_name()
+
+    def pick(self, extruder_name, gcmd):
+        """The section of the extruder a command names (its EXTRUDER=),
+        else the printing one's."""
+        try:
+            return self.table.pick(extruder_name, self.active_name())
+        except FlowloopError as e:
+            raise gcmd.error(f"{gcmd.get_command()}: {e}") from None
+
+    def get_position(self):
+        return self.next_transform.get_position()
+
+    def move(self, newpos, speed):
+        member = self.printing()
+        if member is None:
+            self.next_transform.move(newpos, speed)
+        else:
+            member.move(newpos, speed)
 
 
 def host_facts(printer, toolhead, heater):

@@ -9,6 +9,12 @@
 # flowloop.control; this module reads config, follows the printer and
 # hands each move to the core.
 #
+# On a toolchanger or IDEX machine, one section per extruder, named as
+# Klipper names per-tool sections ([tmc2209 extruder1]): [flowrate_limiter]
+# for `extruder`, [flowrate_limiter extruder1] for extruder1. One transform
+# (klippy_extras/flowloop.py ToolMoves) hands each move to the section of
+# the extruder that prints; SET_/QUERY_FLOWRATE_LIMIT take EXTRUDER=.
+#
 # This file may be distributed under the terms of the GNU GPLv3 license.
 from flowloop.control import caps as fl_caps
 from flowloop.control import limiter as fl_limiter
@@ -19,6 +25,7 @@ from flowloop.host.klipper_config import (
     find_flow_sensor,
     option_error,
     option_message,
+    section_extruder,
 )
 
 from . import flowloop as flowloop_host
@@ -35,7 +42,10 @@ class FlowrateLimiter:
         self.host = printer.load_object(config, 'flowloop')
         self.reactor = printer.get_reactor()
         self.section = config.get_name()
-        self.extruder_name = config.get('extruder', 'extruder')
+        # [flowrate_limiter extruder1]: the name says the extruder
+        self.extruder_name = section_extruder(self.section) \
+            if self.section != 'flowrate_limiter' \
+            else config.get('extruder', 'extruder')
         self.sensor_name = config.get('sensor', None)
         # option -> LimiterSettings field; the limits live in flowloop.control
         values = {'max_flow': config.getfloat('max_flow', None),
@@ -62,12 +72,16 @@ class FlowrateLimiter:
         printer.register_event_handler('klippy:connect', self._handle_connect)
         printer.register_event_handler('flowloop:profile_activated',
                                        self._handle_profile)
-        gcode = printer.lookup_object('gcode')
-        gcode.register_command('SET_FLOWRATE_LIMIT', self.cmd_SET_FLOWRATE_LIMIT,
-                               desc=self.cmd_SET_FLOWRATE_LIMIT_help)
-        gcode.register_command('QUERY_FLOWRATE_LIMIT',
-                               self.cmd_QUERY_FLOWRATE_LIMIT,
-                               desc=self.cmd_QUERY_FLOWRATE_LIMIT_help)
+        self.tools = self.host.tool_moves('flowrate_limiter')
+        if self.tools.add(config, self.extruder_name, self):
+            # one command for every tool: EXTRUDER= names it
+            gcode = printer.lookup_object('gcode')
+            gcode.register_command('SET_FLOWRATE_LIMIT',
+                                   self.cmd_SET_FLOWRATE_LIMIT,
+                                   desc=self.cmd_SET_FLOWRATE_LIMIT_help)
+            gcode.register_command('QUERY_FLOWRATE_LIMIT',
+                                   self.cmd_QUERY_FLOWRATE_LIMIT,
+                                   desc=self.cmd_QUERY_FLOWRATE_LIMIT_help)
 
     # --- setup ---------------------------------------------------------------
     def _handle_connect(self):
@@ -94,8 +108,7 @@ class FlowrateLimiter:
         active = self.host.get_active_profile(self.extruder_name)
         if active is not None:
             self.limiter.set_profile(*active)
-        gcode_move = self.printer.lookup_object('gcode_move')
-        self.next_transform = gcode_move.set_move_transform(self, force=True)
+        self.tools.join(extruder, self)
 
     def _find_sensor(self):
         sensor = find_flow_sensor(self.printer, self.extruder_name,
@@ -114,10 +127,8 @@ class FlowrateLimiter:
         # says whether the sensor is faulted (Window.faulted, Window.fault).
         self.limiter.on_window(window)
 
-    # --- the move transform --------------------------------------------------
-    def get_position(self):
-        return self.next_transform.get_position()
 
+    # --- the moves of this extruder (ToolMoves hands them over) --------------
     def move(self, newpos, speed):
         # Runs per G-code move: only what this move needs (make bench
         # measures klippy's host time with and without it).
@@ -132,13 +143,19 @@ class FlowrateLimiter:
                 self.limiter.set_temperature(temp_c)
             speed = self.limiter.limit(shape, speed)
             melted_mm3 = shape.extrude_mm * self.filament_area
-        nozzle = self.nozzle
-        if nozzle is not None and nozzle.add_move(shape.duration_s(speed),
-                                                  melted_mm3):
-            # Batch mode: the model runs on the moves' own (cruise) time
-            self.limiter.set_temperature(nozzle.read(
-                self.heater.get_status(None)['target']))
+        if self.nozzle is not None:
+            # Batch mode: the models run on the moves' own (cruise) time,
+            # the idle tools' too (they melt nothing meanwhile)
+            duration_s = shape.duration_s(speed)
+            for member in self.tools.by_extruder.values():
+                member.pass_time(duration_s,
+                                 melted_mm3 if member is self else 0.)
         self.next_transform.move(newpos, speed)
+
+    def pass_time(self, duration_s, melted_mm3):
+        if self.nozzle.add_move(duration_s, melted_mm3):
+            self.limiter.set_temperature(self.nozzle.read(
+                self.heater.get_status(None)['target']))
 
     # --- status and commands -------------------------------------------------
     def get_status(self, eventtime=None):
@@ -151,6 +168,12 @@ class FlowrateLimiter:
         " its mode")
 
     def cmd_SET_FLOWRATE_LIMIT(self, gcmd):
+        self._tool(gcmd).set_limit(gcmd)
+
+    def _tool(self, gcmd):
+        return self.tools.pick(gcmd.get('EXTRUDER', None), gcmd)
+
+    def set_limit(self, gcmd):
         enable = gcmd.get_int('ENABLE', None, minval=0, maxval=1)
         max_flow = gcmd.get('MAX_FLOW', None)
         mode = gcmd.get('MODE', None)
@@ -163,24 +186,28 @@ class FlowrateLimiter:
         except FlowloopError as e:
             raise gcmd.error(f"SET_FLOWRATE_LIMIT: {e}; nothing changed") \
                 from None
-        self._report(gcmd)
+        self.report(gcmd)
 
     cmd_QUERY_FLOWRATE_LIMIT_help = "Report the flowrate limiter's caps"
 
     def cmd_QUERY_FLOWRATE_LIMIT(self, gcmd):
-        self._report(gcmd)
+        self._tool(gcmd).report(gcmd)
 
-    def _report(self, gcmd):
+    def report(self, gcmd):
         s = self.limiter.status()
         cap = "none" if s['cap'] is None else f"{s['cap']:.2f} mm^3/s"
         caps = ", ".join(f"{name} {'off' if v is None else f'{v:.2f}'}"
                          for name, v in s['caps'].items())
         state = "enabled" if s['enabled'] else "disabled"
         gcmd.respond_info(
-            f"flowrate_limiter: {state}, mode {s['mode']}, cap {cap}"
+            f"{self.section}: {state}, mode {s['mode']}, cap {cap}"
             f" ({s['reason']}); caps: {caps}; slowed {s['slowed_moves']} moves"
             f" by {s['slowed_time']:.1f} s" + (f"; {s['why']}" if s['why'] else ""))
 
 
 def load_config(config):
+    return FlowrateLimiter(config)
+
+
+def load_config_prefix(config):
     return FlowrateLimiter(config)

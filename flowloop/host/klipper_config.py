@@ -254,6 +254,14 @@ def extruder_for(printer, section: str, name: str):
     return extruder
 
 
+def section_extruder(section: str, default: str = "extruder") -> str:
+    """The extruder a per-tool section acts on, from its name as Klipper's
+    `[tmc2209 extruder1]` does: `[autotemp extruder1]` -> extruder1; the
+    plain `[autotemp]` -> default (its `extruder` option)."""
+    parts = section.split(None, 1)
+    return parts[1].strip() if len(parts) == 2 else default
+
+
 def flow_sensors(printer) -> list:
     """The object of every [flow_sensor NAME] section, in klippy's order."""
     return [obj for name, obj in printer.lookup_objects('flow_sensor')
