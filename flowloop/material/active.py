@@ -4,9 +4,10 @@ Moonraker stores one `ActiveProfile` per extruder (name and working point)
 and klippy keeps an `Activation` (the profile itself and its working point).
 Both are typed records; nothing reads them as loose dicts.
 
-The Spoolman link's rule lives here too (`follow_spool`): when the active spool
-changes, the profile whose identity names that spool's Spoolman filament
-becomes active on the linked extruder, keeping that extruder's working point.
+The Spoolman link's rules live here too: when the active spool changes
+(`follow_spool`), the profile whose identity names that spool's Spoolman
+filament becomes active on the spool's extruder (`spool_extruder`: the tool
+that prints, or the one the link names), keeping that extruder's working point.
 """
 
 from __future__ import annotations
@@ -121,6 +122,21 @@ def extruder_arg(name: str) -> str:
         raise FlowloopError(f"{json.dumps(name)} is not an extruder name "
                             f"(extruder, extruder1, ...)")
     return name
+
+
+# spoolman_extruder's value that sends each spool to the tool that prints
+ACTIVE_TOOL = "active"
+
+
+def spool_extruder(linked: Optional[str], active: Optional[str]) -> str:
+    """The extruder a newly active spool is for. Moonraker keeps one active
+    spool per printer and Spoolman knows no tools, so on a toolchanger the
+    spool is the printing tool's (the tool change macro sets it) unless the
+    link names one extruder (`spoolman_extruder`); an active tool klippy did
+    not say is `extruder`."""
+    if linked is not None:
+        return linked
+    return active if is_extruder_name(active) else "extruder"
 
 
 def spool_filament_id(spool: Any) -> Optional[int]:

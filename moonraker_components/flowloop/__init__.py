@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 from flowloop.errors import FlowloopError
 from flowloop.material import profile as fl_profile
 from flowloop.material import spoolman_field
-from flowloop.material.active import extruder_arg
+from flowloop.material.active import ACTIVE_TOOL, extruder_arg
 
 from .api import Api
 from .info import Info
@@ -46,9 +46,11 @@ class Flowloop:
     def __init__(self, config: ConfigHelper) -> None:
         self.server = config.get_server()
         spoolman_link = config.getboolean("spoolman_link", False)
-        spoolman_extruder = config.get("spoolman_extruder", "extruder")
+        # "active": each spool is the printing tool's (docs/toolchangers.md)
+        spoolman_extruder = config.get("spoolman_extruder", ACTIVE_TOOL)
         try:
-            extruder_arg(spoolman_extruder)
+            spoolman_extruder = None if spoolman_extruder == ACTIVE_TOOL \
+                else extruder_arg(spoolman_extruder)
         except FlowloopError as e:
             raise config.error(
                 f"Section [flowloop], option spoolman_extruder: {e}") from None

@@ -1,7 +1,7 @@
 # flowloop component: the Spoolman link.
 #
 # Loading a spool (Moonraker's [spoolman] sets the active spool) activates,
-# on the linked extruder, the profile for the spool's filament: the one kept
+# on the spool's extruder, the profile for the spool's filament: the one kept
 # on the filament in Spoolman for this printer's hotend (`hotend:`), stored
 # here as the local copy, else a local profile naming the filament (the rule
 # is flowloop.material.active.follow_spool). A profile stored here for a
@@ -14,16 +14,22 @@
 # the profiles not yet written are written once Moonraker reconnects to
 # Spoolman (Moonraker does not announce the same spool twice).
 #
+# Moonraker keeps one active spool per printer: on a toolchanger the spool is
+# the tool's that prints when it is set (the tool change macro sets each
+# tool's spool; flowloop.material.active.spool_extruder), unless
+# spoolman_extruder names one extruder.
+#
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from typing import TYPE_CHECKING, Any, Dict, Optional, Set, Tuple
 
 from flowloop.errors import FlowloopError
 from flowloop.material import spoolman_field as sf
-from flowloop.material.active import ActiveProfile, follow_spool
+from flowloop.material.active import ActiveProfile, follow_spool, spool_extruder
 from flowloop.material.profile import Profile
 
 from ...utils import json_wrapper as jsonw
@@ -44,11 +50,11 @@ class SpoolmanDown(Exception):
 
 
 class SpoolmanLink:
-    def __init__(self, server: Server, extruder: str, default_wp: float,
+    def __init__(self, server: Server, extruder: Optional[str], default_wp: float,
                  store: ProfileStore, profiles: Profiles,
                  hotend: Optional[str] = None) -> None:
         self.server = server
-        self.extruder = extruder
+        self.extruder = extruder   # None: the tool that prints
         self.default_wp = default_wp
         self.store = store
         self.profiles = profiles
@@ -120,20 +126,35 @@ class SpoolmanLink:
         if status != 200 or not isinstance(spool, dict):
             logging.info(f"flowloop: Spoolman spool {spool_id}: HTTP {status}")
             return
-        entry = await self._shared_entry(spool) or follow_spool(
-            spool, self.store.profiles, self.store.active.get(self.extruder),
+        extruder = spool_extruder(self.extruder, await self._printing_tool())
+        entry = await self._shared_entry(spool, extruder) or follow_spool(
+            spool, self.store.profiles, self.store.active.get(extruder),
             self.default_wp)
         if entry is None:
             logging.info(f"flowloop: no profile for the filament of Spoolman "
                          f"spool {spool_id}")
             return
         try:
-            await self.profiles.activate(self.extruder, entry)
+            await self.profiles.activate(extruder, entry)
         except self.server.error as e:
             logging.info(f"flowloop: Spoolman link could not activate "
                          f"{quoted(entry.name)}: {e}")
 
-    async def _shared_entry(self, spool: Dict[str, Any]) -> Optional[ActiveProfile]:
+    async def _printing_tool(self) -> Optional[str]:
+        """The extruder klippy says is active (None: not asked, or no
+        answer within REQUEST_TIMEOUT_S)."""
+        if self.extruder is not None:
+            return None
+        klippy_apis = self.server.lookup_component("klippy_apis")
+        try:
+            status = await asyncio.wait_for(klippy_apis.query_objects(
+                {"toolhead": ["extruder"]}, default={}), REQUEST_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            return None
+        return status.get("toolhead", {}).get("extruder")
+
+    async def _shared_entry(self, spool: Dict[str, Any],
+                            extruder: str) -> Optional[ActiveProfile]:
         """The profile for the spool's filament and this hotend: Spoolman's
         (stored here as the local copy), or a later one measured here, which
         is then written back (Spoolman has no conditional write: another
@@ -156,7 +177,7 @@ class SpoolmanLink:
                              f" the later {quoted(mine.name)} measured here is"
                              " written back")
             await self._write(mine)
-            return self._active(mine.name)
+            return self._active(mine.name, extruder)
         if shared is None:
             return None
         local = self.store.profiles.get(shared.name)
@@ -169,7 +190,7 @@ class SpoolmanLink:
             return None
         if local != shared:
             await self.profiles.store_profile(shared, "spoolman")
-        return self._active(shared.name)
+        return self._active(shared.name, extruder)
 
     def _latest_local(self, fid: Any) -> Optional[Profile]:
         """The latest profile stored here for Spoolman filament fid."""
@@ -180,8 +201,8 @@ class SpoolmanLink:
                 latest = profile
         return latest
 
-    def _active(self, name: str) -> ActiveProfile:
-        current = self.store.active.get(self.extruder)
+    def _active(self, name: str, extruder: str) -> ActiveProfile:
+        current = self.store.active.get(extruder)
         wp = current.working_point if current is not None else self.default_wp
         return ActiveProfile(name=name, working_point=wp)
 

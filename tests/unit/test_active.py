@@ -123,3 +123,12 @@ def test_the_cli_names_a_bad_wp_the_same_way(capsys):
     err = capsys.readouterr().err
     assert ("argument --wp: got 'abc'; accepts a number from 0 (real print) to 1 "
             "(into air)") in err
+
+
+def test_a_spool_goes_to_the_tool_that_prints_unless_the_link_names_one():
+    from flowloop.material.active import spool_extruder
+    assert spool_extruder(None, "extruder1") == "extruder1"
+    assert spool_extruder("extruder", "extruder1") == "extruder"
+    # klippy did not say (not connected, no answer): the first tool
+    assert spool_extruder(None, None) == "extruder"
+    assert spool_extruder(None, "") == "extruder"
