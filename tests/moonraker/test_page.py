@@ -325,6 +325,46 @@ def test_the_printed_files_plan_shows_with_the_position_marked(browser, printer)
     assert severe_console(browser) == []
 
 
+def tools_rows(driver):
+    """{tool: [its cells]} of the page's Tools table."""
+    return js(driver, """
+        const out = {};
+        for (const row of document.querySelectorAll('#tools tbody tr')) {
+          out[row.dataset.tool] = [...row.cells].map((c) => c.textContent);
+        }
+        return out;""")
+
+
+def test_the_page_lists_every_tool_and_follows_a_tool_change(browser, printer):
+    activate_profile(printer)
+    open_page(browser, page_url(printer))
+    wait_for(browser, "document.getElementById('connection').dataset.state == 'live'"
+                      " && document.querySelectorAll('#tools tbody tr').length == 2")
+    limiter = printer.query("flowrate_limiter")
+    wait_for(browser, "document.querySelector('#tools tr[data-tool=extruder]')"
+                      f".cells[2].textContent == '{limiter['cap']:.2f}"
+                      f" ({limiter['reason']})'")
+    rows = tools_rows(browser)
+    assert rows["extruder"][0] == "extruder (printing)"
+    assert rows["extruder"][5] == "page-pla"
+    # the second tool has no sensor, limiter, autotemp or profile: said so
+    assert rows["extruder1"] == ["extruder1", "no sensor", "no limiter",
+                                 "no autotemp", "0.0", "none"]
+    try:
+        printer.gcode("ACTIVATE_EXTRUDER EXTRUDER=extruder1")
+        # without ?extruder= the page follows the tool that prints
+        wait_for(browser, "document.querySelector('#extruders [aria-current]')"
+                          ".textContent == 'extruder1'")
+        wait_for(browser, "document.querySelector('#tools tr[data-tool=extruder1]')"
+                          ".cells[0].textContent == 'extruder1 (printing)'")
+        assert "No [flow_sensor] watches extruder1" in message(browser, "flow-chart")
+    finally:
+        printer.gcode("ACTIVATE_EXTRUDER EXTRUDER=extruder")
+    wait_for(browser, "document.querySelector('#extruders [aria-current]')"
+                      ".textContent == 'extruder'")
+    assert severe_console(browser) == []
+
+
 def test_the_page_carries_on_after_klippy_restarts(browser, printer):
     open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")

@@ -24,7 +24,10 @@
   const COLORS = {/* plot.COLORS */};
 
   const query = new URLSearchParams(location.search);
-  const extruder = query.get("extruder") || "extruder";
+  // ?extruder= shows one tool; without it the page follows the tool that
+  // prints (toolhead.extruder), as ACTIVATE_EXTRUDER and T0/T1 change it.
+  const chosen = query.get("extruder");
+  let extruder = chosen || "extruder";
   // Moonraker may sit behind a proxy under a prefix: everything is asked
   // relative to where the page was served from.
   const base = location.pathname.replace(/server\/flowloop\/page\/?$/, "");
@@ -201,6 +204,7 @@
   let rpc = null;
   let status = {};           // printer object -> its fields, as subscribed
   let names = {};            // sensor, limiter, autotemp object names for `extruder`
+  let tools = {};            // every extruder -> its sensor, limiter, autotemp names
   let ring = new Ring(SAMPLES);
   let charts = {};
   let lines = null;          // the active profile's lines (server.flowloop.page.lines)
@@ -560,21 +564,57 @@
   function onStatus(diff) {
     merge(diff);
     if (!names.ready) return;
+    const printing = (diff.toolhead || {}).extruder;
+    if (!chosen && printing && printing !== extruder) {
+      extruder = printing;     // a tool change: the page follows it
+      start().catch(fail);
+      return;
+    }
     readout();
+    toolsTable();
     if (diff.flowloop) refreshLines().catch(fail);
     if (diff.print_stats && "filename" in diff.print_stats) refreshPlan().catch(fail);
   }
 
-  // --- which objects belong to the extruder shown ---------------------------
-  function choose(objects, settings) {
-    const ofExtruder = (section) => ((settings[section] || {}).extruder || "extruder") === extruder;
+  // --- which objects belong to an extruder ---------------------------------
+  // [flowrate_limiter extruder1] is extruder1's; the plain section is its
+  // `extruder` option's (default extruder), as for [autotemp].
+  function choose(objects, settings, tool) {
+    const ofExtruder = (section) => ((settings[section] || {}).extruder || "extruder") === tool;
     const sensors = objects.filter((o) => o.startsWith("flow_sensor ") && ofExtruder(o));
+    const section = (kind) => objects.includes(kind + " " + tool) ? kind + " " + tool
+      : objects.includes(kind) && ofExtruder(kind) ? kind : null;
     return {
       sensor: sensors.length ? sensors[0] : null,
-      limiter: objects.includes("flowrate_limiter") && ofExtruder("flowrate_limiter")
-        ? "flowrate_limiter" : null,
-      autotemp: objects.includes("autotemp") && ofExtruder("autotemp") ? "autotemp" : null,
+      limiter: section("flowrate_limiter"),
+      autotemp: section("autotemp"),
     };
+  }
+
+  // One row per tool: what each tool's sensor, limiter and autotemp say now.
+  function toolsTable() {
+    const body = $("#tools tbody");
+    const printing = (status.toolhead || {}).extruder;
+    const profiles = (status.flowloop || {}).profiles || {};
+    body.textContent = "";
+    for (const [tool, own] of Object.entries(tools)) {
+      const of = (obj) => (obj ? status[obj] || {} : {});
+      const limiter = of(own.limiter);
+      const cap = !own.limiter ? "no limiter" : !limiter.enabled ? "off"
+        : fmt(limiter.cap, 2) + " (" + limiter.reason + ")";
+      const cells = [tool + (tool === printing ? " (printing)" : ""),
+        own.sensor ? fmt(of(own.sensor).grip, 3) : "no sensor", cap,
+        own.autotemp ? fmt(of(own.autotemp).target, 1) : "no autotemp",
+        fmt(of(tool).target, 1), (profiles[tool] || {}).name || "none"];
+      const row = document.createElement("tr");
+      row.dataset.tool = tool;
+      for (const text of cells) {
+        const td = document.createElement("td");
+        td.textContent = text;
+        row.append(td);
+      }
+      body.append(row);
+    }
   }
 
   function extruderLinks(extruders) {
@@ -605,6 +645,10 @@
     }
     const objects = (await rpc.call("printer.objects.list")).objects;
     const extruders = objects.filter((o) => /^extruder\d*$/.test(o)).sort();
+    if (!chosen) {
+      const th = await rpc.call("printer.objects.query", {objects: {toolhead: ["extruder"]}});
+      extruder = th.status.toolhead.extruder || "extruder";
+    }
     extruderLinks(extruders);
     if (!extruders.includes(extruder)) {
       setConnection("live", "connected");
@@ -615,12 +659,17 @@
     const cfg = await rpc.call("printer.objects.query",
                                {objects: {configfile: ["settings"]}});
     const settings = cfg.status.configfile.settings;
-    names = choose(objects, settings);
-    const wanted = {[extruder]: ["temperature", "target"],
-                    print_stats: ["filename", "state"],
-                    virtual_sdcard: ["file_position", "file_path"]};
-    for (const obj of [names.sensor, names.limiter, names.autotemp]) {
-      if (obj) wanted[obj] = null;
+    names = choose(objects, settings, extruder);
+    tools = {};
+    for (const tool of extruders) tools[tool] = choose(objects, settings, tool);
+    const wanted = {print_stats: ["filename", "state"],
+                    virtual_sdcard: ["file_position", "file_path"],
+                    toolhead: ["extruder"]};
+    for (const [tool, own] of Object.entries(tools)) {
+      wanted[tool] = ["temperature", "target"];
+      for (const obj of [own.sensor, own.limiter, own.autotemp]) {
+        if (obj) wanted[obj] = null;
+      }
     }
     if (objects.includes("flowloop")) wanted.flowloop = ["profiles"];
     const sub = await rpc.call("printer.objects.subscribe", {objects: wanted});
@@ -639,6 +688,7 @@
       $("#now .message").textContent = `No [flow_sensor] on ${extruder}: no faults to show.`;
     }
     readout();
+    toolsTable();
     sample();
     timelineCharts();
     await refreshLines();
