@@ -502,7 +502,18 @@ class Moonraker(Process):
         if status == 401:
             return not klippy  # up, but this client is not in trusted_clients
         return status == 200 and (not klippy
-                                  or body["result"]["klippy_state"] == "ready")
+                                  or (body["result"]["klippy_state"] == "ready"
+                                      and self._klippy_initialized()))
+
+    def _klippy_initialized(self) -> bool:
+        """Moonraker has run its klippy-ready handlers since it started: it
+        says klippy_state "ready" before that, and a job started in between
+        is seen by none of its components (no history, no flow report)."""
+        try:
+            text = self.log_path.read_text(errors="replace")
+        except OSError:
+            return False
+        return "Klippy ready" in text[text.rfind("Starting Moonraker"):]
 
     def wait_ready(self, timeout: float = 60.0, klippy: bool = False) -> None:
         if not wait_until(lambda: self._ready(klippy) or not self.alive(), timeout,

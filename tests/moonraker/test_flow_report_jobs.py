@@ -23,6 +23,8 @@ from tests.moonraker.test_page import REALTIME_CFG
 # job's report has no samples. Earlier the same day, with a client
 # subscribed and polling (print_watched), the job started on time and its
 # report was stored and listed. Unskip once updates flow during a print.
+# The same path runs on klippy in normal mode (the simulated MCU) in
+# tests/fil/test_fil_report.py: a completed and a cancelled job.
 pytestmark = [pytest.mark.alone, pytest.mark.skip(
     reason="realtime klippy: Moonraker gets no status update during a print")]
 

@@ -1,0 +1,132 @@
+"""A job printed through a real Moonraker on the fil printer (klippy in
+normal mode on the simulated atmega2560, the EMS22 read by the firmware) gets
+a flow report: listed under its job id in /server/flowloop/reports, served as
+HTML by /server/flowloop/report, with the sensor's flow, the layers and the
+job's file. This is the path a user's print takes; the moonraker tier's
+job-through tests cannot take it (Moonraker sees no job start on a batch-mode
+klippy)."""
+
+from __future__ import annotations
+
+import shutil
+import time
+import xml.etree.ElementTree as ET
+
+import pytest
+
+from devtools import stack
+from tests.fil.conftest import fil_printer
+
+SECTIONS = """
+[virtual_sdcard]
+path: {gcodes}
+
+[display_status]
+
+[flow_sensor filament]
+sensor_type: ems22
+cs_pin: PG0
+grip_window: 10
+"""
+LAYERS = 4
+SUBSCRIPTIONS_SETTLE_S = 2.0
+SVG = "{http://www.w3.org/2000/svg}"
+
+
+def gcode_file() -> str:
+    """Four layers of 10 mm of filament at 2.5 mm/s (6 mm^3/s), 4 s each."""
+    out = ["M83", f"SET_PRINT_STATS_INFO TOTAL_LAYER={LAYERS}"]
+    for layer in range(1, LAYERS + 1):
+        out += [f"SET_PRINT_STATS_INFO CURRENT_LAYER={layer}", "G1 E10 F150"]
+    return "\n".join(out) + "\n"
+
+
+def _wait(what, fn, timeout):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = fn()
+        if value:
+            return value
+        time.sleep(0.25)
+    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}",
+                pytrace=False)
+
+
+@pytest.fixture(scope="module")
+def mr(fil_build, moonraker_venv):
+    """Moonraker on the fil printer's klippy, its gcodes folder the
+    printer's virtual_sdcard."""
+    data_dir = stack.short_tempdir("fl-filmr-")
+    gcodes = data_dir / "gcodes"
+    gcodes.mkdir(parents=True)
+    try:
+        with fil_printer(fil_build, SECTIONS.format(gcodes=gcodes)) as printer:
+            server = stack.Moonraker(moonraker_venv, data_dir,
+                                     klippy_uds=printer.klippy.api_socket)
+            try:
+                server.wait_ready(klippy=True)
+                # Moonraker's components subscribe to klippy's objects in
+                # their klippy-ready handlers, each re-sending the merged
+                # subscription; a print_stats change between two of them
+                # reaches only the later one's answer, and job_state (its
+                # history) would never see the print start. A user starts a
+                # print long after; the test waits for the handlers to end.
+                time.sleep(SUBSCRIPTIONS_SETTLE_S)
+                yield server
+            finally:
+                server.stop()
+    finally:
+        shutil.rmtree(data_dir, ignore_errors=True)
+
+
+def _print(mr, name, states, cancel_after_s=None):
+    """Upload and print a file; (its job in the history, its report's
+    summary, the report's HTML)."""
+    mr.upload(name, gcode_file().encode())
+    status, body = mr.request("POST", f"/printer/print/start?filename={name}")
+    assert status == 200, body
+    if cancel_after_s is not None:
+        time.sleep(cancel_after_s)
+        status, body = mr.request("POST", "/printer/print/cancel")
+        assert status == 200, body
+
+    def ended():
+        jobs = mr.request("GET", "/server/history/list?limit=3")[1]["result"]["jobs"]
+        return next((j for j in jobs if j["filename"] == name
+                     and j["status"] in states), None)
+    job = _wait("the job in Moonraker's history", ended, 60)
+
+    def listed():
+        result = mr.request("GET", "/server/flowloop/reports")[1]["result"]
+        return next((r for r in result["reports"]
+                     if r["job_id"] == job["job_id"]), None)
+    summary = _wait("the job's flow report", listed, 15)
+    status, page = mr.request("GET", f"/server/flowloop/report?job_id={job['job_id']}")
+    assert status == 200, page
+    assert "flowloop: the flow report" not in mr.log_path.read_text()
+    return job, summary, ET.fromstring(page)
+
+
+def test_a_job_printed_through_moonraker_gets_a_flow_report(mr):
+    job, summary, root = _print(mr, "report_job.gcode", ("completed",))
+    assert summary["filename"] == "report_job.gcode", summary
+    assert summary["state"] == "completed", summary
+    # the print lasts about 11 s, sampled throughout: no gap, no fault
+    assert summary["duration_s"] > 8, summary
+    assert summary["lost_s"] == 0, summary
+    # 40 mm commanded at the model's grip 1.0: nothing under-extruded
+    assert summary["under_extruded_mm"] == pytest.approx(0.0, abs=0.5), summary
+    # what the report lacks: only what this printer has not (no autotemp)
+    assert not any("sensor" in why or "file" in why or "layer" in why
+                   for why in summary["lacks"]), summary
+    text = "".join(root.itertext())
+    assert "report_job.gcode" in text
+    assert list(root.iter(f"{SVG}polyline")), "no series drawn"
+
+
+def test_a_job_cancelled_half_way_gets_a_report_that_says_so(mr):
+    job, summary, root = _print(mr, "cancelled_job.gcode", ("cancelled",),
+                                cancel_after_s=5.0)
+    assert summary["state"] == "cancelled", summary
+    assert any("cancelled" in why for why in summary["lacks"]), summary
+    assert "cancelled" in "".join(root.itertext())
