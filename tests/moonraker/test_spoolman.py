@@ -16,27 +16,34 @@ from devtools import postgres, spoolman, stack
 from tests.samples import make
 
 
-@pytest.fixture(scope="module")
-def farm(moonraker_venv):
-    """(Spoolman, Moonraker with flowloop's spoolman_link on it)."""
+@contextlib.contextmanager
+def linked_spoolman(prefix):
+    """(a running Spoolman, [flowloop] lines linking Moonraker to it, a data
+    folder for the rest), all removed after; skipped without Spoolman."""
     reason = spoolman.missing_spoolman_reason()
     if reason:
         pytest.skip(reason)
-    data_dir = stack.short_tempdir("fl-spoolman-")
+    data_dir = stack.short_tempdir(prefix)
     sm = spoolman.Spoolman(data_dir / "spoolman")
-    mr = None
     try:
         sm.wait_ready()
-        conf = f"spoolman_link: True\n\n[spoolman]\nserver: {sm.url}\n"
-        mr = stack.Moonraker(moonraker_venv, data_dir / "moonraker",
-                             extra_conf=conf)
-        mr.wait_ready()
-        yield sm, mr
+        yield sm, f"spoolman_link: True\n\n[spoolman]\nserver: {sm.url}\n", data_dir
     finally:
-        if mr is not None:
-            mr.stop()
         sm.stop()
         shutil.rmtree(data_dir, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def farm(moonraker_venv):
+    """(Spoolman, Moonraker with flowloop's spoolman_link on it)."""
+    with linked_spoolman("fl-spoolman-") as (sm, conf, data_dir):
+        mr = stack.Moonraker(moonraker_venv, data_dir / "moonraker",
+                             extra_conf=conf)
+        try:
+            mr.wait_ready()
+            yield sm, mr
+        finally:
+            mr.stop()
 
 
 def _active(mr):

@@ -6,33 +6,22 @@ macro's SET_ACTIVE_SPOOL, here Moonraker's endpoint right after T1."""
 
 from __future__ import annotations
 
-import shutil
-
 import pytest
 
-from devtools import spoolman, stack
+from devtools import stack
+from tests.moonraker.test_spoolman import linked_spoolman
 from tests.samples import make
 
 
 @pytest.fixture(scope="module")
 def two_tools(moonraker_venv):
-    reason = spoolman.missing_spoolman_reason()
-    if reason:
-        pytest.skip(reason)
-    data_dir = stack.short_tempdir("fl-tools-sm-")
-    cfg = data_dir / "two_tools.cfg"
-    cfg.write_text(f"[include {stack.PROJECT}/config/printer.cfg]\n"
-                   f"[include {stack.PROJECT}/config/toolchanger.cfg]\n")
-    sm = spoolman.Spoolman(data_dir / "spoolman")
-    try:
-        sm.wait_ready()
-        conf = f"spoolman_link: True\n\n[spoolman]\nserver: {sm.url}\n"
+    with linked_spoolman("fl-tools-sm-") as (sm, conf, data_dir):
+        cfg = data_dir / "two_tools.cfg"
+        cfg.write_text(f"[include {stack.PROJECT}/config/printer.cfg]\n"
+                       f"[include {stack.PROJECT}/config/toolchanger.cfg]\n")
         with stack.printer_stack(printer_cfg=cfg, moonraker_conf=conf,
                                  data_dir=data_dir / "printer") as ps:
             yield sm, ps.moonraker
-    finally:
-        sm.stop()
-        shutil.rmtree(data_dir, ignore_errors=True)
 
 
 def _active(mr):
