@@ -82,6 +82,10 @@ class FlowrateLimiter:
             gcode.register_command('QUERY_FLOWRATE_LIMIT',
                                    self.cmd_QUERY_FLOWRATE_LIMIT,
                                    desc=self.cmd_QUERY_FLOWRATE_LIMIT_help)
+            # nozzle health (Moonraker asks at each job's start and end)
+            printer.lookup_object('webhooks').register_endpoint(
+                'flowrate_limiter/nozzle_evidence',
+                self._handle_nozzle_evidence)
 
     # --- setup ---------------------------------------------------------------
     def _handle_connect(self):
@@ -192,6 +196,20 @@ class FlowrateLimiter:
 
     def cmd_QUERY_FLOWRATE_LIMIT(self, gcmd):
         self._tool(gcmd).report(gcmd)
+
+    def _handle_nozzle_evidence(self, web_request):
+        """The grip evidence the named extruder's limiter has summed since
+        its profile was activated (EXTRUDER-less: the printing tool's);
+        flowloop.control.nozzle_health judges it."""
+        try:
+            member = self.tools.table.pick(
+                web_request.get_str('extruder', None), self.tools.active_name())
+        except FlowloopError as e:
+            raise web_request.error(str(e)) from None
+        evidence = None if member.limiter is None else member.limiter.evidence
+        web_request.send({'extruder': member.extruder_name,
+                          'evidence': None if evidence is None
+                          else evidence.to_dict()})
 
     def report(self, gcmd):
         s = self.limiter.status()

@@ -15,6 +15,7 @@ import xml.etree.ElementTree as ET
 import pytest
 
 from devtools import stack
+from devtools.demo_flowrate_limiter import WEAK_PROFILE
 from tests.fil.conftest import fil_printer
 
 SECTIONS = """
@@ -27,17 +28,22 @@ path: {gcodes}
 sensor_type: ems22
 cs_pin: PG0
 grip_window: 10
+
+[flowrate_limiter]
 """
+# The thermistor pin reads this (the harness holds it): the profile's range
+HOTEND_C = 215.0
 LAYERS = 4
 SUBSCRIPTIONS_SETTLE_S = 2.0
 SVG = "{http://www.w3.org/2000/svg}"
 
 
 def gcode_file() -> str:
-    """Four layers of 10 mm of filament at 2.5 mm/s (6 mm^3/s), 4 s each."""
+    """Four layers of 8 mm of filament at 2 mm/s (4.8 mm^3/s), 4 s each:
+    below what the weak profile melts at HOTEND_C, so the limiter lets it."""
     out = ["M83", f"SET_PRINT_STATS_INFO TOTAL_LAYER={LAYERS}"]
     for layer in range(1, LAYERS + 1):
-        out += [f"SET_PRINT_STATS_INFO CURRENT_LAYER={layer}", "G1 E10 F150"]
+        out += [f"SET_PRINT_STATS_INFO CURRENT_LAYER={layer}", "G1 E8 F120"]
     return "\n".join(out) + "\n"
 
 
@@ -60,7 +66,8 @@ def mr(fil_build, moonraker_venv):
     gcodes = data_dir / "gcodes"
     gcodes.mkdir(parents=True)
     try:
-        with fil_printer(fil_build, SECTIONS.format(gcodes=gcodes)) as printer:
+        with fil_printer(fil_build, SECTIONS.format(gcodes=gcodes),
+                         hotend_temp_c=HOTEND_C) as printer:
             server = stack.Moonraker(moonraker_venv, data_dir,
                                      klippy_uds=printer.klippy.api_socket)
             try:
@@ -72,6 +79,12 @@ def mr(fil_build, moonraker_venv):
                 # history) would never see the print start. A user starts a
                 # print long after; the test waits for the handlers to end.
                 time.sleep(SUBSCRIPTIONS_SETTLE_S)
+                for path, body in (
+                        ("/server/flowloop/profile", {"profile": WEAK_PROFILE}),
+                        ("/server/flowloop/profile/activate",
+                         {"name": "weak", "extruder": "extruder"})):
+                    status, answer = server.request("POST", path, body)
+                    assert status == 200, answer
                 yield server
             finally:
                 server.stop()
@@ -114,7 +127,7 @@ def test_a_job_printed_through_moonraker_gets_a_flow_report(mr):
     # the print lasts about 11 s, sampled throughout: no gap, no fault
     assert summary["duration_s"] > 8, summary
     assert summary["lost_s"] == 0, summary
-    # 40 mm commanded at the model's grip 1.0: nothing under-extruded
+    # 32 mm commanded at the model's grip 1.0: nothing under-extruded
     assert summary["under_extruded_mm"] == pytest.approx(0.0, abs=0.5), summary
     # what the report lacks: only what this printer has not (no autotemp)
     assert not any("sensor" in why or "file" in why or "layer" in why
@@ -130,3 +143,20 @@ def test_a_job_cancelled_half_way_gets_a_report_that_says_so(mr):
     assert summary["state"] == "cancelled", summary
     assert any("cancelled" in why for why in summary["lacks"]), summary
     assert "cancelled" in "".join(root.itertext())
+
+
+def test_each_job_is_judged_for_nozzle_health(mr):
+    # Moonraker asked klippy's limiter for its grip evidence at the jobs'
+    # start and end (flowrate_limiter/nozzle_evidence) and stored what the
+    # difference says under the active profile; a short print is no
+    # estimate, and says why
+    status, body = mr.request("GET", "/server/flowloop/nozzle_health")
+    assert status == 200, body
+    histories = body["result"]["histories"]
+    assert [h["profile"] for h in histories] == ["weak"], histories
+    prints = histories[0]["prints"]
+    jobs = mr.request("GET", "/server/history/list?limit=5")[1]["result"]["jobs"]
+    assert [p["job_id"] for p in prints] == sorted(j["job_id"] for j in jobs)
+    for p in prints:
+        assert p["ratio"] is not None or p["reason"], p
+    assert not histories[0]["verdict"]["warn"]

@@ -584,7 +584,8 @@ def test_the_code_facts_are_found(facts):
     assert by_module["flowloop"].endpoints == {"flowloop/set_active_profile"}
     assert ("DELETE", "/server/flowloop/profile",
             "server.flowloop.delete_profile") in component.endpoints
-    assert component.notifications == {"notify_flowloop_profile_changed"}
+    assert component.notifications == {"notify_flowloop_profile_changed",
+                                       "notify_flowloop_nozzle_health"}
     assert "--wait-bed-equilibrium" in commands["ab-pylons"]
     assert "--output-dir" in commands["profile import"]
     assert "BED_TEMP" in found_macros["DIFF_AB_PRINT_PYLONS"]
