@@ -25,6 +25,9 @@ from typing import Dict, List, Optional, Sequence, Tuple
 # The series kept per bin, in this order.
 CHANNELS = ("commanded_flow", "measured_flow", "grip", "temp", "target",
             "planned_temp", "cap")
+# How often the host samples klippy's objects for the report (the Moonraker
+# component's period, and the bench's)
+SAMPLE_PERIOD_S = 0.25
 DEFAULT_MAX_BINS = 512
 DEFAULT_BIN_WIDTH_S = 1.0
 # A grip window of 1.25 mm is ~128 counts: one count of quantisation (0.8 %)

@@ -21,6 +21,7 @@ from flowloop.errors import FlowloopError
 from flowloop.report import dump, render
 from flowloop.report.recorder import (
     DEFAULT_FILAMENT_DIAMETER_MM,
+    SAMPLE_PERIOD_S,
     Job,
     Recorder,
     sample_from_status,
@@ -35,7 +36,6 @@ from .errors import one_line, quoted
 if TYPE_CHECKING:
     from ...server import Server
 
-SAMPLE_PERIOD_S = 0.25
 DEFAULT_REPORTS_TO_KEEP = 10
 REPORTS_FOLDER = ("flowloop", "reports")
 
