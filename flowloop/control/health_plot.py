@@ -32,9 +32,9 @@ def svg(prints: Sequence[PrintEstimate], title: str) -> str:
     marks = [("profile", 1.0, COLORS["working"], ""),
              ("warn below", 1.0 - HEALTHY_MARGIN, COLORS["recommended"], "6,4")]
     if limits:
-        marks.append((f"highest flows slip below min_grip", max(limits),
+        marks.append(("highest flows slip below min_grip", max(limits),
                       COLORS["cap"], "2,3"))
-    for name, value, color, dash in marks:
+    for _name, value, color, dash in marks:
         panel.add(svg_line(panel.x(span[0]), panel.y(value), panel.x(span[1]),
                            panel.y(value), color, dash, 1.5))
     points: List[str] = []

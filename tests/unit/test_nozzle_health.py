@@ -155,7 +155,8 @@ def worked_example_rows():
 
 def test_the_docs_worked_example_is_what_the_twin_gives():
     from pathlib import Path
-    doc = (Path(__file__).resolve().parents[2] / "docs" / "nozzle_health.md").read_text()
+    doc = (Path(__file__).resolve().parents[2] / "docs"
+           / "nozzle_health.md").read_text()
     for row in worked_example_rows():
         assert row in doc, row
 
