@@ -28,7 +28,7 @@ from flowloop.report.recorder import (
     status_objects,
 )
 
-from ...common import RequestType, TransportType, WebRequest
+from ...common import HistoryFieldData, RequestType, TransportType, WebRequest
 from . import args
 from .endpoints import register_endpoint
 from .errors import one_line, quoted
@@ -38,6 +38,12 @@ if TYPE_CHECKING:
 
 DEFAULT_REPORTS_TO_KEEP = 10
 REPORTS_FOLDER = ("flowloop", "reports")
+
+
+def report_path(job_id: str) -> str:
+    """The report's address on this Moonraker (what the history links):
+    the endpoint registered below."""
+    return "/server/flowloop/report" + f"?job_id={job_id}"
 
 
 class Reports:
@@ -56,6 +62,14 @@ class Reports:
         self._sampler: Optional[asyncio.Task] = None
         server.register_event_handler("server:klippy_ready", self._on_klippy_ready)
         server.register_event_handler("history:history_changed", self._on_history)
+        # Each job of the history links its report (its auxiliary data, as
+        # Moonraker's spoolman component keeps the spools a job used)
+        self.history_field = HistoryFieldData(
+            "flow_report", "flowloop", "Flow report", "basic",
+            reset_callback=lambda: None)
+        history = server.lookup_component("history", None)
+        if history is not None:
+            history.register_auxiliary_field(self.history_field)
         register_endpoint(server, "/server/flowloop/reports", RequestType.GET,
                           self._handle_list)
         register_endpoint(server, "/server/flowloop/report", RequestType.GET,
@@ -104,6 +118,8 @@ class Reports:
             filament_diameter_mm=self.filament_diameter_mm)
         self._started = time.monotonic()
         self._sampler = self.eventloop.create_task(self._sample_loop())
+        if job.get("job_id"):
+            self.history_field.tracker.update(report_path(job["job_id"]))
 
     async def _sample_loop(self) -> None:
         try:

@@ -135,6 +135,13 @@ def test_a_job_printed_through_moonraker_gets_a_flow_report(mr):
     text = "".join(root.itertext())
     assert "report_job.gcode" in text
     assert list(root.iter(f"{SVG}polyline")), "no series drawn"
+    # the job in Moonraker's history links its report
+    status, body = mr.request("GET", f"/server/history/job?uid={job['job_id']}")
+    assert status == 200, body
+    links = [f for f in body["result"]["job"]["auxiliary_data"]
+             if (f["provider"], f["name"]) == ("flowloop", "flow_report")]
+    assert links and links[0]["value"] == (
+        f"/server/flowloop/report?job_id={job['job_id']}"), links
 
 
 def test_a_job_cancelled_half_way_gets_a_report_that_says_so(mr):
