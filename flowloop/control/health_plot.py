@@ -56,8 +56,11 @@ def svg(prints: Sequence[PrintEstimate], title: str) -> str:
             f'r="4" fill="white" stroke="{COLORS["measured"]}" stroke-width="2"/>'))
     panel.add('<g id="prints">' + "".join(points) + "</g>")
     verdict = judge(prints)
-    panel.legend([("each print: ratio +/- 2 standard errors", COLORS["measured"], "")]
-                 + [(name, color, dash) for name, _, color, dash in marks])
+    legend = [("each print: ratio +/- 2 standard errors", COLORS["measured"], "")]
+    if any(e.ratio is None or e.reason for e in prints):
+        # drawn at the bottom; the dot's tooltip says why
+        legend.append(("no estimate (too little evidence)", COLORS["bound"], "1,3"))
+    panel.legend(legend + [(name, color, dash) for name, _, color, dash in marks])
     color = COLORS["cap"] if verdict.warn else "black"
     out = svg_open(WIDTH, HEIGHT) + panel.parts
     for i, row in enumerate(verdict.text.split("; ")):

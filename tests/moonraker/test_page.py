@@ -365,6 +365,38 @@ def test_the_page_lists_every_tool_and_follows_a_tool_change(browser, printer):
     assert severe_console(browser) == []
 
 
+def test_the_page_links_the_flow_reports_and_nozzle_health(browser, printer):
+    from flowloop.report import dump, render
+    from flowloop.report.recorder import Job, Recorder, Sample
+    rec = Recorder(job=Job(job_id="00002A", filename="benchy.gcode"))
+    for i in range(20):
+        rec.sample(Sample(time_s=0.25 * i, commanded_flow_mm3_s=5.0,
+                          measured_flow_mm3_s=5.0, grip=1.0))
+    rec.finish("completed", 5.0)
+    folder = printer.data_dir / "flowloop" / "reports"
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        dump.save(folder / "00002A.json", dump.dumps(rec))
+        dump.save(folder / "00002A.html", render.html(rec))
+        open_page(browser, page_url(printer))
+        href = wait_for(browser, "document.querySelector('#report-list a')"
+                                 " && document.querySelector('#report-list a').href")
+        assert href == printer.moonraker.url + "/server/flowloop/report?job_id=00002A"
+        assert "benchy.gcode" in js(browser, "return document.querySelector("
+                                             "'#report-list li').textContent")
+        # the link is what Moonraker serves
+        status, page = printer.moonraker.request("GET", href[len(printer.moonraker.url):])
+        assert status == 200 and "benchy.gcode" in page
+        # no job judged on this printer: said where the list would be
+        assert "No print judged yet" in js(
+            browser, "return document.querySelector('#health-list')"
+                     ".previousElementSibling.textContent")
+        assert severe_console(browser) == []
+    finally:
+        for suffix in (".json", ".html"):
+            (folder / f"00002A{suffix}").unlink(missing_ok=True)
+
+
 def test_the_page_carries_on_after_klippy_restarts(browser, printer):
     open_page(browser, page_url(printer))
     wait_for(browser, "document.getElementById('connection').dataset.state == 'live'")

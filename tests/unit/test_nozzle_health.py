@@ -173,3 +173,18 @@ def test_the_limiter_sums_the_evidence_of_the_active_profile():
         limiter.on_window(w)
     assert limiter.evidence.to_dict() == nh.evidence_of(
         windows, PROFILE).to_dict() | {"epoch": limiter.evidence.epoch}
+
+
+def test_the_docs_picture_is_the_worked_example():
+    """docs/nozzle_health.svg is what health_plot draws for the worked
+    example; FLOWLOOP_WRITE_DOCS=1 writes it after a deliberate change."""
+    import os
+    from pathlib import Path
+
+    from flowloop.control.health_plot import svg
+    path = Path(__file__).resolve().parents[2] / "docs" / "nozzle_health.svg"
+    drawn = svg([e for _, e, _ in degrading_prints(0, prints=6)],
+                "hotend v6-0.4, profile known")
+    if os.environ.get("FLOWLOOP_WRITE_DOCS"):
+        path.write_text(drawn)
+    assert path.read_text() == drawn

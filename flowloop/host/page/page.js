@@ -15,6 +15,7 @@
   const EVENTS = 50;
   const REDRAW_MS = 500;
   const RECONNECT_MS = 2000;
+  const REPORT_DELAY_MS = 2000;
   // A steady hotend wanders by a tenth of a degree: the temperature axes
   // span at least this much, so noise does not read as steps.
   const TEMP_MIN_SPAN_C = 10;
@@ -629,7 +630,54 @@
     }
   }
 
+  function link(text, href) {
+    const a = document.createElement("a");
+    a.textContent = text;
+    a.href = href;
+    return a;
+  }
+
+  function listIn(id, items, none) {
+    const list = $("#" + id);
+    const message = list.previousElementSibling;
+    list.textContent = "";
+    message.hidden = items.length > 0;
+    message.textContent = none;
+    for (const parts of items) {
+      const li = document.createElement("li");
+      li.append(...parts);
+      list.append(li);
+    }
+  }
+
+  // Each job's flow report and each profile's nozzle health, linked to what
+  // Moonraker serves (flow_report.md, nozzle_health.md)
+  async function refreshReports() {
+    const answer = await rpc.call("server.flowloop.reports");
+    listIn("report-list", answer.reports.slice(0, 5).map((r) => r.problem
+      ? [`job ${r.job_id}: ${r.problem}`]
+      : [link(`job ${r.job_id}: ${r.filename || "no file"}`,
+              `${base}server/flowloop/report?job_id=${encodeURIComponent(r.job_id)}`),
+         ` ${r.state || "running"}, under-extruded ${fmt(r.under_extruded_mm, 2)} mm,` +
+         ` slowed ${fmt(r.slowed_s, 1)} s`]),
+      "No report yet: one is stored when a job of Moonraker's history ends.");
+    const health = await rpc.call("server.flowloop.get_nozzle_health");
+    listIn("health-list", health.histories.map((h) => {
+      const last = h.prints[h.prints.length - 1] || {};
+      const state = h.verdict && h.verdict.warn ? "WARNING: " + h.verdict.text
+        : last.ratio != null ? `melt capacity ${fmt(100 * last.ratio, 0)} % of the profile`
+          : "no estimate yet" + (last.reason ? ` (${last.reason})` : "");
+      return [link(`${h.profile} on ${h.hotend}`,
+                   `${base}server/flowloop/nozzle_health/plot?profile=` +
+                   encodeURIComponent(h.profile)),
+              `: ${state}, ${h.prints.length} print(s)`];
+    }), "No print judged yet: each job with an active profile is.");
+    $("#health-list").dataset.warn = String(
+      health.histories.some((h) => h.verdict && h.verdict.warn));
+  }
+
   async function start() {
+    refreshReports().catch(fail);
     names = {};
     status = {};
     profileKey = null;
@@ -698,6 +746,11 @@
   function onNotify(method, params) {
     if (method === "notify_status_update") {
       onStatus(params[0]);
+    } else if ((method === "notify_history_changed" && params[0]
+                && params[0].action === "finished")
+               || method === "notify_flowloop_nozzle_health") {
+      // the report and the verdict are stored as the job ends: ask a moment later
+      setTimeout(() => refreshReports().catch(fail), REPORT_DELAY_MS);
     } else if (method === "notify_klippy_ready") {
       start().catch(fail);
     } else if (method === "notify_klippy_disconnected" || method === "notify_klippy_shutdown") {
