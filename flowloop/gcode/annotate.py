@@ -32,13 +32,13 @@ import math
 import os
 import re
 import shutil
-import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import BinaryIO, Iterable, List, Optional, Tuple, Union
 
 import numpy as np
 
+from .. import files
 from ..errors import FlowloopError
 from .fastplan import Segments, plan_batches
 from .melt import MELT_TIME_S, Cells, Lines, melt_events
@@ -662,19 +662,4 @@ def _copy(src: Path, out: BinaryIO) -> None:
 
 
 def _replace_atomically(dst: Path, write, mode_from: Path) -> None:
-    folder = dst.parent if str(dst.parent) else Path(".")
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".tmp", dir=folder)
-    except OSError as e:
-        raise FlowloopError(f"{dst}: cannot write: {e.strerror}") from None
-    try:
-        with os.fdopen(fd, "wb") as out:
-            write(out)
-        shutil.copymode(mode_from, tmp)
-        os.replace(tmp, dst)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    files.replace_atomically(dst, write, mode_from)

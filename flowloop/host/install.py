@@ -19,6 +19,7 @@ import subprocess
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence
 
+from .. import files
 from ..errors import FlowloopError
 
 PROJECT_URL = "https://github.com/flowloop/klipper-flowloop"
@@ -232,12 +233,7 @@ class Change:
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.flowloop-tmp")
-    mode = path.stat().st_mode & 0o7777 if path.exists() else 0o644
-    with open(tmp, "w", encoding="utf-8", newline="") as f:
-        f.write(text)
-    os.chmod(tmp, mode)
-    os.replace(tmp, path)
+    files.write_text_atomically(path, text)
 
 
 def check_all(changes: Sequence[Change]) -> None:

@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
+from .. import files
 from ..errors import FlowloopError
 from .recorder import (
     CHANNELS,
@@ -135,19 +134,7 @@ def load(path: Path) -> Recorder:
 def save(path: Path, text: str) -> None:
     """Write a dump or report whole or not at all (OSError as raised: a full
     disk leaves the file that was there, and no partial one)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp",
-                               dir=path.parent if str(path.parent) else ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as out:
-            out.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    files.write_text_atomically(path, text)
 
 
 def stored(folder: Path) -> List[Path]:

@@ -373,7 +373,7 @@ def test_a_full_disk_leaves_the_old_file_and_no_partial_one(tmp_path, monkeypatc
 
     def full(*args):
         raise OSError(28, "No space left on device")
-    monkeypatch.setattr("flowloop.report.dump.os.replace", full)
+    monkeypatch.setattr("flowloop.files.os.replace", full)
     with pytest.raises(OSError, match="No space left"):
         dump.save(target, dump.dumps(scenario()))
     assert [p.name for p in tmp_path.iterdir()] == ["00002A.json"]
