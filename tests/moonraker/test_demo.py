@@ -31,6 +31,10 @@ def assert_all_stopped(out):
     assert not leftover
 
 
+def url_of(out):
+    return re.search(r"Moonraker: (http://127\.0\.0\.1:\d+)", out)[1]
+
+
 def test_demo_runs_its_steps_with_klippy_and_stops_every_process(moonraker_venv):
     if stack.missing_klipper_reason():
         pytest.skip("no Klipper checkout")
@@ -44,6 +48,11 @@ def test_demo_runs_its_steps_with_klippy_and_stops_every_process(moonraker_venv)
     assert len(peaks) == 1, peaks
     # the demo printer's DIFF_AB_CALIBRATE says what it changed, not "ok"
     assert re.search(r"stepper_x: rotation_distance [0-9.]+ -> [0-9.]+", out)
+    # the flow report step stored its report where Moonraker serves it; the
+    # flows past what the twin melts at 200 C under-extruded
+    under = re.search(r"recorded: under-extruded ([0-9.]+) mm", out)
+    assert under and float(under[1]) > 0, out[out.find("=== flow_report ==="):][:800]
+    assert f"{url_of(out)}/server/flowloop/report?job_id=0DE300" in out
     assert not re.search(r"^ok$", out, re.M)
     # the doctor command for this run's port, and the live page again at the end
     url = re.search(r"Moonraker: (http://127\.0\.0\.1:\d+)", out)[1]
@@ -62,6 +71,7 @@ def test_demo_without_klipper_says_so_and_runs_every_step_offline(moonraker_venv
     assert "SKIPPED" in out and "klippy: not connected" in out
     steps = re.findall(r"^=== (.+) ===$", out, re.MULTILINE)
     assert len(steps) == len(list(stack.PROJECT.glob("devtools/demo_*.py")))
+    assert "/server/flowloop/report?job_id=0DE300" in out
     assert_all_stopped(out)
 
 

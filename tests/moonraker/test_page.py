@@ -385,7 +385,8 @@ def test_the_page_links_the_flow_reports_and_nozzle_health(browser, printer):
         assert "benchy.gcode" in js(browser, "return document.querySelector("
                                              "'#report-list li').textContent")
         # the link is what Moonraker serves
-        status, page = printer.moonraker.request("GET", href[len(printer.moonraker.url):])
+        status, page = printer.moonraker.request(
+            "GET", href[len(printer.moonraker.url):])
         assert status == 200 and "benchy.gcode" in page
         # no job judged on this printer: said where the list would be
         assert "No print judged yet" in js(
