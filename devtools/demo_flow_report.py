@@ -22,6 +22,7 @@ from flowloop.report.recorder import (
     Job,
     Recorder,
     Sample,
+    one_tool,
     sample_from_status,
     status_objects,
 )
@@ -60,7 +61,8 @@ def with_klippy(ctx) -> Recorder:
     commanded flow and the grip the sensor judged over it, at its start."""
     rec = Recorder(job=Job(job_id=JOB_ID, filename="demo: rising flow",
                            sensor_name=SENSOR))
-    objects = list(status_objects(SENSOR))
+    tools = one_tool(SENSOR)
+    objects = list(status_objects(tools))
     ctx.gcode("G28\nM83\nG1 X20 Y20 Z0.2 F6000\nM400")
     t = 0.0
     for temp_c, flow in STEPS:
@@ -69,7 +71,7 @@ def with_klippy(ctx) -> Recorder:
         ctx.gcode(f"SET_HEATER_TEMPERATURE HEATER=extruder TARGET={temp_c}\n"
                   f"G1 E{length:.3f} F{speed:.1f}\nM400")
         sample = sample_from_status(t, {obj: ctx.query(obj) for obj in objects},
-                                    SENSOR)
+                                    tools)
         grip = sample.grip if sample.grip is not None else 1.0
         rec.sample(dataclasses.replace(sample, commanded_flow_mm3_s=float(flow),
                                        measured_flow_mm3_s=flow * grip))

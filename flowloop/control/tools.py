@@ -90,3 +90,23 @@ def hand_back_target(user_c: Optional[float], current_c: float) -> Optional[floa
     if user_c is None or user_c >= current_c:
         return None
     return user_c
+
+
+def tool_objects(objects: List[str], settings: Dict[str, dict],
+                 tool: str) -> Dict[str, Optional[str]]:
+    """The klippy objects of one tool, from klippy's object list and its
+    configfile settings (as Moonraker and the live page read them): the
+    first `flow_sensor` on it, and its `flowrate_limiter` and `autotemp`
+    (the per-tool section, else the plain one if it acts on this tool)."""
+    def acts_on(section: str) -> bool:
+        return (settings.get(section) or {}).get("extruder", "extruder") == tool
+
+    def section(kind: str) -> Optional[str]:
+        named = f"{kind} {tool}"
+        if named in objects:
+            return named
+        return kind if kind in objects and acts_on(kind) else None
+    sensors = [o for o in objects if o.startswith("flow_sensor ") and acts_on(o)]
+    return {"sensor": sensors[0] if sensors else None,
+            "limiter": section("flowrate_limiter"),
+            "autotemp": section("autotemp")}

@@ -436,38 +436,56 @@ def duration_text(seconds: float) -> str:
 
 # --- klippy's objects, as Moonraker's subscription holds them -----------------
 
-def status_objects(sensor_name: Optional[str], extruder: str = "extruder"
-                   ) -> Dict[str, Optional[List[str]]]:
-    """The klippy objects (and fields) a sample is read from."""
+Tools = Dict[str, Dict[str, Optional[str]]]
+
+
+def one_tool(sensor_name: Optional[str]) -> Tools:
+    """The tools of a printer with one extruder: its sensor (by name, or
+    none), `flowrate_limiter` and `autotemp`."""
+    return {"extruder": {
+        "sensor": None if sensor_name is None else f"flow_sensor {sensor_name}",
+        "limiter": "flowrate_limiter", "autotemp": "autotemp"}}
+
+
+def status_objects(tools: Tools) -> Dict[str, Optional[List[str]]]:
+    """The klippy objects (and fields) a sample is read from, for every
+    tool (control.tools.tool_objects names each tool's)."""
     objects: Dict[str, Optional[List[str]]] = {
         "print_stats": ["state", "filename", "info"],
-        "toolhead": ["position"],
-        extruder: ["temperature", "target"],
-        "flowrate_limiter": ["cap", "reason", "slowed_time"],
-        "autotemp": ["active", "target", "profile", "working_point"],
+        "toolhead": ["position", "extruder"],
         "flowloop": ["profiles"],
     }
-    if sensor_name is not None:
-        objects[f"flow_sensor {sensor_name}"] = [
-            "grip", "measured_flow", "commanded_flow", "filament_position",
-            "fault"]
+    for extruder, own in tools.items():
+        objects[extruder] = ["temperature", "target"]
+        if own.get("sensor"):
+            objects[own["sensor"]] = ["grip", "measured_flow", "commanded_flow",
+                                      "filament_position", "fault"]
+        if own.get("limiter"):
+            objects[own["limiter"]] = ["cap", "reason", "slowed_time"]
+        if own.get("autotemp"):
+            objects[own["autotemp"]] = ["active", "target", "profile",
+                                        "working_point"]
     return objects
 
 
-def sample_from_status(time_s: float, status: Dict[str, dict],
-                       sensor_name: Optional[str], extruder: str = "extruder"
+def sample_from_status(time_s: float, status: Dict[str, dict], tools: Tools
                        ) -> Sample:
-    """One sample from klippy's objects (missing objects read as unknown)."""
-    ps = status.get("print_stats") or {}
+    """One sample from klippy's objects, of the tool that prints now (the
+    toolhead's extruder: a toolchanger's report follows its tool changes);
+    missing objects read as unknown."""
+    def of(name: Optional[str]) -> dict:
+        return (status.get(name) or {}) if name else {}
+    ps = of("print_stats")
     info = ps.get("info") or {}
-    position = (status.get("toolhead") or {}).get("position") or []
-    heater = status.get(extruder) or {}
-    limiter = status.get("flowrate_limiter") or {}
-    auto = status.get("autotemp") or {}
-    sensor = status.get(f"flow_sensor {sensor_name}") if sensor_name else None
-    sensor = sensor or {}
-    active = ((status.get("flowloop") or {}).get("profiles") or {}).get(extruder)
-    active = active or {}
+    toolhead = of("toolhead")
+    position = toolhead.get("position") or []
+    extruder = toolhead.get("extruder") or "extruder"
+    own = tools.get(extruder) or {}
+    heater = of(extruder)
+    limiter = of(own.get("limiter"))
+    auto = of(own.get("autotemp"))
+    sensor = of(own.get("sensor"))
+    active = (of("flowloop").get("profiles") or {}).get(extruder) or {}
     return Sample(
         time_s=time_s,
         print_state=ps.get("state") or "printing",

@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Dict, List, Optional
 
+from flowloop.control.tools import tool_objects
 from flowloop.errors import FlowloopError
 from flowloop.report import dump, render
 from flowloop.report.recorder import (
@@ -24,6 +26,7 @@ from flowloop.report.recorder import (
     SAMPLE_PERIOD_S,
     Job,
     Recorder,
+    Tools,
     sample_from_status,
     status_objects,
 )
@@ -38,6 +41,9 @@ if TYPE_CHECKING:
 
 DEFAULT_REPORTS_TO_KEEP = 10
 REPORTS_FOLDER = ("flowloop", "reports")
+
+
+EXTRUDER = re.compile(r"extruder\d*")
 
 
 def report_path(job_id: str) -> str:
@@ -56,6 +62,7 @@ class Reports:
             *REPORTS_FOLDER)
         self.status: Dict[str, Dict[str, Any]] = {}
         self.sensor_name: Optional[str] = None
+        self.tools: Tools = {}      # extruder -> its sensor, limiter, autotemp
         self.filament_diameter_mm = DEFAULT_FILAMENT_DIAMETER_MM
         self.recorder: Optional[Recorder] = None
         self._started = 0.0
@@ -80,17 +87,20 @@ class Reports:
     async def _on_klippy_ready(self) -> None:
         try:
             objects = await self.klippy_apis.get_object_list(default=[])
-            sensors = sorted(o.split(" ", 1)[1] for o in objects
-                             if o.startswith("flow_sensor "))
-            self.sensor_name = sensors[0] if sensors else None
             answer = await self.klippy_apis.query_objects(
                 {"configfile": ["settings"]}, default={})
-            extruder = answer.get("configfile", {}).get("settings", {}).get(
-                "extruder", {})
-            self.filament_diameter_mm = float(extruder.get(
+            settings = answer.get("configfile", {}).get("settings", {})
+            # every tool's objects: the report follows the tool that prints
+            extruders = sorted(o for o in objects if EXTRUDER.fullmatch(o))
+            self.tools = {e: tool_objects(objects, settings, e)
+                          for e in extruders}
+            sensors = [own["sensor"].split(" ", 1)[1]
+                       for own in self.tools.values() if own["sensor"]]
+            self.sensor_name = ", ".join(sensors) or None
+            self.filament_diameter_mm = float(settings.get("extruder", {}).get(
                 "filament_diameter", DEFAULT_FILAMENT_DIAMETER_MM))
             status = await self.klippy_apis.subscribe_objects(
-                status_objects(self.sensor_name), self._on_status, default={})
+                status_objects(self.tools), self._on_status, default={})
         except self.server.error as e:
             logging.info(f"flowloop: flow reports get no klippy status: "
                          f"{one_line(e)}")
@@ -125,8 +135,7 @@ class Reports:
         try:
             while self.recorder is not None:
                 self.recorder.sample(sample_from_status(
-                    time.monotonic() - self._started, self.status,
-                    self.sensor_name))
+                    time.monotonic() - self._started, self.status, self.tools))
                 await asyncio.sleep(SAMPLE_PERIOD_S)
         except (TypeError, ValueError, AttributeError, IndexError) as e:
             # a status of a shape flowloop does not know: one line, the job

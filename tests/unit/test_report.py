@@ -22,7 +22,9 @@ from flowloop.report.recorder import (
     Job,
     Recorder,
     Sample,
+    one_tool,
     sample_from_status,
+    status_objects,
 )
 
 pytestmark = pytest.mark.unit
@@ -170,6 +172,35 @@ def test_layers_are_counted_from_z_where_the_slicer_gives_no_numbers():
     assert [rec.layers[k].z_mm for k in (1, 2, 3)] == [0.2, 0.4, 0.6]
 
 
+def test_a_toolchangers_report_follows_the_tool_that_prints():
+    from flowloop.control.tools import tool_objects
+    objects = ["extruder", "extruder1", "flow_sensor t0", "flow_sensor t1",
+               "flowrate_limiter", "flowrate_limiter extruder1", "autotemp",
+               "toolhead", "print_stats"]
+    settings = {"flow_sensor t0": {}, "flow_sensor t1": {"extruder": "extruder1"},
+                "flowrate_limiter": {}, "autotemp": {"extruder": "extruder"}}
+    tools = {e: tool_objects(objects, settings, e) for e in ("extruder", "extruder1")}
+    assert tools["extruder1"] == {"sensor": "flow_sensor t1",
+                                  "limiter": "flowrate_limiter extruder1",
+                                  "autotemp": None}
+    wanted = status_objects(tools)
+    assert {"flow_sensor t0", "flow_sensor t1", "flowrate_limiter extruder1",
+            "extruder1"} <= set(wanted)
+    status = {"toolhead": {"extruder": "extruder1"},
+              "extruder": {"temperature": 175.0}, "extruder1": {"temperature": 240.0},
+              "flow_sensor t0": {"grip": 1.0}, "flow_sensor t1": {"grip": 0.91},
+              "flowrate_limiter": {"reason": "none"},
+              "flowrate_limiter extruder1": {"cap": 8.0, "reason": "grip"},
+              "autotemp": {"active": True, "target": 200.0}}
+    s = sample_from_status(3.0, status, tools)
+    assert (s.grip, s.temp_c, s.cap_reason, s.planned_temp_c) == \
+        (0.91, 240.0, "grip", None)
+    status["toolhead"]["extruder"] = "extruder"
+    s = sample_from_status(4.0, status, tools)
+    assert (s.grip, s.temp_c, s.cap_reason, s.planned_temp_c) == \
+        (1.0, 175.0, "none", 200.0)
+
+
 def test_a_sample_is_read_from_klippys_objects_and_missing_ones_are_unknown():
     status = {
         "print_stats": {"state": "printing", "info": {"current_layer": 4}},
@@ -182,11 +213,12 @@ def test_a_sample_is_read_from_klippys_objects_and_missing_ones_are_unknown():
                             "commanded_flow": 8.7, "fault": None,
                             "filament_position": 55.0},
     }
-    s = sample_from_status(12.0, status, "sim")
+    s = sample_from_status(12.0, status, one_tool("sim"))
     assert (s.layer, s.z_mm, s.grip, s.cap_reason, s.planned_temp_c) == \
         (4, 0.8, 0.93, "grip", 216.0)
     assert (s.profile, s.working_point, s.sensor) == ("PLA", 0.4, True)
-    bare = sample_from_status(1.0, {"print_stats": {"state": "printing"}}, None)
+    bare = sample_from_status(1.0, {"print_stats": {"state": "printing"}},
+                              one_tool(None))
     assert bare.sensor is False and bare.grip is None and bare.temp_c is None
 
 
