@@ -408,3 +408,22 @@ def _trend(recent: Sequence[PrintEstimate]) -> Optional[Tuple[float, float]]:
     if prints_left > TREND_HORIZON_PRINTS:
         return None
     return slope, max(0.0, prints_left)
+
+
+# --- toolchangers: one hotend per tool ---------------------------------------
+
+def tool_hotend(hotend: str, extruder: str) -> str:
+    """The hotend a tool's prints are judged as: the printer's `hotend:`
+    for `extruder`, that and the tool's name for every other tool."""
+    return hotend if extruder == "extruder" else f"{hotend} {extruder}"
+
+
+def printed_between(before: Optional[Dict[str, Any]],
+                    after: Optional[Dict[str, Any]]) -> bool:
+    """A tool's evidence (PrintEvidence.to_dict, or None without a profile)
+    took grip windows between two asks: the tool printed in between. A
+    toolchanger's job judges only the tools that did."""
+    if after is None:
+        return False
+    return (before is None or after.get("windows") != before.get("windows")
+            or after.get("epoch") != before.get("epoch"))

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import time
 from typing import TYPE_CHECKING, Any, Dict, List, Optional
 
@@ -35,6 +36,9 @@ PREFIX = "nozzle_health:"
 MAX_PRINTS = 50
 DEFAULT_HOTEND = "default"
 ANNOUNCEMENT_FEED = "flowloop"
+
+
+EXTRUDER = re.compile(r"extruder\d*")
 
 
 def history_key(hotend: str, profile: str) -> str:
@@ -60,15 +64,30 @@ class NozzleHealth:
                           content_type="image/svg+xml")
 
     # --- jobs ----------------------------------------------------------------
-    async def _evidence(self) -> Optional[Dict[str, Any]]:
+    def tool_hotend(self, extruder: str) -> str:
+        return nh.tool_hotend(self.hotend, extruder)
+
+    async def _evidence(self) -> Dict[str, Optional[Dict[str, Any]]]:
+        """Every tool's evidence (tools without a limiter are left out)."""
         if not self.klippy.is_ready():
-            return None
-        try:
-            answer = await self.klippy.request(WebRequest(KLIPPY_ENDPOINT, {}))
-        except self.server.error as e:  # no [flowrate_limiter]: nothing to say
-            logging.info(f"flowloop: no nozzle evidence from klippy: {one_line(e)}")
-            return None
-        return answer.get("evidence") if isinstance(answer, dict) else None
+            return {}
+        kapis = self.server.lookup_component("klippy_apis")
+        objects = await kapis.get_object_list(default=[])
+        out: Dict[str, Optional[Dict[str, Any]]] = {}
+        problem = None
+        for extruder in sorted(o for o in objects if EXTRUDER.fullmatch(o)):
+            try:
+                answer = await self.klippy.request(
+                    WebRequest(KLIPPY_ENDPOINT, {"extruder": extruder}))
+            except self.server.error as e:  # no [flowrate_limiter] on it
+                problem = e
+                continue
+            out[extruder] = (answer.get("evidence") if isinstance(answer, dict)
+                             else None)
+        if not out and problem is not None:
+            logging.info(f"flowloop: no nozzle evidence from klippy: "
+                         f"{one_line(problem)}")
+        return out
 
     async def _on_history(self, event: Dict[str, Any]) -> None:
         job = event.get("job") or {}
@@ -79,14 +98,22 @@ class NozzleHealth:
                 and self.started["job_id"] == job.get("job_id"):
             start, self.started = self.started["evidence"], None
             try:
-                await self.record(job.get("job_id"), start, await self._evidence())
+                end = await self._evidence()
+                for extruder, evidence in end.items():
+                    before = start.get(extruder)
+                    if len(end) > 1 and not nh.printed_between(before, evidence):
+                        continue   # a tool that did not print this job
+                    await self.record(job.get("job_id"), before, evidence,
+                                      self.tool_hotend(extruder))
             except Exception as e:  # never take Moonraker's job handling down
                 logging.exception(f"flowloop: nozzle health of job "
                                   f"{job.get('job_id')} failed: {one_line(e)}")
 
     async def record(self, job_id: Any, start: Optional[Dict[str, Any]],
-                     end: Optional[Dict[str, Any]]) -> Dict[str, Any]:
+                     end: Optional[Dict[str, Any]],
+                     hotend: Optional[str] = None) -> Dict[str, Any]:
         """A job's estimate stored under its hotend and profile; the verdict."""
+        hotend = hotend or self.hotend
         evidence = nh.evidence_between(
             None if start is None else nh.PrintEvidence.from_dict(start),
             None if end is None else nh.PrintEvidence.from_dict(end))
@@ -95,8 +122,8 @@ class NozzleHealth:
         if not found.profile:
             logging.info(f"flowloop: nozzle health of job {job_id}: {found.reason}")
             return {"entry": entry, "verdict": None}
-        key = history_key(self.hotend, found.profile)
-        stored = await self.db.get(key, {"hotend": self.hotend,
+        key = history_key(hotend, found.profile)
+        stored = await self.db.get(key, {"hotend": hotend,
                                          "profile": found.profile, "prints": []})
         before = self._verdict(stored["prints"])
         stored["prints"] = (stored["prints"] + [entry])[-MAX_PRINTS:]
@@ -130,9 +157,9 @@ class NozzleHealth:
 
     # --- endpoints -------------------------------------------------------------
     async def histories(self) -> List[Dict[str, Any]]:
-        prefix = f"{PREFIX}{self.hotend.encode('utf-8').hex()}:"
+        """Every hotend's (a toolchanger's tools each have theirs)."""
         items = await self.db.items()
-        return [value for key, value in items if key.startswith(prefix)]
+        return [value for key, value in items if key.startswith(PREFIX)]
 
     async def _handle(self, web_request: WebRequest) -> Dict[str, Any]:
         if web_request.get_request_type() == RequestType.POST:
@@ -147,9 +174,9 @@ class NozzleHealth:
 
     async def _handle_plot(self, web_request: WebRequest) -> bytes:
         name = args.text(web_request.get_args(), "profile", "profile name")
+        hotend = web_request.get_args().get("hotend", self.hotend)
         for stored in await self.histories():
-            if stored["profile"] == name:
+            if stored["profile"] == name and stored["hotend"] == hotend:
                 prints = [nh.PrintEstimate.from_dict(p) for p in stored["prints"]]
-                return svg(prints, f"hotend {self.hotend}, profile {name}"
-                              ).encode()
+                return svg(prints, f"hotend {hotend}, profile {name}").encode()
         raise args.refusal(f"no nozzle health for profile {quoted(name)}", 404)

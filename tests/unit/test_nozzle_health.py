@@ -188,3 +188,15 @@ def test_the_docs_picture_is_the_worked_example():
     if os.environ.get("FLOWLOOP_WRITE_DOCS"):
         path.write_text(drawn)
     assert path.read_text() == drawn
+
+
+def test_a_toolchanger_judges_each_tool_that_printed_as_its_own_hotend():
+    assert nh.tool_hotend("v6", "extruder") == "v6"
+    assert nh.tool_hotend("v6", "extruder1") == "v6 extruder1"
+    before = {"windows": 40, "epoch": 1}
+    assert not nh.printed_between(before, {"windows": 40, "epoch": 1})  # idle
+    assert nh.printed_between(before, {"windows": 41, "epoch": 1})
+    # its profile changed (a new epoch): a new sum, judged
+    assert nh.printed_between(before, {"windows": 40, "epoch": 2})
+    assert nh.printed_between(None, {"windows": 3, "epoch": 1})
+    assert not nh.printed_between(before, None)    # no profile now
