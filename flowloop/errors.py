@@ -7,3 +7,9 @@ Klipper's config/command errors or Moonraker's 400 answers unchanged.
 
 class FlowloopError(ValueError):
     """Bad input, explained in one line."""
+
+
+def option_message(section: str, option: str, message: str) -> str:
+    """"Section [x], option y: message": the one format of flowloop's config
+    errors (host.klipper_config.option_error raises it in klippy)."""
+    return f"Section [{section}], option {option}: {message}"

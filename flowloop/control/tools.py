@@ -11,8 +11,7 @@ from __future__ import annotations
 
 from typing import Dict, Generic, List, Optional, TypeVar
 
-from ..errors import FlowloopError
-from ..host.klipper_config import option_message
+from ..errors import FlowloopError, option_message
 
 Member = TypeVar("Member")
 

@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Set, Tuple, Union
 
-from ..errors import FlowloopError
+from ..errors import FlowloopError, option_message  # noqa: F401 (re-exported)
 
 AUTOSAVE_HEADER = (
     "\n#*# <---------------------- SAVE_CONFIG ---------------------->\n"
@@ -208,11 +208,6 @@ def read_config(path: Union[str, Path]) -> KlipperConfig:
 
 
 # --- config errors, as flowloop's klippy sections report them -----------------
-
-
-def option_message(section: str, option: str, message: str) -> str:
-    """"Section [x], option y: message": the one format of flowloop's config errors."""
-    return f"Section [{section}], option {option}: {message}"
 
 
 def option_error(config, option: str, message: str):
