@@ -35,14 +35,15 @@ grip_window: 10
 HOTEND_C = 215.0
 LAYERS = 4
 SUBSCRIPTIONS_SETTLE_S = 2.0
+KEEP = 2   # number_of_reports_to_keep
 SVG = "{http://www.w3.org/2000/svg}"
 
 
-def gcode_file() -> str:
-    """Four layers of 8 mm of filament at 2 mm/s (4.8 mm^3/s), 4 s each:
-    below what the weak profile melts at HOTEND_C, so the limiter lets it."""
-    out = ["M83", f"SET_PRINT_STATS_INFO TOTAL_LAYER={LAYERS}"]
-    for layer in range(1, LAYERS + 1):
+def gcode_file(layers: int = LAYERS) -> str:
+    """Layers of 8 mm of filament at 2 mm/s (4.8 mm^3/s), 4 s each: below
+    what the weak profile melts at HOTEND_C, so the limiter lets it."""
+    out = ["M83", f"SET_PRINT_STATS_INFO TOTAL_LAYER={layers}"]
+    for layer in range(1, layers + 1):
         out += [f"SET_PRINT_STATS_INFO CURRENT_LAYER={layer}", "G1 E8 F120"]
     return "\n".join(out) + "\n"
 
@@ -69,7 +70,9 @@ def mr(fil_build, moonraker_venv):
         with fil_printer(fil_build, SECTIONS.format(gcodes=gcodes),
                          hotend_temp_c=HOTEND_C) as printer:
             server = stack.Moonraker(moonraker_venv, data_dir,
-                                     klippy_uds=printer.klippy.api_socket)
+                                     klippy_uds=printer.klippy.api_socket,
+                                     extra_conf=f"number_of_reports_to_keep:"
+                                                f" {KEEP}\n")
             try:
                 server.wait_ready(klippy=True)
                 # Moonraker's components subscribe to klippy's objects in
@@ -92,10 +95,9 @@ def mr(fil_build, moonraker_venv):
         shutil.rmtree(data_dir, ignore_errors=True)
 
 
-def _print(mr, name, states, cancel_after_s=None):
-    """Upload and print a file; (its job in the history, its report's
-    summary, the report's HTML)."""
-    mr.upload(name, gcode_file().encode())
+def _print_job(mr, name, states, cancel_after_s=None, layers=LAYERS):
+    """Upload and print a file; its job in the history once it ended."""
+    mr.upload(name, gcode_file(layers).encode())
     status, body = mr.request("POST", f"/printer/print/start?filename={name}")
     assert status == 200, body
     if cancel_after_s is not None:
@@ -107,7 +109,12 @@ def _print(mr, name, states, cancel_after_s=None):
         jobs = mr.request("GET", "/server/history/list?limit=3")[1]["result"]["jobs"]
         return next((j for j in jobs if j["filename"] == name
                      and j["status"] in states), None)
-    job = _wait("the job in Moonraker's history", ended, 60)
+    return _wait("the job in Moonraker's history", ended, 60)
+
+
+def _print(mr, name, states, cancel_after_s=None):
+    """_print_job; (its job, its report's summary, the report's HTML)."""
+    job = _print_job(mr, name, states, cancel_after_s)
 
     def listed():
         result = mr.request("GET", "/server/flowloop/reports")[1]["result"]
@@ -167,3 +174,43 @@ def test_each_job_is_judged_for_nozzle_health(mr):
     for p in prints:
         assert p["ratio"] is not None or p["reason"], p
     assert not histories[0]["verdict"]["warn"]
+
+
+def test_a_report_that_cannot_be_stored_is_one_line_and_the_history_is_kept(mr):
+    folder = mr.data_dir / "flowloop" / "reports"
+    kept = folder.with_name("reports.kept")
+    folder.mkdir(parents=True, exist_ok=True)
+    folder.rename(kept)
+    folder.write_text("not a folder: every write fails as on a full disk")
+    try:
+        job = _print_job(mr, "unstored.gcode", ("completed",), layers=1)
+        said = f"flow report of job {job['job_id']} was not stored"
+
+        def logged():
+            return [x for x in mr.log_path.read_text().splitlines() if said in x]
+        (line,) = _wait("the line in moonraker.log", logged, 10)
+        after = mr.log_path.read_text().split(line, 1)[1]
+        assert "Traceback" not in after[:300], after[:300]
+        assert mr.request("GET", "/server/info")[0] == 200
+    finally:
+        folder.unlink()
+        kept.rename(folder)
+
+
+def test_only_the_newest_reports_are_kept_and_an_unknown_job_is_404(mr):
+    job = _print_job(mr, "newest.gcode", ("completed",), layers=1)
+
+    def pruned():
+        listed = mr.request("GET", "/server/flowloop/reports")[1]["result"]
+        names = [r["filename"] for r in listed["reports"]]
+        return names if names[:1] == ["newest.gcode"] else None
+    names = _wait("the newest job's report", pruned, 15)
+    # the completed and cancelled jobs of the tests above, and this one:
+    # number_of_reports_to_keep 2 keeps the newest two
+    assert names == ["newest.gcode", "cancelled_job.gcode"], names
+    assert job["job_id"] in mr.request("GET", "/server/flowloop/reports")[1][
+        "result"]["reports"][0]["job_id"]
+    status, body = mr.request("GET", "/server/flowloop/report?job_id=FFFFFF")
+    assert status == 404 and 'no flow report for job "FFFFFF"' in str(body)
+    status, body = mr.request("GET", "/server/flowloop/report?job_id=../x")
+    assert status == 400

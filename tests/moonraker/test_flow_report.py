@@ -1,6 +1,6 @@
 """The flow report endpoints of a Moonraker with flowloop: the stored
 reports listed newest first, one served as HTML, bad or unknown job ids
-refused in one line. (A job printed through it: test_flow_report_jobs.py.)"""
+refused in one line. (Jobs printed through it: tests/fil/test_fil_report.py.)"""
 
 from __future__ import annotations
 
