@@ -100,6 +100,6 @@ def printer(request, fil_build):
 def settle(printer, seconds: float = 0.4) -> dict:
     """The sensor's status once the samples of finished moves are in (M400
     returns when the last step is due; samples reach the host in messages
-    of up to 12 records and 100 ms batches)."""
+    of at most 20 ms of samples and 100 ms batches)."""
     time.sleep(seconds)
     return printer.query(SENSOR)

@@ -23,7 +23,7 @@ grip_window: 10
 on_fault: pause
 """
 # M400 returns when the last step is due; its samples reach the host in
-# messages of up to 12 records and 100 ms batches
+# messages of at most 20 ms of samples (ems22.MAX_BATCH_AGE_S) and 100 ms batches
 SETTLE_S = 0.4
 CLOCK = {}  # the firmware clock at the module's first test
 
