@@ -42,4 +42,6 @@ class Window:
 
     @property
     def faulted(self) -> bool:
-        return self.reason == FAULT
+        """Closed while the sensor was faulted: a FAULT window, or the
+        window of no filament that brings a fault no window closed in."""
+        return self.reason == FAULT or self.fault is not None

@@ -222,6 +222,13 @@ def start_refusal(busy: bool, printing: bool = False,
     return None
 
 
+def check_sensor(sensor_name: str, fault: Optional[str]) -> None:
+    """FlowloopError if the sensor is faulted: a watch started then is
+    never told (the fault reached its subscribers before the watch)."""
+    if fault is not None:
+        raise FlowloopError(f"flow sensor {sensor_name} is faulted ({fault})")
+
+
 def check_active(extruder_name: str, active: bool) -> None:
     """FlowloopError unless the extruder measured is the toolhead's."""
     if not active:

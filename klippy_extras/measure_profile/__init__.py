@@ -280,6 +280,7 @@ class MeasureProfile:
             fl_profile.check_name(name)
             extruder, heater = self._extruder(extruder_name)
             sensor = self._sensor(extruder_name)
+            fl_proc.check_sensor(sensor.name, sensor.get_status()['fault'])
             base = fl_proc.print_base(self._base(extruder_name))
             measurement = fl_proc.PrintMeasurement(
                 name, base, gcmd.get_float('MIN_GRIP', None),

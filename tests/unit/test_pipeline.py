@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from flowloop.errors import FlowloopError
+from flowloop.material import procedure as proc
 from flowloop.material.profile import Line
 from flowloop.sensor import ems22
 from flowloop.sensor.pipeline import (
@@ -120,7 +122,7 @@ def test_a_fault_that_closes_no_window_still_reaches_subscribers_in_one():
                for w in b.windows]
     assert [w.fault for w in faulted] == ["magnet"]     # once
     told = faulted[0]
-    assert (told.commanded_mm, told.grip, told.faulted) == (0.0, None, False)
+    assert (told.commanded_mm, told.grip, told.faulted) == (0.0, None, True)
     assert 1.0 < told.end_time == told.start_time < 2.0
     twin.set_fault(None)
     back = [w for b in run(pipeline, twin, 2.0, start_s=2.0) for w in b.windows]
@@ -128,6 +130,23 @@ def test_a_fault_that_closes_no_window_still_reaches_subscribers_in_one():
     assert [w.fault for w in back] == [None] * len(back)
     assert [w.commanded_mm for w in back[1:]].count(0.0) == 0
     assert back[-1].reason == JUDGED
+
+
+def test_a_print_measurement_stops_on_a_fault_that_closes_no_window():
+    # an unplugged sensor (every sample bad) closes no window of its own: the
+    # one that brings its fault is what ends MEASURE_MATERIAL_PROFILE_PRINT
+    from tests.unit.test_procedure import HARDWARE, KNOWN
+    measurement = proc.PrintMeasurement("printed", KNOWN, 0.9, HARDWARE)
+    pipeline = SensorPipeline(Settings(sample_period_s=PERIOD_S, fault_samples=50))
+    twin = weak_twin(1.0)
+    run(pipeline, twin, 1.0)
+    twin.set_fault("magnet")
+    windows = [w for b in run(pipeline, twin, 1.0, start_s=1.0) for w in b.windows]
+    assert [measurement.window(w) for w in windows][-1] == proc.Stop(
+        "flow sensor fault: nothing stored")
+    # a sensor faulted already: the watch is refused, not started blind
+    with pytest.raises(FlowloopError, match="flow sensor filament is faulted"):
+        proc.check_sensor("filament", pipeline.status()["fault"])
 
 
 def test_the_fault_clears_with_the_next_good_samples():
