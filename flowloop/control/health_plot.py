@@ -18,7 +18,7 @@ HEIGHT = 450
 def svg(prints: Sequence[PrintEstimate], title: str) -> str:
     """Capacity against the profile over prints, oldest first; prints
     without an estimate are marked on the axis with their reason."""
-    known = [e for e in prints if e.ratio is not None and not e.reason]
+    known = [e for e in prints if e.known]
     lows = [e.ratio - 2 * e.standard_error for e in known]
     limits = [e.limit_ratio for e in prints if e.limit_ratio is not None]
     y_lo = min([0.8] + lows + limits) - 0.02
@@ -40,7 +40,7 @@ def svg(prints: Sequence[PrintEstimate], title: str) -> str:
     points: List[str] = []
     for i, e in enumerate(prints):
         x = panel.x(i + 1)
-        if e.ratio is None or e.reason:
+        if not e.known:
             points.append(tooltip(f"print {i + 1}: no estimate: {e.reason}",
                                   f'<circle class="no-estimate" cx="{x:.2f}" '
                                   f'cy="{panel.bottom - 6:.2f}" r="3" '
@@ -57,7 +57,7 @@ def svg(prints: Sequence[PrintEstimate], title: str) -> str:
     panel.add('<g id="prints">' + "".join(points) + "</g>")
     verdict = judge(prints)
     legend = [("each print: ratio +/- 2 standard errors", COLORS["measured"], "")]
-    if any(e.ratio is None or e.reason for e in prints):
+    if not all(e.known for e in prints):
         # drawn at the bottom; the dot's tooltip says why
         legend.append(("no estimate (too little evidence)", COLORS["bound"], "1,3"))
     panel.legend(legend + [(name, color, dash) for name, _, color, dash in marks])

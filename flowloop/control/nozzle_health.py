@@ -76,6 +76,10 @@ TREND_PRINTS = 8
 TREND_HORIZON_PRINTS = 5.0
 EVIDENCE_VERSION = 1
 GRID_SUMS = ("cross", "model_sq", "information")
+# PrintEvidence's counters and scalar sums: what two snapshots subtract, what
+# its dict holds beside the grid sums (one list for every place that walks them)
+COUNTS = ("windows", "unjudged", "faulted", "no_temperature", "noise_windows")
+SUMS = ("noise_sum", "noise_sum_sq", "grip_sq")
 
 
 def _grid_zeros() -> np.ndarray:
@@ -162,14 +166,9 @@ class PrintEvidence:
         """JSON-able (klippy's status, Moonraker's database)."""
         return {"version": EVIDENCE_VERSION, "profile": self.profile,
                 "working_point": self.working_point, "min_grip": self.min_grip,
-                "epoch": self.epoch, "windows": self.windows,
-                "unjudged": self.unjudged, "faulted": self.faulted,
-                "no_temperature": self.no_temperature,
-                "noise_windows": self.noise_windows,
-                "noise_sum": self.noise_sum, "noise_sum_sq": self.noise_sum_sq,
-                "grip_sq": self.grip_sq, "cross": self.cross.tolist(),
-                "model_sq": self.model_sq.tolist(),
-                "information": self.information.tolist()}
+                "epoch": self.epoch,
+                **{name: getattr(self, name) for name in COUNTS + SUMS},
+                **{name: getattr(self, name).tolist() for name in GRID_SUMS}}
 
     @classmethod
     def from_dict(cls, data: Any) -> PrintEvidence:
@@ -180,10 +179,9 @@ class PrintEvidence:
                                     f"{EVIDENCE_VERSION}")
             out = cls(str(data["profile"]), float(data["working_point"]),
                       float(data["min_grip"]), str(data["epoch"]))
-            for name in ("windows", "unjudged", "faulted", "no_temperature",
-                         "noise_windows"):
+            for name in COUNTS:
                 setattr(out, name, int(data[name]))
-            for name in ("noise_sum", "noise_sum_sq", "grip_sq"):
+            for name in SUMS:
                 setattr(out, name, float(data[name]))
             for name in GRID_SUMS:
                 values = np.asarray(data[name], dtype=np.float64)
@@ -217,9 +215,7 @@ def evidence_between(start: Optional[PrintEvidence],
     if start is None or start.epoch != end.epoch:
         return end
     out = PrintEvidence(end.profile, end.working_point, end.min_grip, end.epoch)
-    for name in ("windows", "unjudged", "faulted", "no_temperature",
-                 "noise_windows", "noise_sum", "noise_sum_sq",
-                 "grip_sq") + GRID_SUMS:
+    for name in COUNTS + SUMS + GRID_SUMS:
         setattr(out, name, getattr(end, name) - getattr(start, name))
     return out
 
@@ -236,6 +232,11 @@ class PrintEstimate:
     windows: int = 0
     min_grip: float = 0.9
     reason: str = ""                         # why no estimate ("" : one)
+
+    @property
+    def known(self) -> bool:
+        """The print gave an estimate (a ratio, and no reason against it)."""
+        return self.ratio is not None and not self.reason
 
     @property
     def limit_ratio(self) -> Optional[float]:
@@ -361,7 +362,7 @@ def _significantly_low(e: PrintEstimate) -> bool:
 def judge(history: Sequence[PrintEstimate]) -> Verdict:
     """The verdict over one hotend's estimates for one profile, oldest first
     (prints without an estimate are left out)."""
-    known = [e for e in history if e.ratio is not None and not e.reason]
+    known = [e for e in history if e.known]
     latest = known[-PERSISTENT_PRINTS:]
     if len(known) < PERSISTENT_PRINTS:
         return Verdict(False, "", f"{len(known)} prints with an estimate, "
@@ -421,9 +422,10 @@ def tool_hotend(hotend: str, extruder: str) -> str:
 def printed_between(before: Optional[Dict[str, Any]],
                     after: Optional[Dict[str, Any]]) -> bool:
     """A tool's evidence (PrintEvidence.to_dict, or None without a profile)
-    took grip windows between two asks: the tool printed in between. A
-    toolchanger's job judges only the tools that did."""
+    counted a grip window of any kind between two asks (judged, unjudged,
+    faulted, without temperature): the tool printed in between. A job
+    judges only the tools that did."""
     if after is None:
         return False
-    return (before is None or after.get("windows") != before.get("windows")
-            or after.get("epoch") != before.get("epoch"))
+    return before is None or any(after.get(name) != before.get(name)
+                                 for name in ("epoch",) + COUNTS)

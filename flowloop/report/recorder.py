@@ -13,7 +13,8 @@ objects say at that moment) and the recorder keeps:
   where the sensor was faulted or no data came (the time lost), which profile
   and working point were in force; each list bounded, its closest
   neighbours merged when full;
-- a few events (paused, resumed, a fault, a restart), bounded too.
+- a few events (the print paused or resumed, a fault starting or clearing),
+  bounded too.
 """
 
 from __future__ import annotations

@@ -15,13 +15,13 @@
 from __future__ import annotations
 
 import logging
-import re
 import time
 from typing import TYPE_CHECKING, Any, Dict, List, Optional
 
 from flowloop.control import nozzle_health as nh
 from flowloop.control.health_plot import svg
 from flowloop.errors import FlowloopError
+from flowloop.material.profile import is_extruder_name
 
 from ...common import RequestType, TransportType, WebRequest
 from . import args
@@ -36,9 +36,6 @@ PREFIX = "nozzle_health:"
 MAX_PRINTS = 50
 DEFAULT_HOTEND = "default"
 ANNOUNCEMENT_FEED = "flowloop"
-
-
-EXTRUDER = re.compile(r"extruder\d*")
 
 
 def history_key(hotend: str, profile: str) -> str:
@@ -75,7 +72,7 @@ class NozzleHealth:
         objects = await kapis.get_object_list(default=[])
         out: Dict[str, Optional[Dict[str, Any]]] = {}
         problem = None
-        for extruder in sorted(o for o in objects if EXTRUDER.fullmatch(o)):
+        for extruder in sorted(filter(is_extruder_name, objects)):
             try:
                 answer = await self.klippy.request(
                     WebRequest(KLIPPY_ENDPOINT, {"extruder": extruder}))
@@ -101,7 +98,7 @@ class NozzleHealth:
                 end = await self._evidence()
                 for extruder, evidence in end.items():
                     before = start.get(extruder)
-                    if len(end) > 1 and not nh.printed_between(before, evidence):
+                    if not nh.printed_between(before, evidence):
                         continue   # a tool that did not print this job
                     await self.record(job.get("job_id"), before, evidence,
                                       self.tool_hotend(extruder))
@@ -125,13 +122,13 @@ class NozzleHealth:
         key = history_key(hotend, found.profile)
         stored = await self.db.get(key, {"hotend": hotend,
                                          "profile": found.profile, "prints": []})
-        before = self._verdict(stored["prints"])
+        was_warning = (stored.get("verdict") or {}).get("warn", False)
         stored["prints"] = (stored["prints"] + [entry])[-MAX_PRINTS:]
         verdict = self._verdict(stored["prints"])
         stored["verdict"] = verdict.__dict__
         await self.db.insert(key, stored)
         if verdict.warn:
-            self._warn(stored, verdict, first=not before.warn)
+            self._warn(stored, verdict, first=not was_warning)
         return {"entry": entry, "verdict": verdict.__dict__}
 
     @staticmethod
@@ -174,9 +171,11 @@ class NozzleHealth:
 
     async def _handle_plot(self, web_request: WebRequest) -> bytes:
         name = args.text(web_request.get_args(), "profile", "profile name")
-        hotend = web_request.get_args().get("hotend", self.hotend)
-        for stored in await self.histories():
-            if stored["profile"] == name and stored["hotend"] == hotend:
-                prints = [nh.PrintEstimate.from_dict(p) for p in stored["prints"]]
-                return svg(prints, f"hotend {hotend}, profile {name}").encode()
+        given = web_request.get_args()
+        hotend = args.text(given, "hotend", "hotend") if "hotend" in given \
+            else self.hotend
+        stored = await self.db.get(history_key(hotend, name), None)
+        if stored is not None:
+            prints = [nh.PrintEstimate.from_dict(p) for p in stored["prints"]]
+            return svg(prints, f"hotend {hotend}, profile {name}").encode()
         raise args.refusal(f"no nozzle health for profile {quoted(name)}", 404)

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import re
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Dict, List, Optional
 
 from flowloop.control.tools import tool_objects
 from flowloop.errors import FlowloopError
+from flowloop.material.profile import is_extruder_name
 from flowloop.report import dump, render
 from flowloop.report.recorder import (
     DEFAULT_FILAMENT_DIAMETER_MM,
@@ -41,9 +41,6 @@ if TYPE_CHECKING:
 
 DEFAULT_REPORTS_TO_KEEP = 10
 REPORTS_FOLDER = ("flowloop", "reports")
-
-
-EXTRUDER = re.compile(r"extruder\d*")
 
 
 def report_path(job_id: str) -> str:
@@ -91,7 +88,7 @@ class Reports:
                 {"configfile": ["settings"]}, default={})
             settings = answer.get("configfile", {}).get("settings", {})
             # every tool's objects: the report follows the tool that prints
-            extruders = sorted(o for o in objects if EXTRUDER.fullmatch(o))
+            extruders = sorted(filter(is_extruder_name, objects))
             self.tools = {e: tool_objects(objects, settings, e)
                           for e in extruders}
             sensors = [own["sensor"].split(" ", 1)[1]
@@ -197,10 +194,11 @@ class Reports:
                                f"Moonraker's history (hex digits, e.g. 00002A)")
         rec = self.recorder
         if rec is not None and rec.job.job_id == job_id:  # the print running now
-            # a copy taken here: the sampler goes on changing the recorder
-            copy = dump.dumps(rec)
+            # a copy taken here (the sampler goes on changing the recorder),
+            # rendered in a thread
+            copy = dump.to_dict(rec)
             return (await self.eventloop.run_in_thread(
-                lambda: render.html(dump.loads(copy)))).encode()
+                lambda: render.html(dump.from_dict(copy)))).encode()
         path = self.folder / f"{job_id}.html"
         try:
             return await self.eventloop.run_in_thread(path.read_bytes)

@@ -102,6 +102,12 @@ def _print_job(mr, name, states, cancel_after_s=None, layers=LAYERS):
     assert status == 200, body
     if cancel_after_s is not None:
         time.sleep(cancel_after_s)
+        # the running job's report so far, served while it prints
+        recording = mr.request("GET", "/server/flowloop/reports")[1]["result"][
+            "recording"]
+        status, live = mr.request("GET",
+                                  f"/server/flowloop/report?job_id={recording}")
+        assert status == 200 and name in live, live[:300]
         status, body = mr.request("POST", "/printer/print/cancel")
         assert status == 200, body
 

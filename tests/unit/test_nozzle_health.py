@@ -200,3 +200,23 @@ def test_a_toolchanger_judges_each_tool_that_printed_as_its_own_hotend():
     assert nh.printed_between(before, {"windows": 40, "epoch": 2})
     assert nh.printed_between(None, {"windows": 3, "epoch": 1})
     assert not nh.printed_between(before, None)    # no profile now
+
+
+def _falling(ratios, at_least):
+    return [nh.PrintEstimate("known", ratio=r, standard_error=0.002,
+                             grip_noise=0.005, at_least=at_least, windows=40,
+                             min_grip=0.9) for r in ratios]
+
+
+def test_a_fall_that_soon_reaches_min_grip_warns_by_its_trend():
+    # only the latest print is below 97 %: not persistent, but the line
+    # through the last prints reaches the ratio where the prints' highest
+    # flows (105 % of the capacity) read grip below min_grip within 5 prints
+    ratios = [1.00, 0.99, 0.98, 0.975, 0.96]
+    verdict = nh.judge(_falling(ratios, at_least=1.05))
+    assert (verdict.warn, verdict.rule) == (True, "trend"), verdict
+    assert "a print" in verdict.text
+    # the same fall, prints that ask little (limit 0.81): far off, no warning
+    assert not nh.judge(_falling(ratios, at_least=0.9)).warn
+    # and no fall: the latest low alone is not a trend
+    assert not nh.judge(_falling([0.99, 1.0, 0.99, 1.0, 0.96], at_least=1.05)).warn

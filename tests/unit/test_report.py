@@ -257,7 +257,7 @@ def test_the_dump_round_trips_and_renders_the_same_report():
     rec = scenario()
     again = dump.loads(dump.dumps(rec))
     assert dump.dumps(again) == dump.dumps(rec)
-    assert render.html(again) == render.html(dump.loads(dump.dumps(again)))
+    assert render.html(again) == render.html(rec)   # the dump loses nothing drawn
     assert dump.summary(again) == dump.summary(rec)
 
 
@@ -295,8 +295,7 @@ def test_the_report_is_one_offline_document_with_every_series():
     # the under-extruded layers are drawn, 12 to 14 the tallest
     bars = {int(r.get("data-layer")): float(r.get("height"))
             for r in root.iter(f"{SVG}rect") if r.get("class") == "layer"}
-    assert sorted(bars, key=bars.get)[-3:] == [12, 13, 14] or \
-        set(sorted(bars, key=bars.get)[-3:]) == {12, 13, 14}
+    assert set(sorted(bars, key=bars.get)[-3:]) == {12, 13, 14}
     assert sum(1 for r in root.iter(f"{SVG}rect")
                if r.get("class") == "fault") >= 3   # the magnet, in each time panel
     assert lacks(root) == []
