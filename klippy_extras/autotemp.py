@@ -119,7 +119,7 @@ class Autotemp:
             # Kalico: the toolhead's step generators see each flush time
             self.toolhead.register_step_generator(
                 lambda flush_time: self._flush(flush_time, flush_time))
-        self.tools.join(extruder, self)
+        self.tools.join(self)
 
     def _handle_profile(self, extruder, profile, working_point):
         if extruder == self.extruder_name:
@@ -161,7 +161,7 @@ class Autotemp:
         # ACTIVATE_EXTRUDER flushed the old tool's motion first: every other
         # tool stands down and gets its user's target back (never higher).
         printing = self.tools.printing()
-        for member in self.tools.by_extruder.values():
+        for member in self.tools.members():
             if member is not printing:
                 member.stand_down()
 
@@ -177,7 +177,7 @@ class Autotemp:
         if self.core.source != 'annotation' and self.core.active:
             shape = fl_caps.move_shape(self.next_transform.get_position(),
                                        newpos)
-            if shape.extrudes and self.toolhead.get_extruder() is self.extruder:
+            if shape.extrudes:   # ToolMoves hands this tool's moves only
                 flow = shape.flow_mm3_s(speed, self.extruder.filament_area)
                 self.core.on_move(self._print_time(), flow,
                                   shape.duration_s(speed))

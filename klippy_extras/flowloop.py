@@ -138,7 +138,6 @@ class ToolMoves:
     def __init__(self, printer, kind):
         self.printer = printer
         self.table = PerTool(kind)
-        self.by_extruder = {}    # extruder object -> its section
         self.next_transform = self.toolhead = None
 
     def add(self, config, extruder_name, member):
@@ -151,9 +150,8 @@ class ToolMoves:
             raise config.error(str(e)) from None
         return len(self.table.extruders) == 1
 
-    def join(self, extruder, member):
+    def join(self, member):
         """At klippy:connect, once the section found its extruder."""
-        self.by_extruder[extruder] = member
         if self.next_transform is None:
             self.toolhead = self.printer.lookup_object('toolhead')
             gcode_move = self.printer.lookup_object('gcode_move')
@@ -163,7 +161,11 @@ class ToolMoves:
 
     def printing(self):
         """The section of the extruder that prints, or None."""
-        return self.by_extruder.get(self.toolhead.get_extruder())
+        return self.table.get(self.active_name())
+
+    def members(self):
+        """Every section of the kind, one per extruder."""
+        return self.table.members()
 
     def active_name(self):
         return self.toolhead.get_extruder().get_name()

@@ -112,7 +112,7 @@ class FlowrateLimiter:
         active = self.host.get_active_profile(self.extruder_name)
         if active is not None:
             self.limiter.set_profile(*active)
-        self.tools.join(extruder, self)
+        self.tools.join(self)
 
     def _find_sensor(self):
         sensor = find_flow_sensor(self.printer, self.extruder_name,
@@ -140,8 +140,7 @@ class FlowrateLimiter:
         # (calibrations) leave no stale start behind.
         shape = fl_caps.move_shape(self.next_transform.get_position(), newpos)
         melted_mm3 = 0.
-        if shape.extrude_mm > 0. \
-                and self.toolhead.get_extruder() is self.extruder:
+        if shape.extrude_mm > 0.:   # ToolMoves hands this tool's moves only
             if self.nozzle is None:
                 temp_c, _ = self.heater.get_temp(self.reactor.monotonic())
                 self.limiter.set_temperature(temp_c)
@@ -151,7 +150,7 @@ class FlowrateLimiter:
             # Batch mode: the models run on the moves' own (cruise) time,
             # the idle tools' too (they melt nothing meanwhile)
             duration_s = shape.duration_s(speed)
-            for member in self.tools.by_extruder.values():
+            for member in self.tools.members():
                 member.pass_time(duration_s,
                                  melted_mm3 if member is self else 0.)
         self.next_transform.move(newpos, speed)

@@ -656,13 +656,11 @@ class PrintMeasurement:
         self.name, self.base, self.hardware = name, base, hardware
         self.source = source
         self.watch = fl_measure.PrintWatch(min_grip_of(base, min_grip))
-        self.layer: Optional[int] = None
         self.layers: List[Tuple[float, float]] = []  # (start, planned flow)
 
-    def add_layer(self, layer: int, start_s: float, flow_mm3_s: float) -> None:
+    def add_layer(self, start_s: float, flow_mm3_s: float) -> None:
         """MEASURE_MATERIAL_PROFILE_LAYER: a layer's moves start at start_s."""
         self.layers.append((start_s, flow_mm3_s))
-        self.layer = layer
 
     def window(self, window: Window
                ) -> Optional[Union[Stop, fl_measure.StepResult]]:

@@ -216,10 +216,6 @@ class SensorPipeline:
         """The MCU lost count of its reads: the query must restart."""
         return self.decoder.time_lost
 
-    @property
-    def fault_limit(self) -> int:
-        return self.faults.limit
-
     def position_at_or_after(self, print_time: float) -> Optional[float]:
         """The filament the sensor measured (sensor mm: before the
         calibration, what the calibrations compare with the extruder's)

@@ -302,12 +302,12 @@ class MeasureProfile:
         " measure-part writes it)")
 
     def cmd_MEASURE_MATERIAL_PROFILE_LAYER(self, gcmd):
-        layer = gcmd.get_int('LAYER', minval=1)
+        gcmd.get_int('LAYER', minval=1)   # checked; the file's own count
         flow = gcmd.get_float('FLOW', above=0.)
         if self.watch is not None:
             # The layer's moves begin after those queued so far
             start = self.printer.lookup_object('toolhead').get_last_move_time()
-            self.watch.measurement.add_layer(layer, start, flow)
+            self.watch.measurement.add_layer(start, flow)
 
     def _end_watch(self, why):
         message = f"{PRINT_NAME}: {why}"

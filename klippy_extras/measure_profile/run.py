@@ -216,9 +216,8 @@ class Run:
 
     def _sleep_until(self, print_time):
         """Wait, the G-code queue free, until the printer has run what the
-        run queued (console commands meanwhile need not wait a step)."""
-        if not self._paced():
-            return   # batch mode: print time runs ahead of any clock
+        run queued (console commands meanwhile need not wait a step). Only
+        on a paced printer: in batch mode print time runs ahead of any clock."""
         mcu = self.printer.lookup_object('mcu')
         while not self.procedure.stop_reason:
             now = self.reactor.monotonic()

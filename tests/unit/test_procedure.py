@@ -466,8 +466,8 @@ def test_a_print_measurement_ends_on_a_fault():
 
 def test_a_print_measurement_finds_the_real_print_point_by_layer():
     m = proc.PrintMeasurement("printed", KNOWN, 0.9, HARDWARE)
-    m.add_layer(1, 0.0, 5.0)
-    m.add_layer(2, 10.0, 7.0)
+    m.add_layer(0.0, 5.0)
+    m.add_layer(10.0, 7.0)
     step = None
     for i in range(20):
         t = 10.0 + i
