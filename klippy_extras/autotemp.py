@@ -22,7 +22,6 @@ from flowloop.errors import FlowloopError
 from flowloop.host.klipper_config import (
     extruder_for,
     option_error,
-    section_extruder,
 )
 from flowloop.material.active import working_point_arg
 
@@ -37,10 +36,7 @@ class Autotemp:
         self.printer = printer = config.get_printer()
         self.host = printer.load_object(config, 'flowloop')
         self.section = config.get_name()
-        # [autotemp extruder1]: the name says the extruder
-        self.extruder_name = section_extruder(self.section) \
-            if self.section != 'autotemp' \
-            else config.get('extruder', 'extruder')
+        self.extruder_name = flowloop_host.tool_extruder(config, 'autotemp')
         self.override_m104 = config.getboolean('override_m104', True)
         enabled = config.getboolean('enable', True)
         values = {'time_constant': ('time_constant_s', config.getfloat(
@@ -255,7 +251,7 @@ class Autotemp:
         member, temp_c = self._m104_member(gcmd)
         if member is not None:
             member.user_target_c = temp_c
-            if temp_c <= 0.:
+            if fl_tools.heater_off(temp_c):
                 member.core.stop()
         self.prev_m109(gcmd)
 

@@ -127,6 +127,17 @@ class FlowloopHost:
         return self.status
 
 
+def tool_extruder(config, kind):
+    """The extruder a per-tool section acts on: its name says it
+    ([flowrate_limiter extruder1]); the plain section has an `extruder`
+    option (read only there: a named section refuses it as Klipper does
+    any option it does not read)."""
+    section = config.get_name()
+    if section != kind:
+        return klipper_config.section_extruder(section)
+    return config.get('extruder', 'extruder')
+
+
 class ToolMoves:
     """One move transform for all the sections of a kind, one section per
     extruder: each G-code move goes to the section of the extruder that

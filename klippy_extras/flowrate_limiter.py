@@ -25,7 +25,6 @@ from flowloop.host.klipper_config import (
     find_flow_sensor,
     option_error,
     option_message,
-    section_extruder,
 )
 
 from . import flowloop as flowloop_host
@@ -42,10 +41,8 @@ class FlowrateLimiter:
         self.host = printer.load_object(config, 'flowloop')
         self.reactor = printer.get_reactor()
         self.section = config.get_name()
-        # [flowrate_limiter extruder1]: the name says the extruder
-        self.extruder_name = section_extruder(self.section) \
-            if self.section != 'flowrate_limiter' \
-            else config.get('extruder', 'extruder')
+        self.extruder_name = flowloop_host.tool_extruder(config,
+                                                         'flowrate_limiter')
         self.sensor_name = config.get('sensor', None)
         # option -> LimiterSettings field; the limits live in flowloop.control
         values = {'max_flow': config.getfloat('max_flow', None),

@@ -68,13 +68,19 @@ def m104_extruder(tool: Optional[int], active: str) -> str:
     return "extruder" if tool == 0 else f"extruder{tool}"
 
 
+def heater_off(temp_c: float) -> bool:
+    """An M104/M109 that turns the heater off: always obeyed, and the
+    tool's autotemp stands down."""
+    return temp_c <= 0.0
+
+
 def m104_action(temp_c: float, printing: bool, overrides: bool) -> str:
     """What a tool's autotemp does with an M104 for its tool: 'stop' (a
     heater turned off is always obeyed, and autotemp stands down), 'override'
     (the tool prints and autotemp plans its heater: the value is kept as the
     user's, for when the tool goes idle), else 'pass' (Klipper's M104 sets
     it: an idle tool's standby is the user's)."""
-    if temp_c <= 0.0:
+    if heater_off(temp_c):
         return "stop"
     if printing and overrides:
         return "override"
