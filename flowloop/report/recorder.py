@@ -68,7 +68,6 @@ class Sample:
     sensor_fault: Optional[str] = None
     layer: Optional[int] = None
     z_mm: Optional[float] = None
-    filament_mm: Optional[float] = None            # the sensor's position
     profile: Optional[str] = None
     working_point: Optional[float] = None
 
@@ -207,7 +206,6 @@ class Layer:
     z_mm: Optional[float] = None
     time_s: float = 0.0
     commanded_mm: float = 0.0
-    judged_mm: float = 0.0       # commanded while grip was known
     under_mm: float = 0.0
 
 
@@ -225,7 +223,6 @@ class Job:
     filename: Optional[str] = None
     started_at: Optional[float] = None   # wall clock, s since the epoch
     sensor_name: Optional[str] = None
-    extruder: str = "extruder"
     state: Optional[str] = None          # how it ended: completed, cancelled, ...
     end_s: Optional[float] = None
 
@@ -321,7 +318,6 @@ class Recorder:
         if layer is not None:
             layer.time_s += dt
             layer.commanded_mm += commanded_mm
-            layer.judged_mm += commanded_mm if judged else 0.0
             layer.under_mm += under
         layer_no = None if layer is None else layer.layer
         cost = _slowed(last.slowed_time_s, s.slowed_time_s)
@@ -460,7 +456,7 @@ def status_objects(tools: Tools) -> Dict[str, Optional[List[str]]]:
         objects[extruder] = ["temperature", "target"]
         if own.get("sensor"):
             objects[own["sensor"]] = ["grip", "measured_flow", "commanded_flow",
-                                      "filament_position", "fault"]
+                                      "fault"]
         if own.get("limiter"):
             objects[own["limiter"]] = ["cap", "reason", "slowed_time"]
         if own.get("autotemp"):
@@ -503,7 +499,6 @@ def sample_from_status(time_s: float, status: Dict[str, dict], tools: Tools
         sensor_fault=sensor.get("fault"),
         layer=info.get("current_layer"),
         z_mm=position[2] if len(position) > 2 else None,
-        filament_mm=sensor.get("filament_position"),
         profile=auto.get("profile") or active.get("name"),
         working_point=(auto.get("working_point") if auto.get("profile")
                        else active.get("working_point")),
