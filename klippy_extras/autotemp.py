@@ -36,7 +36,8 @@ class Autotemp:
         self.printer = printer = config.get_printer()
         self.host = printer.load_object(config, 'flowloop')
         self.section = config.get_name()
-        self.extruder_name = flowloop_host.tool_extruder(config, 'autotemp')
+        self.extruder_name = (flowloop_host.named_tool(config, 'autotemp')
+                              or config.get('extruder', 'extruder'))
         self.override_m104 = config.getboolean('override_m104', True)
         enabled = config.getboolean('enable', True)
         values = {'time_constant': ('time_constant_s', config.getfloat(

@@ -127,15 +127,13 @@ class FlowloopHost:
         return self.status
 
 
-def tool_extruder(config, kind):
-    """The extruder a per-tool section acts on: its name says it
-    ([flowrate_limiter extruder1]); the plain section has an `extruder`
-    option (read only there: a named section refuses it as Klipper does
-    any option it does not read)."""
+def named_tool(config, kind):
+    """The extruder a per-tool section's name says ([flowrate_limiter
+    extruder1] -> extruder1), or None for the plain section, which reads its
+    `extruder` option itself (a named section refuses that option, as
+    Klipper does any option it does not read)."""
     section = config.get_name()
-    if section != kind:
-        return klipper_config.section_extruder(section)
-    return config.get('extruder', 'extruder')
+    return klipper_config.section_extruder(section) if section != kind else None
 
 
 class ToolMoves:

@@ -41,8 +41,8 @@ class FlowrateLimiter:
         self.host = printer.load_object(config, 'flowloop')
         self.reactor = printer.get_reactor()
         self.section = config.get_name()
-        self.extruder_name = flowloop_host.tool_extruder(config,
-                                                         'flowrate_limiter')
+        self.extruder_name = (flowloop_host.named_tool(config, 'flowrate_limiter')
+                              or config.get('extruder', 'extruder'))
         self.sensor_name = config.get('sensor', None)
         # option -> LimiterSettings field; the limits live in flowloop.control
         values = {'max_flow': config.getfloat('max_flow', None),
