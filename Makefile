@@ -28,7 +28,7 @@ test-quick: $(VENV)/.installed
 	$(PY) -m devtools.quick $(if $(BASE),--base $(BASE))
 
 bench: $(VENV)/.installed  # FLOWLOOP_BENCH_GCODE=DIR: whole slicer files for the G-code benches
-	$(PY) -m pytest tests/bench -m bench -s -p no:cacheprovider
+	FLOWLOOP_BENCH_SIZE=full $(PY) -m pytest tests/bench -m bench -s -p no:cacheprovider
 
 lint: $(VENV)/.installed
 	$(PY) -m ruff check .

@@ -83,12 +83,12 @@ def print_in_chunks(api, lines: List[str],
 
 def print_closed_loop(enable: int, build=None, venv=None,
                       profile: Dict[str, Any] = WEAK_PROFILE,
-                      config: Path = CONFIG, mode: str = "predictive"
-                      ) -> Tuple[Dict[str, Any], float]:
-    """Print the slicer excerpt on the twin with the limiter on (1) or off
-    (0) in `mode`, after warming the nozzle up; the limiter's status (with
-    the toolhead's final `print_time` added) and the filament the twin really
-    moved while printing the file (sent by print_in_chunks)."""
+                      config: Path = CONFIG, mode: str = "predictive",
+                      gcode: Path = GCODE) -> Tuple[Dict[str, Any], float]:
+    """Print the slicer excerpt (or `gcode`) on the twin with the limiter on
+    (1) or off (0) in `mode`, after warming the nozzle up; the limiter's
+    status (with the toolhead's final `print_time` added) and the filament
+    the twin really moved while printing the file (sent by print_in_chunks)."""
     workdir = stack.short_tempdir("fl-limiter-")
     klippy = stack.Klippy(build or stack.build_klipper(),
                           venv or stack.klippy_venv(), config, workdir,
@@ -104,7 +104,7 @@ def print_closed_loop(enable: int, build=None, venv=None,
             warm_up(api, WARM_UP_C)
             before = api.query("flow_sensor sim")["filament_position"] or 0.0
             start = api.query("toolhead")["print_time"]
-            print_in_chunks(api, GCODE.read_text().splitlines())
+            print_in_chunks(api, gcode.read_text().splitlines())
             moved = api.query("flow_sensor sim")["filament_position"] - before
             status = dict(api.query("flowrate_limiter"),
                           print_time=api.query("toolhead")["print_time"] - start)

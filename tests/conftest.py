@@ -73,7 +73,7 @@ def _alone(item, tier: str) -> bool:
 # Tiers whose tests start hosts: tests that share a module-scoped fixture (a
 # stack started once) run on one worker. unit and c tests, and tests that
 # share nothing, are spread one by one.
-GROUPED_TIERS = ("klippy", "moonraker", "fil", "")
+GROUPED_TIERS = ("klippy", "moonraker", "fil", "bench", "")
 SHARED_SCOPES = ("class", "module", "package")
 
 

@@ -48,13 +48,14 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 from flowloop.gcode.fastplan import Segments, plan_batches
+from tests.bench.size import pick
 
 PROJECT = Path(__file__).resolve().parents[2]
 SHARED = Path(os.environ.get("FLOWLOOP_BENCH_GCODE",
                              PROJECT / "no-bench-gcode")) / "parts.gcode"
 EXCERPT = PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
-TARGET_BYTES = 25_000_000
-ROUNDS = 5
+TARGET_BYTES = pick(25_000_000, 300_000)
+ROUNDS = pick(5, 1)
 
 
 def large_file(folder: Path) -> Path:

@@ -23,6 +23,7 @@ and flowloop start at the need of the file's first 30 s (what its M109
 should heat to). Goals (issue #29): flowloop <= 0.1 % short of melt where
 max_temp_c would melt, and a mean within 3 C of the physical limit computed
 from the same demand, on every file.
+from tests.bench.size import pick
 
 The files: whole slicer files (`block.gcode`, `box.gcode`) in the folder
 FLOWLOOP_BENCH_GCODE names, when set and present, else the shipped excerpts;
@@ -72,6 +73,7 @@ from flowloop.gcode.melt import MELT_TIME_S
 from flowloop.gcode.planner import PrinterLimits
 from flowloop.material.ddprint import import_file
 from flowloop.material.profile import Profile
+from tests.bench.size import pick
 
 PROJECT = Path(__file__).resolve().parents[2]
 SHARED = Path(os.environ.get("FLOWLOOP_BENCH_GCODE", PROJECT / "no-bench-gcode"))
@@ -85,8 +87,9 @@ FILES = (("block.gcode", "block_layers_1_2.gcode", 0.4, (PLA_04, PETG_04)),
          ("box.gcode", "box_bridge_layer.gcode", 0.4, (PLA_04, PETG_04)),
          ("", "curves_0.4mm_layers_1_10.gcode", 0.4, (PLA_04, PETG_04)),
          ("", "curves_0.6mm_layers_1_8.gcode", 0.6, (PETG_08,)))
-CASES = [(shared, excerpt, nozzle, profile)
-         for shared, excerpt, nozzle, profiles in FILES for profile in profiles]
+CASES = pick([(shared, excerpt, nozzle, profile)
+              for shared, excerpt, nozzle, profiles in FILES for profile in profiles],
+             [("", "curves_0.6mm_layers_1_8.gcode", 0.6, PETG_08)])
 DEMAND_STEP_S = 0.002
 WP = 0.5
 PARAMS = HotendParams()

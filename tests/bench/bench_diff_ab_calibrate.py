@@ -21,8 +21,9 @@ import time
 import numpy as np
 
 from flowloop.calibrate import diff_ab, pylons
+from tests.bench.size import pick
 
-PRINTERS = 300
+PRINTERS = pick(300, 5)
 DISTANCES = (10.0, 150.0)
 NOMINAL_RD = 40.0
 

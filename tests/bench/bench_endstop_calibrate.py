@@ -22,10 +22,11 @@ import numpy as np
 
 from flowloop.calibrate import delta
 from flowloop.errors import FlowloopError
+from tests.bench.size import pick
 
 FLAT_MM = 0.01
 MAX_ROUNDS = 12
-PRINTERS = 8
+PRINTERS = pick(8, 1)
 PROBE_RADIUS = 100.0
 
 

@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tests.bench.size import pick
+
 try:
     import pytest
 except ImportError:  # the angle.py comparison runs in klippy's venv
@@ -45,7 +47,7 @@ except ImportError:  # the angle.py comparison runs in klippy's venv
 
 from flowloop.sensor import ems22
 
-SAMPLES = 120_000
+SAMPLES = pick(120_000, 4_000)
 
 
 def _text_size(elf) -> int:
@@ -234,13 +236,13 @@ def _feed_run(klipper_build, klippy_venv, workdir, period_s, seconds,
     return float(cpu), int(samples)
 
 
-RUNS = 3
+RUNS = pick(3, 1)
 
 
 def test_host_cpu_per_second_of_data(klipper_build, klippy_venv, bench, tmp_path,
                                      monkeypatch):
     monkeypatch.setenv("FLOW_SENSOR_PROFILE", "1")
-    seconds = 10.0
+    seconds = pick(10.0, 1.0)
     for period in (0.001, ems22.DEFAULT_SAMPLE_PERIOD_S):
         rest = round(period * TICKS_PER_S)
         per_message_s = ems22.records_per_message(rest, TICKS_PER_S) * period

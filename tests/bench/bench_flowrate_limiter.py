@@ -45,6 +45,7 @@ from devtools.demo_flowrate_limiter import (
 )
 from devtools.klippy_api import KlippyApi
 from flowloop.control import rule_plot
+from tests.bench.size import FULL, pick
 from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps
 from tests.klippy.test_flowrate_limiter import AREA, CLOCK_HZ, HERE, gcode_extrusion
 
@@ -58,8 +59,18 @@ def _scaled_profile(profile, scale):
             "lines": lines}
 
 
-def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench):
-    commanded = gcode_extrusion(GCODE)
+# The smoke run's print: the excerpt's first lines (homing and the start of
+# its first layer)
+SMOKE_LINES = 400
+
+
+def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
+                                        tmp_path):
+    gcode = GCODE
+    if not FULL:
+        gcode = tmp_path / "smoke.gcode"
+        gcode.write_text("\n".join(GCODE.read_text().splitlines()[:SMOKE_LINES]))
+    commanded = gcode_extrusion(gcode)
     config = HERE / "flowrate_limiter_bench.cfg"
     # The slip-free bound: the same twin (melt_scale 1 on a profile that says
     # exactly what the bench's twin melts) under the temperature cap alone,
@@ -73,7 +84,7 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench):
             ("predictive", 1, (OPTIMISTIC_PROFILE, config, "predictive")),
             ("knowing the capacity", 1, truthful)):
         status, moved = print_closed_loop(enable, klipper_build, klippy_venv,
-                                          profile, cfg, mode)
+                                          profile, cfg, mode, gcode)
         results[name] = (commanded - moved, status["print_time"])
         bench.figure(f"limiter {name}: under-extruded", commanded - moved, " mm")
         bench.figure(f"limiter {name}: print time", status["print_time"], " s")
@@ -119,7 +130,7 @@ def _klippy_cpu_seconds(build, venv, config, gcode, tmp):
     return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
-RUNS = 5
+RUNS = pick(5, 1)
 
 BED = """
 [heater_bed]
@@ -146,7 +157,7 @@ def test_klippy_host_time_with_the_limiter(klipper_build, klippy_venv, bench,
     # The excerpt (it homes and resets E itself) sixteen times: enough motion
     # that the start-up's scatter does not swamp the difference
     gcode = tmp_path / "long.gcode"
-    gcode.write_text(GCODE.read_text() * 16)
+    gcode.write_text(GCODE.read_text() * pick(16, 1))
     # The best of RUNS each, the four kinds of run taken in turn so that a
     # busy spell on the machine hits all of them; start-up (importing
     # flowloop's numpy and msgspec included) taken off
@@ -225,7 +236,8 @@ def _first_slowed_step(times, step_at_s):
     return None, steady
 
 
-@pytest.mark.parametrize("grip_window_mm", [1.25, 0.5])
+@pytest.mark.alone  # paced to the clock
+@pytest.mark.parametrize("grip_window_mm", pick([1.25, 0.5], [1.25]))
 def test_reaction_time_to_a_step_drop_in_grip(klipper_build, klippy_venv, bench,
                                               grip_window_mm):
     # 1.25 mm: [flow_sensor]'s default grip_window (0.43 s of filament at

@@ -27,13 +27,14 @@ import time
 
 from devtools import stack
 from flowloop.material.profile import MAX_POINTS
+from tests.bench.size import pick
 from tests.samples import make
 
-ROUNDS = 6
-PER_ROUND = 150
-CLIENTS = 4
-LOAD_SECONDS = 4.0  # per path, in LOAD_ROUNDS alternating rounds
-LOAD_ROUNDS = 8
+ROUNDS = pick(6, 1)
+PER_ROUND = pick(150, 10)
+CLIENTS = pick(4, 2)
+LOAD_SECONDS = pick(4.0, 0.5)  # per path, in LOAD_ROUNDS alternating rounds
+LOAD_ROUNDS = pick(8, 1)
 
 
 def timed_gets(port: int, path: str, count: int) -> list:

@@ -69,7 +69,7 @@ def _feed(times, flows, layers, rng, until_s=None):
                           measured_flow_mm3_s=flow * grip, grip=grip,
                           temp_c=215.0, target_c=215.0, planned_temp_c=215.0,
                           cap_mm3_s=None, layer=int(layer) + 1,
-                          filament_mm=None, profile="PLA", working_point=0.5))
+                          profile="PLA", working_point=0.5))
     return rec
 
 

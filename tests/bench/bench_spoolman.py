@@ -17,12 +17,13 @@ import time
 import pytest
 
 from devtools import spoolman, stack
+from tests.bench.size import pick
 from tests.samples import make
 
 pytestmark = pytest.mark.bench
 
 ACCESS = re.compile(r'"(GET|POST|PATCH|PUT|DELETE) (/api/v1/[^ ?"]*)')
-LOADS = 5
+LOADS = pick(5, 1)
 
 
 def _requests(sm) -> list:

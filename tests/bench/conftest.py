@@ -1,6 +1,9 @@
 """`make bench`: figures printed as ratios against a baseline from the same run.
 
 Nothing here asserts a timing; a benchmark fails only if it cannot measure.
+`make bench` runs each at its whole size; `make test` runs each at its
+smallest (tests/bench/size.py), so a change that breaks a bench fails the
+suite, not the next `make bench`.
 """
 
 from __future__ import annotations
