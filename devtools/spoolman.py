@@ -55,7 +55,8 @@ def missing_spoolman_reason() -> Optional[str]:
 
 def _commit(path: Path) -> str:
     try:
-        return subprocess.run(["git", "-C", str(path), "rev-parse", "HEAD"],
+        return subprocess.run(["git", "--no-optional-locks", "-C", str(path),
+                               "rev-parse", "HEAD"],
                               capture_output=True, text=True,
                               check=True).stdout.strip()[:12]
     except (subprocess.CalledProcessError, OSError):

@@ -155,9 +155,12 @@ class KlipperBuild:
 def klipper_key(source: Path = PROJECT, host: str = "klipper") -> str:
     kp = klipper_path(host)
     h = hashlib.sha256()
-    h.update(_run(["git", "-C", str(kp), "rev-parse", "HEAD"]).encode())
-    h.update(_run(["git", "-C", str(kp), "status", "--porcelain"]).encode())
-    h.update(_run(["git", "-C", str(kp), "diff"]).encode())
+    # read only, and no index refresh: `git status` would otherwise write
+    # the user's index (index.lock) while another process copies the .git
+    git = ["git", "--no-optional-locks", "-C", str(kp)]
+    h.update(_run([*git, "rev-parse", "HEAD"]).encode())
+    h.update(_run([*git, "status", "--porcelain"]).encode())
+    h.update(_run([*git, "diff"]).encode())
     h.update(str(source).encode())  # the symlinks point into this checkout
     _hash_files(h, source,
                 [source / "flowloop" / "host" / "install.py"]

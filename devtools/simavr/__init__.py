@@ -35,7 +35,9 @@ def simavr_path() -> Path:
 
 
 def _git(path: Path, *args: str) -> str:
-    return subprocess.run(["git", "-C", str(path), *args], capture_output=True,
+    # read only: never write the user's checkout (no index refresh)
+    return subprocess.run(["git", "--no-optional-locks", "-C", str(path), *args],
+                          capture_output=True,
                           text=True, check=True).stdout.strip()
 
 
