@@ -190,7 +190,10 @@ def build_klipper(source: Path = PROJECT, targets=TARGETS,
         shutil.copytree(klipper_path(host), tmp, symlinks=True, ignore=ignore)
         if link_lib:
             (tmp / "lib").symlink_to(klipper_path(host) / "lib")
+        # what `flowloop install` links, then the EMS22 patch `flowloop
+        # firmware` makes in its own copy (the MCU code is built from both)
         install.apply(install.plan_klipper(tmp, source))
+        install.apply(install.plan_firmware(tmp, source))
         dict_dir = tmp / "flowloop-dict"
         dict_dir.mkdir()
         for target in targets:
@@ -439,10 +442,12 @@ enable_moonlight: False
 class Moonraker(Process):
     def __init__(self, venv: Venv, data_dir: Path, klippy_uds: Optional[Path] = None,
                  extra_conf: str = "", port: Optional[int] = None,
-                 trusted: str = "127.0.0.0/8", moonraker_path: Optional[Path] = None):
+                 trusted: str = "127.0.0.0/8", moonraker_path: Optional[Path] = None,
+                 cwd: Optional[Path] = None):
         """moonraker_path: a folder holding a `moonraker` package to run instead
         of the venv's own (put first on PYTHONPATH; the venv still gives its
-        dependencies)."""
+        dependencies). cwd: the working directory it is started in (`python
+        -m moonraker` puts it first on sys.path; None: this process's)."""
         self.port = port or free_port()
         self.data_dir = data_dir
         config_dir = data_dir / "config"
@@ -462,7 +467,8 @@ class Moonraker(Process):
         env = None
         if moonraker_path is not None:
             env = {**os.environ, "PYTHONPATH": str(moonraker_path)}
-        super().__init__("moonraker", cmd, data_dir / "moonraker.log", env=env)
+        super().__init__("moonraker", cmd, data_dir / "moonraker.log", env=env,
+                         cwd=cwd)
 
     @property
     def url(self) -> str:

@@ -22,6 +22,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+# isort: off
+# first: the installed flowloop, not a folder of that name (importing.py)
+from . import importing  # noqa: F401
+# isort: on
 from flowloop.errors import FlowloopError
 from flowloop.material import profile as fl_profile
 from flowloop.material import spoolman_field
@@ -77,7 +81,7 @@ class Flowloop:
         self.page = Page(self.server, self.store)
         self.reports = Reports(self.server, config.getint(
             "number_of_reports_to_keep", DEFAULT_REPORTS_TO_KEEP, minval=1))
-        self.nozzle_health = NozzleHealth(self.server, self.store.db, hotend)
+        self.nozzle_health = NozzleHealth(self.server, self.store, hotend)
 
     async def component_init(self) -> None:
         await self.store.load()

@@ -8,7 +8,13 @@
 # annotate.MARKER_REGEX is its `ident`, so an annotated file is not processed
 # again. A failure is logged by Moonraker and leaves the file as it was,
 # printable. GET /server/flowloop/annotation tells whether a file is
-# annotated and its peak flow (the annotator's summary line).
+# annotated and its peak flow (the annotator's summary line); POST
+# /server/flowloop/annotation/check runs the registered command on a tiny file
+# from this process, as the metadata script runs it (same environment and
+# working directory), and says in one line why it fails (`flowloop doctor`).
+# The command keeps the working directory off sys.path
+# (flowloop.host.processor_check): Moonraker started from a home holding a
+# flowloop/ clone would otherwise import that folder.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -19,6 +25,7 @@ import sys
 from typing import TYPE_CHECKING, Any, Dict, List, Optional
 
 from flowloop.gcode import annotate
+from flowloop.host import processor_check
 
 from ...common import RequestType, WebRequest
 from . import args
@@ -34,10 +41,7 @@ TAIL_BYTES = 4096
 
 def command(printer_cfg: Optional[str]) -> List[str]:
     """The processor's command line: this Python's flowloop, the file in place."""
-    cmd = [sys.executable, "-m", "flowloop", "annotate"]
-    if printer_cfg:
-        cmd += ["--printer-cfg", printer_cfg]
-    return cmd + ["{gcode_file_path}"]
+    return processor_check.processor_command(sys.executable, printer_cfg)
 
 
 class Processor:
@@ -67,6 +71,9 @@ class Processor:
         register_endpoint(
             self.server, "/server/flowloop/annotation", RequestType.GET,
             self._handle_annotation)
+        register_endpoint(
+            self.server, "/server/flowloop/annotation/check", RequestType.POST,
+            self._handle_check)
 
     async def _handle_annotation(self, web_request: WebRequest) -> Dict[str, Any]:
         filename, path = args.gcode_file(web_request.get_args(),
@@ -77,6 +84,20 @@ class Processor:
         processors = metadata.get("file_processors", [])
         return {"filename": filename, "annotate_uploads": self.enabled,
                 "processed": PROCESSOR_NAME in processors, **state}
+
+
+    async def _handle_check(self, web_request: WebRequest) -> Dict[str, Any]:
+        """The registered command run on a tiny file, as Moonraker runs it."""
+        problem = None
+        if self.enabled:
+            problem = await self.server.get_event_loop().run_in_thread(
+                processor_check.check_processor, self.config["command"],
+                min(self.timeout_s, processor_check.CHECK_TIMEOUT_S))
+        return {"processor": PROCESSOR_NAME, "annotate_uploads": self.enabled,
+                "ok": self.enabled and problem is None,
+                "message": problem if self.enabled else
+                "annotate_uploads is off: uploads are not annotated",
+                "command": self.config["command"], "cwd": os.getcwd()}
 
 
 def _read_state(path: str) -> Dict[str, Any]:

@@ -4,6 +4,7 @@ refuses stays as it was, printable."""
 
 from __future__ import annotations
 
+import shutil
 import urllib.request
 from pathlib import Path
 from urllib.parse import quote
@@ -80,3 +81,46 @@ def test_flowloop_info_names_the_registered_processor(printer):
     status, body = printer.moonraker.request("GET", "/server/flowloop/info")
     assert status == 200, body
     assert body["result"]["gcode_processor"] == "flowloop_autotemp"
+
+
+def test_moonraker_started_from_a_home_holding_the_clone_annotates_uploads(
+        moonraker_venv):
+    # `python -m moonraker` from a folder with flowloop/ in it (the clone):
+    # the component loads, uploads are annotated, the check says so
+    home = stack.short_tempdir("fl-home-")
+    (home / "flowloop" / "flowloop").mkdir(parents=True)
+    data_dir = home / "printer_data"
+    mr = stack.Moonraker(moonraker_venv, data_dir,
+                         extra_conf="annotate_uploads: True", cwd=home)
+    try:
+        mr.wait_ready()
+        info = mr.request("GET", "/server/info")[1]["result"]
+        assert "flowloop" in info["components"], mr.log_tail()
+        mr.upload("home.gcode", GCODE.read_bytes())
+        assert stack.wait_until(lambda: (metadata(mr, "home.gcode") or {}).get(
+            "file_processors"), 120)
+        assert is_annotated(download(mr, "home.gcode")[:4096]), mr.log_tail()
+        status, body = mr.request("POST", "/server/flowloop/annotation/check",
+                                  timeout=90)
+        assert status == 200, body
+        check = body["result"]
+        assert check["ok"] is True and check["message"] is None, check
+        assert check["cwd"] == str(home) and "-m" in check["command"]
+    finally:
+        mr.stop()
+        shutil.rmtree(home, ignore_errors=True)
+
+
+def test_the_check_says_when_uploads_are_not_annotated(moonraker_venv):
+    data_dir = stack.short_tempdir("fl-off-")
+    mr = stack.Moonraker(moonraker_venv, data_dir)
+    try:
+        mr.wait_ready()
+        status, body = mr.request("POST", "/server/flowloop/annotation/check")
+        assert status == 200, body
+        assert body["result"]["ok"] is False
+        assert body["result"]["message"] == ("annotate_uploads is off: uploads"
+                                             " are not annotated")
+    finally:
+        mr.stop()
+        shutil.rmtree(data_dir, ignore_errors=True)
