@@ -189,15 +189,20 @@ class Autotemp:
         " long (written by flowloop annotate)")
 
     def cmd_AUTOTEMP_FLOW(self, gcmd):
+        # read on every printer, so a bad line is refused with or without
+        # a tool to plan for
+        low, high = fl_autotemp.ANNOUNCED_FLOW_MM3_S
+        flow = number(gcmd, 'FLOW', minimum=low, maximum=high)
+        low, high = fl_autotemp.ANNOUNCED_LEAD_S
+        lead = number(gcmd, 'LEAD', minimum=low, maximum=high)
+        duration = number(gcmd, 'DURATION', above=0.,
+                          maximum=fl_autotemp.MAX_ANNOUNCED_DURATION_S)
         # the file's flow is the printing tool's (none: nothing to plan)
         member = self.tools.printing()
         if member is not None:
-            member.announce(gcmd)
+            member.announce(gcmd, flow, lead, duration)
 
-    def announce(self, gcmd):
-        flow = gcmd.get_float('FLOW')
-        lead = gcmd.get_float('LEAD')
-        duration = gcmd.get_float('DURATION')
+    def announce(self, gcmd, flow, lead, duration):
         try:
             self.core.announce(self._print_time(), flow, lead, duration)
         except FlowloopError as e:
@@ -214,16 +219,12 @@ class Autotemp:
         return self.tools.pick(gcmd.get('EXTRUDER', None), gcmd)
 
     def set_autotemp(self, gcmd):
-        enable = gcmd.get_int('ENABLE', None, minval=0, maxval=1)
+        enable = integer(gcmd, 'ENABLE', None, minimum=0, maximum=1)
         wp = gcmd.get('WP', None)
-        try:
-            if wp is not None:
-                wp = None if wp.strip().lower() == 'profile' \
-                    else working_point_arg(wp)
-        except FlowloopError as e:
-            raise gcmd.error(f"SET_AUTOTEMP: WP: {e}; nothing changed") \
-                from None
-        if gcmd.get('WP', None) is not None:
+        given = wp is not None
+        if given:
+            wp = None if wp.strip().lower() == 'profile' \
+                else number(gcmd, 'WP', minimum=0., maximum=1.)
             self.working_point = wp
             self.core.set_working_point(wp, self._print_time())
         if enable is not None:
@@ -258,10 +259,24 @@ class Autotemp:
 
     def _m104_member(self, gcmd):
         """The autotemp of the tool an M104/M109 sets (None: that tool has
-        none, or is not configured: Klipper's own M104 answers), its S."""
-        name = fl_tools.m104_extruder(gcmd.get_int('T', None, minval=0),
-                                      self.tools.active_name())
-        return self.tools.table.get(name), gcmd.get_float('S', 0.)
+        none, or is not configured: Klipper's own M104 answers), its S
+        (finite: Klipper's own M104 would set a nan target; its range is
+        the heater's, which Klipper's M104 checks)."""
+        tool = integer(gcmd, 'T', None, minimum=0)
+        temp_c = number(gcmd, 'S', 0., minimum=0.)
+        name = fl_tools.m104_extruder(tool, self.tools.active_name())
+        member = self.tools.table.get(name)
+        if member is not None and member.heater is not None:
+            member.check_target(gcmd, temp_c)
+        return member, temp_c
+
+    def check_target(self, gcmd, temp_c):
+        try:
+            fl_tools.check_heater_target(temp_c, self.heater.min_temp,
+                                         self.heater.max_temp)
+        except FlowloopError as e:
+            raise gcmd.error(f"{gcmd.get_command()}: {e}; nothing changed") \
+                from None
 
     def m104(self, gcmd, temp_c):
         action = fl_tools.m104_action(
@@ -287,6 +302,10 @@ class Autotemp:
             f" {target}, planned flow {flow}, profile {s['profile'] or 'none'}"
             f" at working point {s['working_point']}"
             + (f"; {s['why']}" if s['why'] else ""))
+
+
+number = flowloop_host.gcode_number
+integer = flowloop_host.gcode_integer
 
 
 def load_config(config):

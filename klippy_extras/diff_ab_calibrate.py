@@ -13,7 +13,8 @@ import re
 from flowloop.calibrate import diff_ab
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
-from flowloop.numbers import parse_numbers
+
+from . import flowloop as flowloop_host
 
 # stepper_x, stepper_x1, ... all move with motor A (X on cartesian)
 AXIS_STEPPER_RE = {axis: re.compile(re.escape(name) + r'\d*$')
@@ -101,8 +102,8 @@ class DiffABCalibrate:
         """Both axes' reading sets from A<k>=, B<k>=, D<k>= (k = 1..9)."""
         ks = range(1, diff_ab.MAX_DISTANCES + 1)
         nominals = {1: self.d1, 2: self.d2}
-        nominals.update({k: gcmd.get_float(f"D{k}", above=0.) for k in ks
-                         if gcmd.get(f"D{k}", None) is not None})
+        nominals.update({k: number(gcmd, f"D{k}", **diff_ab.NOMINAL_DISTANCE_PARAM)
+                         for k in ks if gcmd.get(f"D{k}", None) is not None})
         readings = {axis: {k: gcmd.get(f"{axis.upper()}{k}") for k in ks
                            if gcmd.get(f"{axis.upper()}{k}", None) is not None}
                     for axis in 'ab'}
@@ -122,7 +123,7 @@ class DiffABCalibrate:
 
     def _plan(self, gcmd):
         """Everything decided and checked; nothing changed yet."""
-        force = gcmd.get_int('FORCE', 0, minval=0, maxval=1)
+        force = integer(gcmd, 'FORCE', 0, minimum=0, maximum=1)
         try:
             # the kinematics first: no point asking for readings on a delta
             kin = diff_ab.check_kinematics(self.kinematics)
@@ -178,12 +179,8 @@ class DiffABCalibrate:
         " [TOLERANCE=%/min] [TIMEOUT=s]")
 
     def cmd_WAIT_BED_EQUILIBRIUM(self, gcmd):
-        tolerance = gcmd.get_float('TOLERANCE', self.tolerance, above=0.)
-        timeout = gcmd.get_float('TIMEOUT', self.timeout, above=0.)
-        try:   # klippy's get_float lets 'nan' through: a nan TIMEOUT never ends
-            parse_numbers([timeout], 'TIMEOUT')
-        except FlowloopError as e:
-            raise gcmd.error(f"WAIT_BED_EQUILIBRIUM: {e}") from None
+        tolerance = number(gcmd, 'TOLERANCE', self.tolerance, above=0.)
+        timeout = number(gcmd, 'TIMEOUT', self.timeout, above=0.)
         heater = self.printer.lookup_object(self.bed_heater_name, None)
         if heater is None or not hasattr(heater, 'get_status'):
             self._set_bed_state('no_heater')
@@ -252,6 +249,10 @@ class DiffABCalibrate:
 
     def get_status(self, eventtime=None):
         return self.status
+
+number = flowloop_host.gcode_number
+integer = flowloop_host.gcode_integer
+
 
 def load_config(config):
     return DiffABCalibrate(config)

@@ -13,7 +13,8 @@ import logging
 from flowloop.calibrate import delta
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
-from flowloop.numbers import parse_numbers
+
+from . import flowloop as flowloop_host
 
 try:    # klippy/extras/ (Klipper)
     from . import probe
@@ -34,6 +35,11 @@ def _probe_result(test_pos, offsets):
 METHODS = ('automatic', 'manual')
 # Parameters of ENDSTOP_CALIBRATE that the probe itself must not see.
 OWN_PARAMS = ('SAMPLES', 'RADIUS', 'TOLERANCE')
+# Numbers the probe reads with Klipper's get_float, which lets nan through:
+# read here first (the probe checks its own ranges after)
+PROBE_NUMBERS = ('PROBE_SPEED', 'LIFT_SPEED', 'SAMPLE_RETRACT_DIST',
+                 'SAMPLES_TOLERANCE', 'HORIZONTAL_MOVE_Z', 'SPEED')
+PROBE_INTEGERS = ('SAMPLES_TOLERANCE_RETRIES',)
 
 
 class EndstopCalibrate:
@@ -47,7 +53,8 @@ class EndstopCalibrate:
                 'printer', 'kinematics', f"[{self.name}] is for linear delta"
                 f" printers (kinematics: delta), not {kinematics}"))
         self.radius = config.getfloat('radius', above=0.)
-        self.samples = config.getint('samples', 1, minval=1)
+        self.samples = config.getint('samples', 1, minval=1,
+                                     maxval=delta.MAX_SAMPLES)
         self.tolerance = config.getfloat('tolerance', delta.DEFAULT_TOLERANCE_MM,
                                          above=0.)
         self.geometry_warning = config.getfloat(
@@ -111,15 +118,16 @@ class EndstopCalibrate:
         if method not in METHODS:
             raise gcmd.error("ENDSTOP_CALIBRATE: METHOD must be automatic"
                              f" or manual, not '{method}'")
-        samples = gcmd.get_int('SAMPLES', self.samples, minval=1)
-        tolerance = gcmd.get_float('TOLERANCE', self.tolerance, above=0.)
-        radius = gcmd.get_float('RADIUS', None, above=0.)
-        try:   # klippy's get_float lets 'nan' through its range checks
-            for name, value in (('TOLERANCE', tolerance), ('RADIUS', radius)):
-                if value is not None:
-                    parse_numbers([value], name)
-        except FlowloopError as e:
-            raise gcmd.error(f"ENDSTOP_CALIBRATE: {e}") from None
+        samples = flowloop_host.gcode_integer(gcmd, 'SAMPLES', self.samples,
+                                              minimum=1,
+                                              maximum=delta.MAX_SAMPLES)
+        tolerance = flowloop_host.gcode_number(gcmd, 'TOLERANCE',
+                                               self.tolerance, above=0.)
+        radius = flowloop_host.gcode_number(gcmd, 'RADIUS', None, above=0.)
+        for name in PROBE_NUMBERS:
+            flowloop_host.gcode_number(gcmd, name, None)
+        for name in PROBE_INTEGERS:
+            flowloop_host.gcode_integer(gcmd, name, None, minimum=0)
         if radius is not None and self.fixed_points is not None:
             raise gcmd.error("ENDSTOP_CALIBRATE: RADIUS cannot move the"
                              f" points configured in [{self.name}]")

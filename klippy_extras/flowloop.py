@@ -16,6 +16,7 @@ from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
 from flowloop.material import profile as fl_profile
 from flowloop.material.active import Activation, working_point_arg
+from flowloop.numbers import REQUIRED, read_integer, read_number
 from flowloop.sensor import ems22
 
 SECTIONS = ('flow_sensor', 'flowrate_limiter', 'autotemp',
@@ -196,6 +197,27 @@ class ToolMoves:
             self.next_transform.move(newpos, speed)
         else:
             member.move(newpos, speed)
+
+
+def gcode_number(gcmd, name, default=REQUIRED, **bounds):
+    """A number parameter of a flowloop command, read by flowloop's one
+    reader (Klipper's get_float lets nan through its range checks, reads
+    1_000 and other scripts' digits); bounds: above=, minimum=, maximum=.
+    A refusal is one line naming the command, the parameter and the bound."""
+    return _read(gcmd, read_number, name, default, bounds)
+
+
+def gcode_integer(gcmd, name, default=REQUIRED, **bounds):
+    """A whole-number parameter (ENABLE=1, LAYER=3): minimum=, maximum=."""
+    return _read(gcmd, read_integer, name, default, bounds)
+
+
+def _read(gcmd, reader, name, default, bounds):
+    try:
+        return reader(gcmd.get(name, None), name, default, **bounds)
+    except FlowloopError as e:
+        raise gcmd.error(f"{gcmd.get_command()}: {e}; nothing changed") \
+            from None
 
 
 def host_facts(printer, toolhead, heater):

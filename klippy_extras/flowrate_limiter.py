@@ -174,10 +174,14 @@ class FlowrateLimiter:
         return self.tools.pick(gcmd.get('EXTRUDER', None), gcmd)
 
     def set_limit(self, gcmd):
-        enable = gcmd.get_int('ENABLE', None, minval=0, maxval=1)
+        enable = flowloop_host.gcode_integer(gcmd, 'ENABLE', None, minimum=0,
+                                             maximum=1)
         max_flow = gcmd.get('MAX_FLOW', None)
-        mode = gcmd.get('MODE', None)
         clear = max_flow is not None and max_flow.strip().lower() == 'none'
+        if not clear:
+            max_flow = flowloop_host.gcode_number(gcmd, 'MAX_FLOW', None,
+                                                  above=0.)
+        mode = gcmd.get('MODE', None)
         try:
             self.limiter.configure(
                 enabled=None if enable is None else bool(enable),

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import FlowloopError
 from ..host.klipper_config import KlipperConfig
+from ..numbers import check_result
 
 TOWERS = ("stepper_a", "stepper_b", "stepper_c")
 DEFAULT_ANGLES_DEG = (210.0, 330.0, 90.0)
@@ -29,6 +30,8 @@ DEFAULT_ANGLES_DEG = (210.0, 330.0, 90.0)
 DEFAULT_GEOMETRY_WARNING_MM = 0.02
 # Spread and mean height within which ENDSTOP_CALIBRATE changes nothing.
 DEFAULT_TOLERANCE_MM = 0.01
+# Probes per point (SAMPLES=, the samples option): the median is used
+MAX_SAMPLES = 100
 
 Triple = Tuple[float, float, float]
 
@@ -250,6 +253,9 @@ def solve_endstops(geometry: DeltaGeometry, probes: Sequence[Sequence[float]],
         if iterations >= max_iterations:
             raise FlowloopError(f"endstop fit did not converge in {max_iterations}"
                                 " iterations: check the probe heights")
+    # finite before anything is staged (a position_endstop is any finite mm)
+    endstops = np.array([check_result(e, f"{name}: position_endstop")
+                         for name, e in zip(TOWERS, endstops)])
     heights_after, _ = heights_and_jacobian(endstops)
     towers = geometry.towers
     nearest = tuple(int(np.argmin(np.hypot(pts[:, 0] - tx, pts[:, 1] - ty)))

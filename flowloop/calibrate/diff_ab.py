@@ -27,7 +27,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ..errors import FlowloopError
-from ..numbers import parse_numbers
+from ..numbers import check_result, parse_numbers
 
 # The paper's convergence target: 0.025 % (25 um per 100 mm).
 CONVERGENCE_LIMIT = 2.5e-4
@@ -46,6 +46,8 @@ KINEMATICS = ("corexy", "cartesian")
 # The paper's nominal D1 and D2 (mm): the defaults of the part and the commands.
 NOMINAL_DISTANCES_MM = (10.0, 150.0)
 AXIS_STEPPERS = {"a": "stepper_x", "b": "stepper_y"}
+# D<k>= (mm): a row of pylons fits on a bed
+NOMINAL_DISTANCE_PARAM = {"above": 0.0, "maximum": 1000.0}
 
 
 # --- readings ------------------------------------------------------------
@@ -186,15 +188,18 @@ def fit_axis(reading_sets: Sequence[ReadingSet],
                           for s, m in zip(sets, medians))
         raise FlowloopError(
             f"readings must grow with the nominal distance, got {pairs}")
-    centred = nominal - nominal.mean()
-    sxx = float(np.dot(centred, centred))
-    scale = float(np.dot(centred, medians - medians.mean()) / sxx)
-    intercept = float(medians.mean() - scale * nominal.mean())
-    residuals = medians - (scale * nominal + intercept)
-    # Worst case of a linear estimator: sum of |weight| * eps_max; for two
-    # distances this is the paper's (eps1 + eps2) / (D2 - D1).
-    eps = np.array([budget.eps_max_mm(s) for s in sets])
-    precision = float(np.sum(np.abs(centred) * eps) / sxx)
+    # overflow (a D2=1e308) gives a scale that is not finite: calibrate()
+    # refuses it, so numpy need not warn
+    with np.errstate(all="ignore"):
+        centred = nominal - nominal.mean()
+        sxx = float(np.dot(centred, centred))
+        scale = float(np.dot(centred, medians - medians.mean()) / sxx)
+        intercept = float(medians.mean() - scale * nominal.mean())
+        residuals = medians - (scale * nominal + intercept)
+        # Worst case of a linear estimator: sum of |weight| * eps_max; for
+        # two distances this is the paper's (eps1 + eps2) / (D2 - D1).
+        eps = np.array([budget.eps_max_mm(s) for s in sets])
+        precision = float(np.sum(np.abs(centred) * eps) / sxx)
     slipped = tuple((s.nominal_mm, s.slipped()) for s in sets if s.slipped())
     return AxisFit(scale=scale, precision=precision,
                    uncertainty=precision + budget.trueness,
@@ -321,15 +326,19 @@ def calibrate(kinematics: str,
             fit = fit_axis(sets, budget)
         except FlowloopError as e:
             raise FlowloopError(f"{axis.upper()}: {e}") from None
+        # nan compares false with everything: refused here, FORCE or not
+        check_result(fit.scale, f"{axis.upper()}: scale", above=0.0)
         if abs(fit.scale - 1.0) > max_scale_change and not force:
             raise FlowloopError(
                 f"{axis.upper()}: scale {fit.scale:.5f} is {fit.error_pct:+.2f} % "
                 f"from 1, more than {100 * max_scale_change:g} %: check the readings "
                 f"and D1/D2, or add {force_hint}")
+        # the option's own bound (Klipper: rotation_distance above 0)
+        new_rd = check_result(rds[axis] * fit.scale,
+                              f"{axis.upper()}: new rotation_distance", above=0.0)
         results[axis] = AxisResult(axis=axis, stepper=AXIS_STEPPERS[axis],
                                    old_rotation_distance=rds[axis],
-                                   new_rotation_distance=rds[axis] * fit.scale,
-                                   fit=fit)
+                                   new_rotation_distance=new_rd, fit=fit)
     return Calibration(kinematics=kin, a=results["a"], b=results["b"])
 
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import List, Sequence, Tuple
 
 from ..errors import FlowloopError
-from ..numbers import parse_numbers
+from ..numbers import check_result, parse_numbers
 
 CALIBRATION_RANGE = (0.5, 2.0)    # sensor mm per extruder mm
 MAX_CALIBRATION_SPREAD = 0.02
@@ -50,17 +50,25 @@ class CalibrationFit:
                 f"spread {100 * self.spread:.2f}%")
 
 
-MAX_CALIBRATION_SPEED = 10.0
+# mm/s of an extrude-only calibration move: slow enough that the feeder
+# keeps its grip, fast enough that a length ends (and the toolhead can plan
+# it: Klipper divides by the speed squared)
+CALIBRATION_SPEED_RANGE = (0.05, 10.0)
+MIN_CALIBRATION_SPEED, MAX_CALIBRATION_SPEED = CALIBRATION_SPEED_RANGE
 
 
 def parse_speeds(text: str = DEFAULT_CALIBRATION_SPEEDS) -> List[float]:
-    """CALIBRATE_FLOW_SENSOR's SPEEDS: at least two, in 0..10 mm/s."""
+    """CALIBRATE_FLOW_SENSOR's SPEEDS: at least two, in 0.05..10 mm/s."""
     speeds = parse_numbers(text, "SPEEDS", what="speed", minimum_count=2,
                            positive=True)
     too_fast = [v for v in speeds if v > MAX_CALIBRATION_SPEED]
     if too_fast:
         raise FlowloopError(f"SPEEDS: speed {too_fast[0]:g} is above "
                             f"{MAX_CALIBRATION_SPEED:g} mm/s")
+    too_slow = [v for v in speeds if v < MIN_CALIBRATION_SPEED]
+    if too_slow:
+        raise FlowloopError(f"SPEEDS: speed {too_slow[0]:g} is below "
+                            f"{MIN_CALIBRATION_SPEED:g} mm/s")
     return list(speeds)
 
 
@@ -75,6 +83,9 @@ def fit_calibration(speeds: Sequence[float], commanded_mm: Sequence[float],
     """
     if not (len(speeds) == len(commanded_mm) == len(measured_mm)) or len(speeds) < 2:
         raise FlowloopError("calibration needs at least two speeds")
+    for values in (commanded_mm, measured_mm):
+        for value in values:
+            check_result(value, "an extrusion's length")
     if min(commanded_mm) <= 0:
         raise FlowloopError("the extruder did not move forward")
     ratios = [m / c for m, c in zip(measured_mm, commanded_mm)]
@@ -112,7 +123,8 @@ def rotation_distance_correction(rotation_distance: float, commanded_mm: float,
     rotation_distance is that much larger. With the correction applied, the
     trusted sensor and the extruder agree: calibration is 1.0 again.
     """
-    if commanded_mm <= 0:
+    check_result(measured_mm, "the sensor's length")
+    if not commanded_mm > 0:   # nan too
         raise FlowloopError("the extruder did not move forward")
     ratio = measured_mm / commanded_mm
     _check_direction(ratio)
@@ -120,4 +132,7 @@ def rotation_distance_correction(rotation_distance: float, commanded_mm: float,
         raise FlowloopError(f"the sensor measured {measured_mm:.3f} mm for "
                             f"{commanded_mm:.3f} mm commanded (ratio {ratio:.4f}), "
                             f"more than {100 * max_change:.0f}% off")
-    return RotationDistanceChange(ratio, rotation_distance * ratio, 1.0)
+    # the option's own bound (Klipper: rotation_distance above 0), checked
+    # before anything is applied
+    new = check_result(rotation_distance * ratio, "rotation_distance", above=0.0)
+    return RotationDistanceChange(ratio, new, 1.0)

@@ -31,7 +31,14 @@ from dataclasses import dataclass
 from typing import List, NamedTuple, Optional, Tuple
 
 from ..errors import FlowloopError
-from ..material.profile import Line, Profile, check_working_point, profile_line
+from ..material.profile import (
+    MAX_FLOW_MM3_S,
+    Line,
+    Profile,
+    check_working_point,
+    profile_line,
+)
+from ..numbers import check_result
 from .hotend import HotendModel, HotendParams
 
 GRID_S = 0.1
@@ -76,15 +83,25 @@ class FlowWindow:
     flow_mm3_s: float
 
 
+# AUTOTEMP_FLOW's bounds: more than any hotend melts, further ahead and
+# longer than any annotation (flowloop.gcode.annotate: LEAD and DURATION at
+# most its MAX_LEAD_S); beyond them the plan's grid would overflow
+ANNOUNCED_FLOW_MM3_S = (0.0, MAX_FLOW_MM3_S)
+ANNOUNCED_LEAD_S = (0.0, 3600.0)
+MAX_ANNOUNCED_DURATION_S = 3600.0
+
+
 def check_announcement(flow_mm3_s: float, lead_s: float, duration_s: float
                        ) -> None:
-    """AUTOTEMP_FLOW's numbers: finite, flow and lead >= 0, duration > 0."""
-    for name, value in (("FLOW", flow_mm3_s), ("LEAD", lead_s),
-                        ("DURATION", duration_s)):
-        if not math.isfinite(value) or value < 0.0:
-            raise FlowloopError(f"{name} must be a number >= 0, not {value:g}")
-    if duration_s <= 0.0:
-        raise FlowloopError(f"DURATION must be above 0 s, not {duration_s:g}")
+    """AUTOTEMP_FLOW's numbers: finite, flow and lead >= 0, duration > 0,
+    each within its bound (the bound in the message: "DURATION: must be
+    above 0 and at most 3600, got nan")."""
+    low, high = ANNOUNCED_FLOW_MM3_S
+    check_result(flow_mm3_s, "FLOW", minimum=low, maximum=high)
+    low, high = ANNOUNCED_LEAD_S
+    check_result(lead_s, "LEAD", minimum=low, maximum=high)
+    check_result(duration_s, "DURATION", above=0.0,
+                 maximum=MAX_ANNOUNCED_DURATION_S)
 
 
 class TemperaturePlan:

@@ -74,6 +74,17 @@ def heater_off(temp_c: float) -> bool:
     return temp_c <= 0.0
 
 
+def check_heater_target(temp_c: float, min_temp_c: float,
+                        max_temp_c: float) -> float:
+    """An M104/M109 S: 0 (off) or within the heater's min_temp..max_temp, as
+    Klipper's heater checks it; checked before autotemp keeps it as the
+    user's target or overrides it."""
+    if temp_c and not min_temp_c <= temp_c <= max_temp_c:
+        raise FlowloopError(f"S: must be 0 or from {min_temp_c:g} to"
+                            f" {max_temp_c:g}, got {temp_c:g}")
+    return temp_c
+
+
 def m104_action(temp_c: float, printing: bool, overrides: bool) -> str:
     """What a tool's autotemp does with an M104 for its tool: 'stop' (a
     heater turned off is always obeyed, and autotemp stands down), 'override'

@@ -52,7 +52,16 @@ from ..errors import FlowloopError
 from ..window import Window
 from . import fit as fl_fit
 from . import measure as fl_measure
-from .profile import Bounds, MeasuredPoint, Profile, min_grip_of, profile_line
+from .profile import (
+    MAX_FLOW_MM3_S,
+    MAX_TEMP_C,
+    MIN_TEMP_C,
+    Bounds,
+    MeasuredPoint,
+    Profile,
+    min_grip_of,
+    profile_line,
+)
 
 READING_INTERVAL_S = 1.0    # between temperature readings while waiting
 MAX_MOVE_S = 1.0            # per extrude-only move of a step
@@ -63,6 +72,14 @@ RECENT_WINDOWS = 8
 NAME = "MEASURE_MATERIAL_PROFILE"
 PRINT_NAME = "MEASURE_MATERIAL_PROFILE_PRINT"
 SHUT_DOWN = "Klipper shut down"
+
+# The bounds of the commands' numbers, as flowloop.numbers reads them (the
+# adapter passes them on; docs/reference.md states them)
+TEMP_PARAM = {'minimum': MIN_TEMP_C, 'maximum': MAX_TEMP_C}     # degC
+FLOW_PARAM = {'above': 0.0, 'maximum': MAX_FLOW_MM3_S}          # mm^3/s
+MIN_GRIP_PARAM = {'above': 0.0, 'below': 1.0}
+SWITCH_PARAM = {'minimum': 0, 'maximum': 1}                    # ACTIVATE=
+LAYER_PARAM = {'minimum': 1}
 
 
 # --- the actions -------------------------------------------------------------

@@ -40,6 +40,8 @@ SCHEMA_VERSION = 1
 DEFAULT_WORKING_POINT = 0.5
 MIN_TEMP_C = 0.0
 MAX_TEMP_C = 500.0
+# more than any hotend melts: the bound of every flow a command is given
+MAX_FLOW_MM3_S = 1000.0
 MAX_NAME_CHARS = 128
 MAX_TEXT_CHARS = 256
 # Size limits: validation, encoding and storage stay cheap (Moonraker and

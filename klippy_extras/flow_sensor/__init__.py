@@ -28,6 +28,7 @@ else:   # Klipper: klippy/extras/flow_sensor/, extras one up
     import chelper
 
     from .. import bulk_sensor
+from .. import flowloop as flowloop_host
 from .source import Ems22Source
 from .twin import SimulatedSource
 
@@ -273,18 +274,19 @@ class FlowSensor:
         "Extrude at slow speeds and set sensor mm per extruder mm")
 
     def cmd_CALIBRATE_FLOW_SENSOR(self, gcmd):
+        # every parameter read and checked before the first extrusion
         low, high = sensor_cal.CALIBRATION_LENGTH_RANGE
-        length = gcmd.get_float('LENGTH', sensor_cal.CALIBRATION_LENGTH_MM,
-                                minval=low, maxval=high)
+        length = number(gcmd, 'LENGTH', sensor_cal.CALIBRATION_LENGTH_MM,
+                        minimum=low, maximum=high)
         try:
             speeds = sensor_cal.parse_speeds(
                 gcmd.get('SPEEDS', sensor_cal.DEFAULT_CALIBRATION_SPEEDS))
         except FlowloopError as e:
-            raise gcmd.error(str(e)) from None
+            raise gcmd.error(f"CALIBRATE_FLOW_SENSOR: {e}; nothing changed") \
+                from None
         low, high = sensor_cal.MAX_CALIBRATION_SPREAD_RANGE
-        max_spread = gcmd.get_float('MAX_SPREAD',
-                                    sensor_cal.MAX_CALIBRATION_SPREAD,
-                                    minval=low, maxval=high)
+        max_spread = number(gcmd, 'MAX_SPREAD', sensor_cal.MAX_CALIBRATION_SPREAD,
+                            minimum=low, maximum=high)
         self._check_extruder(gcmd)
         commanded, measured = [], []
         for i, speed in enumerate(speeds):
@@ -314,10 +316,11 @@ class FlowSensor:
 
     def cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE(self, gcmd):
         low, high = sensor_cal.ROTATION_DISTANCE_LENGTH_RANGE
-        length = gcmd.get_float('LENGTH', sensor_cal.ROTATION_DISTANCE_LENGTH_MM,
-                                minval=low, maxval=high)
-        speed = gcmd.get_float('SPEED', sensor_cal.ROTATION_DISTANCE_SPEED_MM_S,
-                               above=0., maxval=sensor_cal.MAX_CALIBRATION_SPEED)
+        length = number(gcmd, 'LENGTH', sensor_cal.ROTATION_DISTANCE_LENGTH_MM,
+                        minimum=low, maximum=high)
+        low, high = sensor_cal.CALIBRATION_SPEED_RANGE
+        speed = number(gcmd, 'SPEED', sensor_cal.ROTATION_DISTANCE_SPEED_MM_S,
+                       minimum=low, maximum=high)
         self._check_extruder(gcmd)
         stepper = self.extruder.extruder_stepper.stepper
         old_rd = stepper.get_rotation_distance()[0]
@@ -405,6 +408,7 @@ class ExtruderMotion(fl_pipeline.Motion):
 
 
 SOURCES = {'ems22': Ems22Source, 'simulated': SimulatedSource}
+number = flowloop_host.gcode_number
 
 
 def load_config_prefix(config):

@@ -38,7 +38,11 @@ from flowloop.sensor import grip as flow_grip
 
 # A package (this file and run.py): klippy/extras/measure_profile/ on
 # Klipper, klippy/plugins/measure_profile/ on Kalico
+from .. import flowloop as flowloop_host
 from .run import MeasurementStopped, Run
+
+number = flowloop_host.gcode_number
+integer = flowloop_host.gcode_integer
 
 STORE_METHOD = "flowloop_store_profile"
 NAME = fl_proc.NAME
@@ -192,21 +196,27 @@ class MeasureProfile:
         """Everything checked before anything changes (bad input: one line)."""
         name = gcmd.get('NAME')
         extruder_name = gcmd.get('EXTRUDER', 'extruder')
+        min_temp = number(gcmd, 'MIN_TEMP', None, **fl_proc.TEMP_PARAM)
+        max_temp = number(gcmd, 'MAX_TEMP', None, **fl_proc.TEMP_PARAM)
+        start_flow = number(gcmd, 'START_FLOW', None, **fl_proc.FLOW_PARAM)
+        step = number(gcmd, 'STEP', fl_measure.DEFAULT_STEP_MM3_S,
+                      **fl_proc.FLOW_PARAM)
+        max_flow = number(gcmd, 'MAX_FLOW', fl_measure.DEFAULT_MAX_FLOW_MM3_S,
+                          **fl_proc.FLOW_PARAM)
+        min_grip = number(gcmd, 'MIN_GRIP', None, **fl_proc.MIN_GRIP_PARAM)
+        activate = integer(gcmd, 'ACTIVATE', 0, **fl_proc.SWITCH_PARAM)
         try:
             fl_profile.check_name(name)
             extruder, heater = self._extruder(extruder_name)
             sensor = self._sensor(extruder_name)
             base = self._base(extruder_name)
-            bounds = fl_proc.bounds_for(base, gcmd.get_float('MIN_TEMP', None),
-                                        gcmd.get_float('MAX_TEMP', None),
+            bounds = fl_proc.bounds_for(base, min_temp, max_temp,
                                         heater.max_temp)
             plan = fl_measure.make_plan(
                 self._levels(gcmd.get('TEMPS', None), 'TEMPS'),
                 self._levels(gcmd.get('POWERS', None), 'POWERS'),
-                gcmd.get_float('START_FLOW', None),
-                gcmd.get_float('STEP', fl_measure.DEFAULT_STEP_MM3_S),
-                gcmd.get_float('MAX_FLOW', fl_measure.DEFAULT_MAX_FLOW_MM3_S),
-                fl_profile.min_grip_of(base, gcmd.get_float('MIN_GRIP', None)),
+                start_flow, step, max_flow,
+                fl_profile.min_grip_of(base, min_grip),
                 bounds.min_temp_c, bounds.max_temp_c)
             limits, rules = watchdog.for_measurement(bounds, self.host_timeout)
             toolhead = self.printer.lookup_object('toolhead')
@@ -217,9 +227,7 @@ class MeasureProfile:
         procedure = fl_proc.Procedure(name, plan, bounds, self.settings, base,
                                       _hardware(extruder, heater), rules)
         return Run(self.printer, procedure, self.status.running(name),
-                   extruder_name, heater,
-                   sensor, limits,
-                   bool(gcmd.get_int('ACTIVATE', 0, minval=0, maxval=1)))
+                   extruder_name, heater, sensor, limits, bool(activate))
 
     def _run(self, run):
         gcode = self.printer.lookup_object('gcode')
@@ -275,7 +283,8 @@ class MeasureProfile:
         self._refuse(gcmd, PRINT_NAME)
         name = gcmd.get('NAME')
         extruder_name = gcmd.get('EXTRUDER', 'extruder')
-        activate = bool(gcmd.get_int('ACTIVATE', 0, minval=0, maxval=1))
+        activate = bool(integer(gcmd, 'ACTIVATE', 0, **fl_proc.SWITCH_PARAM))
+        min_grip = number(gcmd, 'MIN_GRIP', None, **fl_proc.MIN_GRIP_PARAM)
         try:
             fl_profile.check_name(name)
             extruder, heater = self._extruder(extruder_name)
@@ -283,8 +292,7 @@ class MeasureProfile:
             fl_proc.check_sensor(sensor.name, sensor.get_status()['fault'])
             base = fl_proc.print_base(self._base(extruder_name))
             measurement = fl_proc.PrintMeasurement(
-                name, base, gcmd.get_float('MIN_GRIP', None),
-                _hardware(extruder, heater))
+                name, base, min_grip, _hardware(extruder, heater))
         except FlowloopError as e:
             raise gcmd.error(f"{PRINT_NAME}: {e}; nothing changed") from None
         self.watch = PrintSession(measurement, extruder_name, sensor, activate)
@@ -302,8 +310,8 @@ class MeasureProfile:
         " measure-part writes it)")
 
     def cmd_MEASURE_MATERIAL_PROFILE_LAYER(self, gcmd):
-        gcmd.get_int('LAYER', minval=1)   # checked; the file's own count
-        flow = gcmd.get_float('FLOW', above=0.)
+        integer(gcmd, 'LAYER', **fl_proc.LAYER_PARAM)   # the file's own count
+        flow = number(gcmd, 'FLOW', **fl_proc.FLOW_PARAM)
         if self.watch is not None:
             # The layer's moves begin after those queued so far
             start = self.printer.lookup_object('toolhead').get_last_move_time()
