@@ -39,19 +39,35 @@ Across prints (`judge`, per hotend and profile) a warning needs one of:
   significantly below 1 - HEALTHY_MARGIN.
 One print never warns: both need at least PERSISTENT_PRINTS estimates.
 docs/nozzle_health.md works the numbers through.
+
+What comes from outside (klippy's snapshots, a POST of a replayed print, the
+stored history) is read whole here and refused with one line when any part
+of it is not what a print can give (`PrintEvidence.from_dict`,
+`post_request`); a stored print that no longer reads is skipped and said
+(`load_history`), one record per job (`with_print`).
 """
 
 from __future__ import annotations
 
+import json
 import math
+import re
 import uuid
 from dataclasses import dataclass, field
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Any, Collection, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
 from ..errors import FlowloopError
-from ..material.profile import Line, Profile, min_grip_of, profile_line
+from ..material.profile import (
+    Line,
+    Profile,
+    check_name,
+    check_working_point,
+    min_grip_of,
+    profile_line,
+)
+from ..report.dump import check_job_id
 from ..window import Window
 from .grip_model import DEFAULT_FILAMENT_AREA_MM2, judged_flow_mm3_s
 
@@ -64,6 +80,9 @@ MIN_NOISE_WINDOWS = 20
 # One count of a ~128-count window: the least scatter a reading can have
 # (a noiseless simulation would otherwise claim infinite precision).
 MIN_GRIP_NOISE = 0.002
+# The mean grip of the easy windows divides every grip: a sensor reading
+# below this where the flow kept up is too far off to judge anything by.
+MIN_GRIP_SCALE = 0.1
 MAX_STANDARD_ERROR = 0.05
 # A hotend within this of its profile is as the profile says: a profile's
 # own measurement repeats to a few % (the window model itself reads the
@@ -80,6 +99,15 @@ GRID_SUMS = ("cross", "model_sq", "information")
 # its dict holds beside the grid sums (one list for every place that walks them)
 COUNTS = ("windows", "unjudged", "faulted", "no_temperature", "noise_windows")
 SUMS = ("noise_sum", "noise_sum_sq", "grip_sq")
+# The sums of squares (never below 0; a difference of two snapshots rounds)
+SQUARE_SUMS = ("noise_sum_sq", "grip_sq", "model_sq", "information")
+# Far beyond any printer's evidence (a window adds ~1, a year of windows is
+# ~1e7) and far below where the estimate's arithmetic overflows.
+MAX_COUNT = 10 ** 12
+MAX_SUM = 1e15
+EPOCH = re.compile(r"[0-9A-Za-z_-]{1,32}")
+# The prints kept per hotend and profile (the verdict needs TREND_PRINTS)
+MAX_PRINTS_KEPT = 50
 
 
 def _grid_zeros() -> np.ndarray:
@@ -172,27 +200,76 @@ class PrintEvidence:
 
     @classmethod
     def from_dict(cls, data: Any) -> PrintEvidence:
+        """Evidence as to_dict gave it, checked whole: every count a whole
+        number in 0..MAX_COUNT, every sum finite within MAX_SUM (sums of
+        squares not negative), the profile a profile name. FlowloopError
+        (one line) for anything else."""
         try:
-            if data.get("version") != EVIDENCE_VERSION:
-                raise FlowloopError(f"nozzle evidence version "
-                                    f"{data.get('version')!r} is not "
-                                    f"{EVIDENCE_VERSION}")
-            out = cls(str(data["profile"]), float(data["working_point"]),
-                      float(data["min_grip"]), str(data["epoch"]))
-            for name in COUNTS:
-                setattr(out, name, int(data[name]))
-            for name in SUMS:
-                setattr(out, name, float(data[name]))
-            for name in GRID_SUMS:
-                values = np.asarray(data[name], dtype=np.float64)
-                if values.shape != RATIO_GRID.shape:
-                    raise FlowloopError(f"nozzle evidence {name} has "
-                                        f"{values.size} values, not "
-                                        f"{RATIO_GRID.size}")
-                setattr(out, name, values)
-        except (AttributeError, KeyError, TypeError, ValueError) as e:
-            raise FlowloopError(f"not nozzle evidence: {e!r}") from None
+            return cls._checked(data)
+        except FlowloopError as e:
+            raise FlowloopError(f"not nozzle evidence: {e}") from None
+
+    @classmethod
+    def _checked(cls, data: Any) -> PrintEvidence:
+        if not isinstance(data, Mapping):
+            raise FlowloopError(f"an object is needed, got {_shown(data)}")
+        version = data.get("version")
+        if type(version) is not int or version != EVIDENCE_VERSION:
+            raise FlowloopError(f"version {_shown(version)} is not "
+                                f"{EVIDENCE_VERSION}")
+        for name in ("profile", "working_point", "min_grip", "epoch",
+                     *COUNTS, *SUMS, *GRID_SUMS):
+            if name not in data:
+                raise FlowloopError(f"{name} is missing")
+        min_grip = _number(data["min_grip"], "min_grip")
+        if not 0.0 < min_grip <= 1.0:
+            raise FlowloopError(f"min_grip must be in (0, 1], got {min_grip:g}")
+        epoch = data["epoch"]
+        if not isinstance(epoch, str) or not EPOCH.fullmatch(epoch):
+            raise FlowloopError(f"epoch {_shown(epoch)} is not 1-32 letters, "
+                                f"digits, '_' or '-'")
+        out = cls(check_name(data["profile"]),
+                  check_working_point(data["working_point"]), min_grip, epoch)
+        for name in COUNTS:
+            setattr(out, name, _count(data[name], name))
+        for name in SUMS:
+            setattr(out, name, _number(data[name], name, name in SQUARE_SUMS))
+        for name in GRID_SUMS:
+            values = data[name]
+            if not isinstance(values, list) or len(values) != len(RATIO_GRID):
+                raise FlowloopError(f"{name} must be a list of {len(RATIO_GRID)}"
+                                    f" numbers, got {_shown(values)}")
+            setattr(out, name, np.array(
+                [_number(v, name, name in SQUARE_SUMS) for v in values],
+                dtype=np.float64))
         return out
+
+
+def _shown(value: Any) -> str:
+    """A value from outside as one short line of a refusal."""
+    try:
+        text = json.dumps(value)
+    except (TypeError, ValueError, RecursionError):
+        text = type(value).__name__
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _number(value: Any, name: str, square: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not -MAX_SUM <= value <= MAX_SUM:   # also refuses NaN
+        raise FlowloopError(f"{name} must be a number within +/-{MAX_SUM:g}, "
+                            f"got {_shown(value)}")
+    if square and value < 0:
+        raise FlowloopError(f"{name} is a sum of squares, got {_shown(value)}")
+    return float(value)
+
+
+def _count(value: Any, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) \
+            or not 0 <= value <= MAX_COUNT:
+        raise FlowloopError(f"{name} must be a whole number in 0..{MAX_COUNT}, "
+                            f"got {_shown(value)}")
+    return value
 
 
 def _pieces(commanded_flows: Sequence[float], mean_mm3_s: float) -> np.ndarray:
@@ -215,8 +292,17 @@ def evidence_between(start: Optional[PrintEvidence],
     if start is None or start.epoch != end.epoch:
         return end
     out = PrintEvidence(end.profile, end.working_point, end.min_grip, end.epoch)
-    for name in COUNTS + SUMS + GRID_SUMS:
-        setattr(out, name, getattr(end, name) - getattr(start, name))
+    for name in COUNTS:
+        count = getattr(end, name) - getattr(start, name)
+        if count < 0:
+            raise FlowloopError(f"not nozzle evidence: the start counts more "
+                                f"{name} than the end of the same sum")
+        setattr(out, name, count)
+    for name in SUMS + GRID_SUMS:
+        value = getattr(end, name) - getattr(start, name)
+        if name in SQUARE_SUMS:   # rounding, or a start from another sum
+            value = np.maximum(value, 0.0) if name in GRID_SUMS else max(value, 0.0)
+        setattr(out, name, value)
     return out
 
 
@@ -254,21 +340,34 @@ class PrintEstimate:
                 "min_grip": self.min_grip, "reason": self.reason}
 
     @classmethod
-    def from_dict(cls, data: Dict[str, Any]) -> PrintEstimate:
+    def from_dict(cls, data: Any) -> PrintEstimate:
+        """An estimate as to_dict gave it (a stored print); FlowloopError for
+        one that is not (a missing or non-finite number, a wrong type)."""
+        if not isinstance(data, Mapping):
+            raise FlowloopError(f"not a nozzle health estimate: {_shown(data)}")
         try:
-            return cls(profile=str(data["profile"]), ratio=_opt(data.get("ratio")),
-                       standard_error=_opt(data.get("standard_error")),
-                       grip_noise=_opt(data.get("grip_noise")),
-                       at_least=_opt(data.get("at_least")),
-                       windows=int(data.get("windows", 0)),
-                       min_grip=float(data.get("min_grip", 0.9)),
-                       reason=str(data.get("reason", "")))
-        except (AttributeError, KeyError, TypeError, ValueError) as e:
-            raise FlowloopError(f"not a nozzle health estimate: {e!r}") from None
+            out = cls(profile=check_name(data["profile"]),
+                      ratio=_opt(data.get("ratio"), "ratio"),
+                      standard_error=_opt(data.get("standard_error"),
+                                          "standard_error"),
+                      grip_noise=_opt(data.get("grip_noise"), "grip_noise"),
+                      at_least=_opt(data.get("at_least"), "at_least"),
+                      windows=_count(data.get("windows", 0), "windows"),
+                      min_grip=_number(data.get("min_grip", 0.9), "min_grip"),
+                      reason=data.get("reason", ""))
+        except KeyError as e:
+            raise FlowloopError(f"not a nozzle health estimate: {e} is "
+                                f"missing") from None
+        except FlowloopError as e:
+            raise FlowloopError(f"not a nozzle health estimate: {e}") from None
+        if not isinstance(out.reason, str):
+            raise FlowloopError(f"not a nozzle health estimate: reason "
+                                f"{_shown(out.reason)}")
+        return out
 
 
-def _opt(value: Any) -> Optional[float]:
-    return None if value is None else float(value)
+def _opt(value: Any, name: str) -> Optional[float]:
+    return None if value is None else _number(value, name)
 
 
 def estimate(evidence: Optional[PrintEvidence]) -> PrintEstimate:
@@ -276,7 +375,18 @@ def estimate(evidence: Optional[PrintEvidence]) -> PrintEstimate:
     if evidence is None:
         return PrintEstimate("", reason="no active profile during the print: "
                              "nothing to compare the hotend with")
-    ev = evidence
+    with np.errstate(all="ignore"):
+        found = _estimate(evidence)
+    numbers = (found.ratio, found.standard_error, found.grip_noise)
+    if all(v is None or math.isfinite(v) for v in numbers):
+        return found
+    # sums no print gives (each finite, together out of any sensor's range)
+    return PrintEstimate(evidence.profile, windows=evidence.windows,
+                         min_grip=evidence.min_grip,
+                         reason="the evidence's sums give no finite estimate")
+
+
+def _estimate(ev: PrintEvidence) -> PrintEstimate:
     base = dict(profile=ev.profile, windows=ev.windows, min_grip=ev.min_grip)
     if ev.windows == 0:
         if ev.faulted:
@@ -294,7 +404,12 @@ def estimate(evidence: Optional[PrintEvidence]) -> PrintEstimate:
     at_least = (float(RATIO_GRID[min(asked[-1] + 1, len(RATIO_GRID) - 1)])
                 if len(asked) else None)
     base.update(grip_noise=noise, at_least=at_least)
-    residual = ev.residual_sq(1.0 + ev.noise_sum / ev.noise_windows)
+    grip_scale = 1.0 + ev.noise_sum / ev.noise_windows
+    if not grip_scale > MIN_GRIP_SCALE:
+        return PrintEstimate(**base, reason=(
+            f"the sensor read a mean grip of {grip_scale:.3g} where the flow "
+            f"kept up: check its calibration"))
+    residual = ev.residual_sq(grip_scale)
     k = int(np.argmin(residual))
     kept_up = ev.information <= 0.0
     share = "none" if at_least is None else f"{at_least:.0%}"
@@ -429,3 +544,77 @@ def printed_between(before: Optional[Dict[str, Any]],
         return False
     return before is None or any(after.get(name) != before.get(name)
                                  for name in ("epoch",) + COUNTS)
+
+
+# --- what is stored and what comes from outside ------------------------------
+
+@dataclass(frozen=True)
+class PostedPrint:
+    """A print's evidence posted from elsewhere (a replayed or offline
+    print), checked whole."""
+
+    job_id: str
+    start: Optional[PrintEvidence]
+    end: Optional[PrintEvidence]
+
+
+def post_request(given: Mapping[str, Any],
+                 profiles: Collection[str]) -> PostedPrint:
+    """The arguments of a nozzle health POST (job_id, start, evidence), every
+    part checked before anything is stored: a job id as Moonraker's history
+    gives them, evidence as klippy gives it, for a profile stored here
+    (`profiles`). FlowloopError (one line) for anything else."""
+    job_id = check_job_id(given.get("job_id"))
+    start, end = (None if given.get(key) is None else
+                  PrintEvidence.from_dict(given[key])
+                  for key in ("start", "evidence"))
+    if end is None and start is not None:
+        raise FlowloopError("a start without evidence (argument 'evidence')")
+    if start is not None and end is not None and start.epoch == end.epoch \
+            and start.profile != end.profile:
+        raise FlowloopError("the start and the evidence are one sum but name "
+                            "two profiles")
+    if end is not None and end.profile not in profiles:
+        raise FlowloopError(f"no profile named {label(end.profile)}: evidence "
+                            f"is kept for stored profiles only")
+    evidence_between(start, end)    # refuses a start that counts past the end
+    return PostedPrint(job_id, start, end)
+
+
+def with_print(prints: Sequence[Dict[str, Any]],
+               entry: Dict[str, Any]) -> List[Dict[str, Any]]:
+    """The stored prints with `entry` added: one record per job (the job's
+    earlier record replaced), the newest MAX_PRINTS_KEPT kept."""
+    kept = [p for p in prints if p.get("job_id") != entry.get("job_id")]
+    return (kept + [entry])[-MAX_PRINTS_KEPT:]
+
+
+def load_history(stored: Any) -> Tuple[List[Dict[str, Any]],
+                                       List[PrintEstimate], List[str]]:
+    """(the stored prints that read, their estimates, why each other one
+    does not): a print that no longer reads is skipped, never blocks the
+    ones after it."""
+    prints = stored.get("prints") if isinstance(stored, Mapping) else None
+    if not isinstance(prints, list):
+        return [], [], [f"the history is not a list of prints: {_shown(stored)}"]
+    kept: List[Dict[str, Any]] = []
+    estimates: List[PrintEstimate] = []
+    problems: List[str] = []
+    for k, entry in enumerate(prints):
+        try:
+            estimates.append(PrintEstimate.from_dict(entry))
+        except FlowloopError as e:
+            problems.append(f"print {k}: {e}")
+            continue
+        kept.append(entry)
+    return kept, estimates, problems
+
+
+def label(name: str) -> str:
+    """A name as one line of text that is safe as HTML too: JSON-quoted,
+    ASCII, with <, >, & and ' as JSON escapes (a console line, an
+    announcement's title: no forged line, no markup)."""
+    text = json.dumps(name)
+    for ch in "<>&'":
+        text = text.replace(ch, f"\\u{ord(ch):04x}")
+    return text

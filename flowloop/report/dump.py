@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from .. import files
 from ..errors import FlowloopError
@@ -30,10 +31,28 @@ from .recorder import (
 FORMAT = "flowloop-flow-report"
 VERSION = 1
 # A stored report's name: its job's id in Moonraker's history (hex digits)
-JOB_ID = re.compile(r"^[0-9A-F]{1,16}$")
+JOB_ID = re.compile(r"[0-9A-F]{1,16}")
+# A job id as Moonraker's history gives them: its number as f"{n:06X}"
+MOONRAKER_JOB_ID = re.compile(r"[0-9A-F]{6,16}")
+# A report's job and the history's job of the same id started together
+# (the same job), not within this (the id reused after the history was cleared)
+SAME_START_S = 1.0
 # totals kept as they are (everything else is rebuilt)
 _COUNTS = ("samples", "sensor_samples", "faulted_samples", "planned_samples",
            "events_dropped")
+
+
+def check_job_id(value: Any) -> str:
+    """A job id as Moonraker's history names jobs (6 to 16 hex digits;
+    lower-case ASCII letters read as upper-case, no other character folded
+    into one). FlowloopError (one line) for anything else."""
+    if isinstance(value, str) and value.isascii() \
+            and MOONRAKER_JOB_ID.fullmatch(value.upper()):
+        return value.upper()
+    shown = json.dumps(value)[:40] if isinstance(value, str) \
+        else type(value).__name__
+    raise FlowloopError(f"job id {shown} is not a job of Moonraker's history "
+                        f"(6 to 16 hex digits, e.g. 00002A)")
 
 
 def to_dict(rec: Recorder) -> Dict[str, Any]:
@@ -137,26 +156,87 @@ def save(path: Path, text: str) -> None:
     files.write_text_atomically(path, text)
 
 
-def stored(folder: Path) -> List[Path]:
-    """The dumps stored in a folder (JOB.json), newest job first."""
+@dataclasses.dataclass(frozen=True)
+class StoredReport:
+    """A stored dump as pruning sees it: its job and when that job ended."""
+
+    path: Path
+    job_id: str
+    started_at: Optional[float]   # None: a dump that does not say
+    ended_at: float               # the job's start plus its length, else the
+                                  # file's time (written as the job ended)
+
+
+def _stored_report(path: Path) -> StoredReport:
+    started = ended = None
+    try:
+        job = json.loads(path.read_text(encoding="utf-8")).get("job") or {}
+        started, length = job.get("started_at"), job.get("end_s")
+        started = float(started) if started is not None else None
+        if started is not None and length is not None:
+            ended = started + float(length)
+    except (OSError, ValueError, TypeError, AttributeError, RecursionError):
+        pass    # listed with its problem; its file's time orders it
+    if ended is None or not math.isfinite(ended):
+        try:
+            ended = path.stat().st_mtime
+        except OSError:
+            ended = 0.0
+    return StoredReport(path, path.stem, started, ended)
+
+
+def stored_reports(folder: Path) -> List[StoredReport]:
+    """The dumps stored in a folder (JOB.json), the job that ended last
+    first (Moonraker reuses job ids once its history is cleared: the number
+    says nothing of the order)."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
-    dumps = [p for p in folder.glob("*.json") if JOB_ID.match(p.stem)]
-    return sorted(dumps, key=lambda p: int(p.stem, 16), reverse=True)
+    found = [_stored_report(p) for p in folder.glob("*.json")
+             if JOB_ID.fullmatch(p.stem)]
+    return sorted(found, key=lambda r: (r.ended_at, r.job_id), reverse=True)
 
 
-def prune(folder: Path, keep: int) -> List[str]:
-    """Remove the dumps (and their .html) beyond the newest `keep` jobs; the
-    job ids removed."""
-    removed = []
-    for old in stored(folder)[keep:]:
+def stored(folder: Path) -> List[Path]:
+    """The dumps stored in a folder, the job that ended last first."""
+    return [r.path for r in stored_reports(folder)]
+
+
+def to_remove(reports: Sequence[StoredReport], keep: int,
+              history: Optional[Mapping[str, Optional[float]]] = None
+              ) -> List[str]:
+    """The job ids whose reports go: with `history` (job id -> its start
+    time, for each of these ids Moonraker's history holds), every report
+    whose job is no longer there (the id absent, or reused by a job that
+    started at another time), then all but the `keep` that ended last."""
+    def in_history(r: StoredReport) -> bool:
+        if history is None:
+            return True
+        if r.job_id not in history:
+            return False
+        start = history[r.job_id]
+        return start is None or r.started_at is None \
+            or abs(start - r.started_at) <= SAME_START_S
+    kept = [r for r in sorted(reports, key=lambda r: (r.ended_at, r.job_id),
+                              reverse=True) if in_history(r)][:keep]
+    kept_ids = {r.job_id for r in kept}
+    return [r.job_id for r in reports if r.job_id not in kept_ids]
+
+
+def prune(folder: Path, keep: int,
+          history: Optional[Mapping[str, Optional[float]]] = None) -> List[str]:
+    """Remove the dumps (and their .html) that to_remove names; the job ids
+    removed."""
+    reports = stored_reports(folder)
+    removed = to_remove(reports, keep, history)
+    for report in reports:
+        if report.job_id not in removed:
+            continue
         for suffix in (".json", ".html"):
             try:
-                old.with_suffix(suffix).unlink()
+                report.path.with_suffix(suffix).unlink()
             except FileNotFoundError:
                 pass
-        removed.append(old.stem)
     return removed
 
 

@@ -4,19 +4,23 @@
 # [flowrate_limiter] has summed since the profile was activated is asked
 # (flowrate_limiter/nozzle_evidence); the difference is the job's. Its
 # estimate (the hotend's melt capacity against the profile) is kept in the
-# database per hotend (`hotend:` of [flowloop]) and profile, the newest
-# MAX_PRINTS; the verdict over them decides a warning, which goes out as a
-# Moonraker announcement (Mainsail's and Fluidd's notification list shows
-# it), a console line and notify_flowloop_nozzle_health. Everything that
-# decides is in flowloop.control.nozzle_health.
+# database per hotend (`hotend:` of [flowloop]) and profile, one record per
+# job, the newest MAX_PRINTS_KEPT; the verdict over them decides a warning,
+# which goes out as a Moonraker announcement (Mainsail's and Fluidd's
+# notification list shows it), a console line and
+# notify_flowloop_nozzle_health, names in them as nh.label shows them (one
+# line, no markup). A POST (a print from elsewhere) is checked whole before
+# anything is stored; a DELETE removes one profile's history. Everything
+# that decides is in flowloop.control.nozzle_health.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
-from typing import TYPE_CHECKING, Any, Dict, List, Optional
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
 
 from flowloop.control import nozzle_health as nh
 from flowloop.control.health_plot import svg
@@ -27,13 +31,13 @@ from ...common import RequestType, TransportType, WebRequest
 from . import args
 from .endpoints import register_endpoint
 from .errors import one_line, quoted
+from .store import ProfileStore
 
 if TYPE_CHECKING:
     from ...server import Server
 
 KLIPPY_ENDPOINT = "flowrate_limiter/nozzle_evidence"
 PREFIX = "nozzle_health:"
-MAX_PRINTS = 50
 DEFAULT_HOTEND = "default"
 ANNOUNCEMENT_FEED = "flowloop"
 
@@ -44,9 +48,13 @@ def history_key(hotend: str, profile: str) -> str:
 
 
 class NozzleHealth:
-    def __init__(self, server: Server, db: Any, hotend: Optional[str]) -> None:
+    def __init__(self, server: Server, store: ProfileStore,
+                 hotend: Optional[str]) -> None:
         self.server = server
-        self.db = db  # the flowloop namespace (ProfileStore's)
+        self.store = store
+        self.db = store.db  # the flowloop namespace
+        # one read-change-write of a history at a time
+        self.write_lock = asyncio.Lock()
         self.hotend = hotend or DEFAULT_HOTEND
         self.klippy = server.lookup_component("klippy_connection")
         self.started: Optional[Dict[str, Any]] = None  # job id, evidence at start
@@ -54,7 +62,8 @@ class NozzleHealth:
                                      "flowloop_nozzle_health")
         server.register_event_handler("history:history_changed", self._on_history)
         register_endpoint(server, "/server/flowloop/nozzle_health",
-                          RequestType.GET | RequestType.POST, self._handle)
+                          RequestType.GET | RequestType.POST | RequestType.DELETE,
+                          self._handle)
         register_endpoint(server, "/server/flowloop/nozzle_health/plot",
                           RequestType.GET, self._handle_plot,
                           transports=TransportType.HTTP, wrap_result=False,
@@ -96,55 +105,91 @@ class NozzleHealth:
             start, self.started = self.started["evidence"], None
             try:
                 end = await self._evidence()
-                for extruder, evidence in end.items():
-                    before = start.get(extruder)
-                    if not nh.printed_between(before, evidence):
-                        continue   # a tool that did not print this job
-                    await self.record(job.get("job_id"), before, evidence,
-                                      self.tool_hotend(extruder))
             except Exception as e:  # never take Moonraker's job handling down
                 logging.exception(f"flowloop: nozzle health of job "
                                   f"{job.get('job_id')} failed: {one_line(e)}")
+                return
+            for extruder, evidence in end.items():
+                await self._record_tool(job.get("job_id"), extruder,
+                                        start.get(extruder), evidence)
 
-    async def record(self, job_id: Any, start: Optional[Dict[str, Any]],
+    async def _record_tool(self, job_id: str, extruder: str, before: Any,
+                           after: Any) -> None:
+        """One tool's part of a job; a tool whose evidence does not read is
+        one line in the log, the other tools are judged all the same."""
+        try:
+            if not (isinstance(after, dict) and (before is None or isinstance(
+                    before, dict)) and nh.printed_between(before, after)):
+                return   # a tool that did not print this job
+            await self.record(job_id, before, after, self.tool_hotend(extruder))
+        except FlowloopError as e:
+            logging.info(f"flowloop: nozzle health of job {job_id}, {extruder}: "
+                         f"{one_line(e)}")
+        except Exception as e:  # never take Moonraker's job handling down
+            logging.exception(f"flowloop: nozzle health of job {job_id}, "
+                              f"{extruder} failed: {one_line(e)}")
+
+    async def record(self, job_id: str, start: Optional[Dict[str, Any]],
                      end: Optional[Dict[str, Any]],
                      hotend: Optional[str] = None) -> Dict[str, Any]:
-        """A job's estimate stored under its hotend and profile; the verdict."""
+        """A job's estimate from klippy's snapshots (FlowloopError: evidence
+        that does not read)."""
+        return await self.record_evidence(
+            job_id, None if start is None else nh.PrintEvidence.from_dict(start),
+            None if end is None else nh.PrintEvidence.from_dict(end), hotend)
+
+    async def record_evidence(self, job_id: str,
+                              start: Optional[nh.PrintEvidence],
+                              end: Optional[nh.PrintEvidence],
+                              hotend: Optional[str] = None) -> Dict[str, Any]:
+        """A job's estimate stored under its hotend and profile (the job's
+        earlier record replaced); the verdict."""
         hotend = hotend or self.hotend
-        evidence = nh.evidence_between(
-            None if start is None else nh.PrintEvidence.from_dict(start),
-            None if end is None else nh.PrintEvidence.from_dict(end))
-        found = nh.estimate(evidence)
+        found = nh.estimate(nh.evidence_between(start, end))
         entry = {"job_id": job_id, "time": time.time(), **found.to_dict()}
         if not found.profile:
             logging.info(f"flowloop: nozzle health of job {job_id}: {found.reason}")
             return {"entry": entry, "verdict": None}
         key = history_key(hotend, found.profile)
-        stored = await self.db.get(key, {"hotend": hotend,
-                                         "profile": found.profile, "prints": []})
-        was_warning = (stored.get("verdict") or {}).get("warn", False)
-        stored["prints"] = (stored["prints"] + [entry])[-MAX_PRINTS:]
-        verdict = self._verdict(stored["prints"])
-        stored["verdict"] = verdict.__dict__
-        await self.db.insert(key, stored)
+        async with self.write_lock:
+            stored = await self.db.get(key, None)
+            prints, _ = self._loaded(key, stored)
+            was_warning = isinstance(stored, dict) and isinstance(
+                stored.get("verdict"), dict) and stored["verdict"].get("warn") is True
+            prints = nh.with_print(prints, entry)
+            verdict = nh.judge([nh.PrintEstimate.from_dict(p) for p in prints])
+            stored = {"hotend": hotend, "profile": found.profile,
+                      "prints": prints, "verdict": verdict.__dict__}
+            await self.db.insert(key, stored)
         if verdict.warn:
             self._warn(stored, verdict, first=not was_warning)
         return {"entry": entry, "verdict": verdict.__dict__}
 
     @staticmethod
-    def _verdict(prints: List[Dict[str, Any]]) -> nh.Verdict:
-        return nh.judge([nh.PrintEstimate.from_dict(p) for p in prints])
+    def _loaded(key: str, stored: Any
+                ) -> Tuple[List[Dict[str, Any]], List[nh.PrintEstimate]]:
+        """The stored prints that read and their estimates; the rest skipped
+        with one line in the log (dropped at the history's next write)."""
+        if stored is None:
+            return [], []
+        prints, estimates, problems = nh.load_history(stored)
+        if problems:
+            logging.info(f"flowloop: nozzle health {key}: {len(problems)} "
+                         f"stored print(s) skipped: "
+                         f"{one_line('; '.join(problems))[:500]}")
+        return prints, estimates
 
     def _warn(self, stored: Dict[str, Any], verdict: nh.Verdict,
               first: bool) -> None:
-        title = (f"flowloop: nozzle health, hotend {stored['hotend']}, "
-                 f"profile {stored['profile']}")
+        title = (f"flowloop: nozzle health, hotend {nh.label(stored['hotend'])}, "
+                 f"profile {nh.label(stored['profile'])}")
         evidence = ", ".join(
             f"{p['ratio']:.0%}" for p in stored["prints"][-8:]
             if p.get("ratio") is not None)
         text = (f"{verdict.text}. Melt capacity against the profile over the "
                 f"last prints: {evidence}.")
-        self.server.send_event("flowloop:nozzle_health", {**stored, "text": text})
+        self.server.send_event("flowloop:nozzle_health",
+                               {**stored, "title": title, "text": text})
         self.server.send_event("server:gcode_response", f"// {title}: {text}")
         if first:  # once when it starts, not every print it goes on
             announcements = self.server.lookup_component("announcements", None)
@@ -159,23 +204,46 @@ class NozzleHealth:
         return [value for key, value in items if key.startswith(PREFIX)]
 
     async def _handle(self, web_request: WebRequest) -> Dict[str, Any]:
-        if web_request.get_request_type() == RequestType.POST:
+        req_type = web_request.get_request_type()
+        if req_type == RequestType.POST:
             # a print's evidence from elsewhere (a replayed or offline print)
-            given = web_request.get_args()
             try:
-                return await self.record(given.get("job_id"), given.get("start"),
-                                         given.get("evidence"))
+                posted = nh.post_request(web_request.get_args(),
+                                         self.store.profiles)
+                return await self.record_evidence(posted.job_id, posted.start,
+                                                  posted.end)
             except FlowloopError as e:
-                raise args.refusal(one_line(e)) from None
+                raise args.refusal(e) from None
+        if req_type == RequestType.DELETE:
+            return await self._delete(*self._history_args(web_request))
         return {"hotend": self.hotend, "histories": await self.histories()}
 
-    async def _handle_plot(self, web_request: WebRequest) -> bytes:
-        name = args.text(web_request.get_args(), "profile", "profile name")
+    def _history_args(self, web_request: WebRequest) -> Tuple[str, str]:
+        """(hotend, profile) of a request naming one history."""
         given = web_request.get_args()
+        name = args.text(given, "profile", "profile name")
         hotend = args.text(given, "hotend", "hotend") if "hotend" in given \
             else self.hotend
+        return hotend, name
+
+    async def _delete(self, hotend: str, name: str) -> Dict[str, Any]:
+        key = history_key(hotend, name)
+        async with self.write_lock:
+            stored = await self.db.get(key, None)
+            if stored is None:
+                raise args.refusal(f"no nozzle health for profile {quoted(name)}"
+                                   f" on hotend {quoted(hotend)}", 404)
+            await self.db.delete(key)
+        prints = stored.get("prints") if isinstance(stored, dict) else None
+        logging.info(f"flowloop: nozzle health of hotend {quoted(hotend)}, "
+                     f"profile {quoted(name)} deleted")
+        return {"hotend": hotend, "profile": name, "action": "deleted",
+                "prints": len(prints) if isinstance(prints, list) else 0}
+
+    async def _handle_plot(self, web_request: WebRequest) -> bytes:
+        hotend, name = self._history_args(web_request)
         stored = await self.db.get(history_key(hotend, name), None)
         if stored is not None:
-            prints = [nh.PrintEstimate.from_dict(p) for p in stored["prints"]]
+            _, prints = self._loaded(history_key(hotend, name), stored)
             return svg(prints, f"hotend {hotend}, profile {name}").encode()
         raise args.refusal(f"no nozzle health for profile {quoted(name)}", 404)

@@ -3,9 +3,12 @@
 # While a job runs, the klippy objects flowloop publishes are read from
 # Moonraker's own subscription and fed to the core's recorder every
 # SAMPLE_PERIOD_S; when the job ends its dump and its HTML report are
-# written under the data path (flowloop/reports/JOB.json, JOB.html), the
-# newest number_of_reports_to_keep kept. Everything that decides (what a
-# sample is, what the report says) is in flowloop.report.
+# written under the data path (flowloop/reports/JOB.json, JOB.html): the
+# number_of_reports_to_keep whose jobs ended last are kept, of the jobs still
+# in Moonraker's history (it reuses ids once cleared: a report whose job is
+# gone, or whose id now names another job, goes). Everything that decides
+# (what a sample is, what the report says, which reports go) is in
+# flowloop.report.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -153,6 +156,9 @@ class Reports:
         rec.finish(state, time.monotonic() - self._started)
         try:
             await self.eventloop.run_in_thread(self._store, rec)
+            history = await self._history_starts()
+            await self.eventloop.run_in_thread(
+                dump.prune, self.folder, self.keep, history)
         except OSError as e:  # a full disk: the job's history is Moonraker's, kept
             logging.error(f"flowloop: the flow report of job {rec.job.job_id} was "
                           f"not stored: {one_line(e)}")
@@ -161,13 +167,27 @@ class Reports:
                               f"failed: {one_line(e)}")
 
     def _store(self, rec: Recorder) -> None:
-        """The dump and the report, whole or not at all; then the oldest
-        beyond `keep` removed (in a thread: rendering is some ms of Python)."""
+        """The dump and the report, whole or not at all (in a thread:
+        rendering is some ms of Python)."""
         self.folder.mkdir(parents=True, exist_ok=True)
         job_id = rec.job.job_id or "unknown"
         dump.save(self.folder / f"{job_id}.json", dump.dumps(rec))
         dump.save(self.folder / f"{job_id}.html", render.html(rec))
-        dump.prune(self.folder, self.keep)
+
+    async def _history_starts(self) -> Optional[Dict[str, Optional[float]]]:
+        """Job id -> start time, for each stored report's job that
+        Moonraker's history holds (None: no history to ask)."""
+        history = self.server.lookup_component("history", None)
+        if history is None:
+            return None
+        reports = await self.eventloop.run_in_thread(
+            dump.stored_reports, self.folder)
+        starts: Dict[str, Optional[float]] = {}
+        for report in reports:
+            job = await history.get_job(report.job_id)
+            if job is not None:
+                starts[report.job_id] = job.get("start_time")
+        return starts
 
     # --- endpoints ---------------------------------------------------------------
     def _summaries(self) -> List[Dict[str, Any]]:
@@ -187,11 +207,11 @@ class Reports:
                 "number_of_reports_to_keep": self.keep}
 
     async def _handle_report(self, web_request: WebRequest) -> bytes:
-        given = args.text(web_request.get_args(), "job_id", "job id")
-        job_id = given.upper()
-        if not dump.JOB_ID.match(job_id):
-            raise args.refusal(f"job id {quoted(given)} is not a job of "
-                               f"Moonraker's history (hex digits, e.g. 00002A)")
+        try:
+            job_id = dump.check_job_id(
+                args.text(web_request.get_args(), "job_id", "job id"))
+        except FlowloopError as e:
+            raise args.refusal(e) from None
         rec = self.recorder
         if rec is not None and rec.job.job_id == job_id:  # the print running now
             # a copy taken here (the sampler goes on changing the recorder),

@@ -4,8 +4,11 @@ and the verdict over prints, on the simulated twin and hotend model."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
 
+import numpy as np
 import pytest
 
 from flowloop.control import nozzle_health as nh
@@ -220,3 +223,112 @@ def test_a_fall_that_soon_reaches_min_grip_warns_by_its_trend():
     assert not nh.judge(_falling(ratios, at_least=0.9)).warn
     # and no fall: the latest low alone is not a trend
     assert not nh.judge(_falling([0.99, 1.0, 0.99, 1.0, 0.96], at_least=1.05)).warn
+
+
+# --- what comes from outside ---------------------------------------------------
+
+@functools.cache
+def _evidence_of(seed, ratio):
+    return nh.evidence_of(simulate_print(ratio, seed=seed), PROFILE).to_dict()
+
+
+def _evidence(seed=0, ratio=0.9):
+    """A print's evidence as klippy gives it (a fresh copy each call)."""
+    return copy.deepcopy(_evidence_of(seed, ratio))
+
+
+@pytest.mark.parametrize("name, value, says", [
+    ("min_grip", "nan", "min_grip must be a number"),
+    ("min_grip", float("nan"), "min_grip must be a number"),
+    ("min_grip", None, "min_grip must be a number"),
+    ("noise_sum", 1e308, "noise_sum must be a number within"),
+    ("noise_sum", float("inf"), "noise_sum must be a number within"),
+    ("noise_sum_sq", -1, "noise_sum_sq is a sum of squares"),
+    ("windows", "3", "windows must be a whole number"),
+    ("windows", True, "windows must be a whole number"),
+    ("windows", -1, "windows must be a whole number"),
+    ("windows", 2.5, "windows must be a whole number"),
+    ("profile", "a\n!! MCU 'mcu' shutdown", "control character"),
+    ("profile", "x" * 10_000_000, "longer than 128"),
+    ("profile", 12, "must be a string"),
+    ("epoch", "e" * 1000, "epoch"),
+    ("working_point", float("inf"), "working point"),
+    ("version", True, "version true is not 1"),
+    ("cross", [0.0] * 3, "cross must be a list of 121"),
+    ("information", [-1.0] * 121, "information is a sum of squares"),
+    ("model_sq", [float("nan")] * 121, "model_sq must be a number"),
+])
+def test_evidence_no_print_gives_is_refused_whole_in_one_line(name, value, says):
+    data = {**_evidence(), name: value}
+    with pytest.raises(nh.FlowloopError, match="not nozzle evidence") as e:
+        nh.PrintEvidence.from_dict(data)
+    assert says in str(e.value) and "\n" not in str(e.value)
+    assert len(str(e.value)) < 300
+
+
+def test_extreme_but_finite_sums_give_a_reason_not_an_overflow():
+    data = _evidence()
+    for sums in ({"noise_sum": -data["noise_windows"]},      # grip 0 where easy
+                 {"noise_sum_sq": nh.MAX_SUM, "grip_sq": nh.MAX_SUM},
+                 {"information": [nh.MAX_SUM] * 121,
+                  "cross": [-nh.MAX_SUM] * 121}):
+        found = nh.estimate(nh.PrintEvidence.from_dict({**data, **sums}))
+        assert all(v is None or np.isfinite(v) for v in
+                   (found.ratio, found.standard_error, found.grip_noise)), sums
+        assert found.to_dict()   # JSON-able, no OverflowError
+
+
+@pytest.mark.parametrize("job_id, says", [
+    ("00ﬀ00", "not a job of Moonraker"),      # U+FB00 upper-cases to FF
+    ("0000FF\n", "not a job of Moonraker"),
+    ("FF", "not a job of Moonraker"),
+    ("1" * 17, "not a job of Moonraker"),
+    (12, "job id int is not"),
+    (None, "job id NoneType is not"),
+    (["000001"], "job id list is not"),
+])
+def test_a_posted_job_id_is_one_of_moonrakers(job_id, says):
+    with pytest.raises(nh.FlowloopError, match=says):
+        nh.post_request({"job_id": job_id}, {"known"})
+
+
+def test_a_posted_print_is_checked_whole_against_the_stored_profiles():
+    posted = nh.post_request({"job_id": "00002a", "evidence": _evidence()},
+                             {"known"})
+    assert posted.job_id == "00002A" and posted.end.profile == "known"
+    with pytest.raises(nh.FlowloopError, match='no profile named "known"'):
+        nh.post_request({"job_id": "00002A", "evidence": _evidence()}, {"other"})
+    start = _evidence()
+    end = {**start, "windows": start["windows"] - 1}
+    with pytest.raises(nh.FlowloopError, match="the start counts more windows"):
+        nh.post_request({"job_id": "00002A", "start": start, "evidence": end},
+                        {"known"})
+    with pytest.raises(nh.FlowloopError, match="a start without evidence"):
+        nh.post_request({"job_id": "00002A", "start": start}, {"known"})
+
+
+def test_a_job_is_one_record_and_a_history_is_capped():
+    prints = []
+    for k in range(3):
+        prints = nh.with_print(prints, {"job_id": "000001", "ratio": 0.9 + k / 100})
+    assert prints == [{"job_id": "000001", "ratio": 0.92}]
+    for k in range(nh.MAX_PRINTS_KEPT + 5):
+        prints = nh.with_print(prints, {"job_id": f"{k + 2:06X}"})
+    assert len(prints) == nh.MAX_PRINTS_KEPT
+    assert prints[-1]["job_id"] == f"{nh.MAX_PRINTS_KEPT + 6:06X}"
+
+
+def test_a_stored_print_that_does_not_read_is_skipped_not_blocking():
+    good = nh.PrintEstimate("known", ratio=0.9, standard_error=0.01).to_dict()
+    bad = {**good, "min_grip": None}            # what a NaN was stored as
+    prints, estimates, problems = nh.load_history(
+        {"prints": [good, bad, {**good, "ratio": "x"}, 7, good]})
+    assert prints == [good, good] and len(estimates) == 2
+    assert [p.split(":")[0] for p in problems] == ["print 1", "print 2", "print 3"]
+    assert nh.load_history({"prints": None})[2]
+
+
+def test_a_name_is_shown_on_one_line_without_markup():
+    shown = nh.label("PLA\n!! MCU 'mcu' shutdown <img src=x onerror=alert(1)> & é")
+    assert "\n" not in shown and not set("<>&'") & set(shown)
+    assert shown.isascii() and shown.startswith('"PLA\\n!! MCU')

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -386,12 +387,14 @@ def test_the_flow_report_worked_example(tmp_path, capsys):
 # --- storing ----------------------------------------------------------------------
 
 def test_only_the_newest_jobs_reports_are_kept_and_other_files_are_left(tmp_path):
-    for job_id in ("000009", "00000A", "000010", "0000FF"):
+    for k, job_id in enumerate(("000009", "00000A", "000010", "0000FF")):
         (tmp_path / f"{job_id}.json").write_text("{}")
         (tmp_path / f"{job_id}.html").write_text("")
+        # a dump that does not say when its job ended: its file's time does
+        os.utime(tmp_path / f"{job_id}.json", (1000.0 + k, 1000.0 + k))
     (tmp_path / "notes.json").write_text("{}")
     assert [p.stem for p in dump.stored(tmp_path)] == [
-        "0000FF", "000010", "00000A", "000009"]   # by number, not by name
+        "0000FF", "000010", "00000A", "000009"]   # ended last first
     assert dump.prune(tmp_path, 2) == ["00000A", "000009"]
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "000010.html", "000010.json", "0000FF.html", "0000FF.json", "notes.json"]
@@ -409,3 +412,41 @@ def test_a_full_disk_leaves_the_old_file_and_no_partial_one(tmp_path, monkeypatc
         dump.save(target, dump.dumps(scenario()))
     assert [p.name for p in tmp_path.iterdir()] == ["00002A.json"]
     assert target.read_text() == "the stored one"
+
+
+def _stored_dump(folder, job_id, started_at, length_s):
+    rec = Recorder(job=Job(job_id=job_id, started_at=started_at))
+    rec.finish("completed", length_s)
+    (folder / f"{job_id}.json").write_text(dump.dumps(rec))
+    (folder / f"{job_id}.html").write_text("")
+
+
+def test_reports_are_pruned_by_when_their_job_ended_not_by_the_ids_number(tmp_path):
+    # ten jobs, then Moonraker's history cleared: the next print is 000001 again
+    for k in range(10):
+        _stored_dump(tmp_path, f"{k + 2:06X}", 1000.0 + 100 * k, 50.0)
+    _stored_dump(tmp_path, "000001", 5000.0, 30.0)
+    assert dump.stored(tmp_path)[0].stem == "000001"    # ended last
+    removed = dump.prune(tmp_path, 3)
+    assert "000001" not in removed and len(removed) == 8
+    assert [p.stem for p in dump.stored(tmp_path)] == ["000001", "00000B", "00000A"]
+
+
+def test_a_report_of_a_job_no_longer_in_the_history_goes_first(tmp_path):
+    _stored_dump(tmp_path, "000001", 5000.0, 30.0)      # the new job 000001
+    _stored_dump(tmp_path, "000002", 1000.0, 30.0)      # deleted from the history
+    _stored_dump(tmp_path, "000003", 1100.0, 30.0)      # its id now another job's
+    _stored_dump(tmp_path, "000004", 1200.0, 30.0)
+    history = {"000001": 5000.0, "000003": 4000.0, "000004": 1200.0}
+    assert sorted(dump.prune(tmp_path, 10, history)) == ["000002", "000003"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "000001.html", "000001.json", "000004.html", "000004.json"]
+    # without a history to ask, only the count decides
+    assert dump.prune(tmp_path, 1) == ["000004"]
+
+
+def test_a_job_id_is_moonrakers_and_never_case_folded():
+    assert dump.check_job_id("00002a") == "00002A"
+    for bad in ("\ufb00\ufb00\ufb00", "0000\ufb00", "2A", "00002A\n", "../x", 42):
+        with pytest.raises(FlowloopError, match="not a job of Moonraker's history"):
+            dump.check_job_id(bad)
