@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import List
 
 from ..control.hotend import HotendParams
 from ..errors import FlowloopError
@@ -44,7 +45,8 @@ def register(subparsers) -> None:
                    help="printer.cfg whose [printer], [extruder], "
                         "[firmware_retraction] and [gcode_arcs] limits the plan "
                         "uses (default: Klipper's defaults, max_velocity 300, "
-                        "max_accel 3000)")
+                        "max_accel 3000); with --bake, every target stays "
+                        "within its [extruder] min_temp..max_temp")
     p.add_argument("--lead", type=float, default=DEFAULT_LEAD_S, metavar="S",
                    help=f"seconds before a flow that Klipper reads its "
                         f"announcement (placed {READAHEAD_S:g} s less ahead in "
@@ -81,13 +83,15 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     settings = AnnotateSettings(lead_s=args.lead, window_s=args.window)
+    config = None
     if args.printer_cfg:
         from ..host.klipper_config import read_config
-        limits = limits_from_config(read_config(args.printer_cfg))
+        config = read_config(args.printer_cfg)
+        limits = limits_from_config(config)
     else:
         limits = PrinterLimits()
     if args.bake is not None:
-        return run_bake(args, settings, limits)
+        return run_bake(args, settings, limits, config)
     if args.plot is not None or args.working_point is not None:
         raise FlowloopError("--plot and --working-point need --bake PROFILE.json")
     # -o IN.gcode itself is the default: annotate in place
@@ -117,10 +121,12 @@ def _warn_nothing_extrudes(path: Path) -> None:
           f" announce", file=sys.stderr)
 
 
-def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
+def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits,
+             config=None) -> int:
     # imported here: plain annotation needs neither profiles nor plots
     from ..cli.profile import load
     from ..gcode.bake import bake_file, timeline_svg
+    from ..gcode.heater import heater_range
     from ..material.active import working_point_arg
     from ..material.profile import DEFAULT_WORKING_POINT
     if args.output is None:
@@ -139,8 +145,10 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
     wp = working_point_arg(DEFAULT_WORKING_POINT if args.working_point is None
                            else args.working_point, "--working-point")
     profile = load(args.bake)
+    heater = None if config is None else heater_range(config,
+                                                      str(args.printer_cfg))
     result, timeline = bake_file(args.gcode, args.output, profile, wp, params,
-                                 limits, settings)
+                                 limits, settings, heater)
     if result.peak_flow_mm3_s == 0:
         _warn_nothing_extrudes(args.gcode)
     lo = "none" if result.min_target_c is None else f"{result.min_target_c:.0f}"
@@ -151,9 +159,8 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
           f" commented out")
     if result.start is not None:
         print(f"  {result.start.message}")
-    if result.capped_windows:
-        print(f"  {result.capped_windows} windows need more than the profile's"
-              f" max_temp_c {profile.bounds.max_temp_c:g} C: clamped there")
+    for line in bake_notes(result, args.printer_cfg, profile, wp):
+        print(f"  {line}")
     if result.under_capacity_s > 0:
         print(f"  the modelled hotend melts less than demanded for"
               f" {result.under_capacity_s:.1f} s of the print")
@@ -162,3 +169,33 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits) -> int:
                                      f" for {profile.name}, WP {wp:g}"))
         print(f"  timeline: {plot}")
     return 0
+
+
+def bake_notes(result, printer_cfg, profile, wp: float) -> List[str]:
+    """What the summary says of the temperature limits: which one bound the
+    plan, what to do when the file asks for more than the hotend melts
+    there, the file's own targets brought within the heater's range."""
+    from ..material.slicer import max_volumetric_speed
+    notes = []
+    if result.heater is None:
+        notes.append("targets not checked against the printer's min_temp/max_temp:"
+                     " give --printer-cfg" if printer_cfg is None else
+                     f"{printer_cfg} has no [extruder]: targets not checked"
+                     f" against its min_temp/max_temp")
+    cap = (f"the printer's max_temp {result.cap_c:g} C" if result.capped_by_heater
+           else f"the profile's max_temp_c {result.cap_c:g} C")
+    if result.capped_by_heater:
+        notes.append(f"targets capped at {cap} ({result.heater.source}), below"
+                     f" the profile's {profile.bounds.max_temp_c:g} C")
+    if result.capped_windows:
+        flow = max_volumetric_speed(profile, result.cap_c, wp)
+        notes.append(f"{result.capped_windows} windows need more than {cap}:"
+                     f" clamped there; the hotend melts {flow:.2f} mm^3/s there:"
+                     f" slice with a max volumetric speed of {flow:.2f} mm^3/s,"
+                     f" or let [flowrate_limiter] hold the flow")
+    if result.brought_within:
+        h = result.heater
+        notes.append(f"{result.brought_within} of the file's own M104/M109"
+                     f" outside {h.min_temp_c:g}..{h.max_temp_c:g} C"
+                     f" ({h.source}) brought within it")
+    return notes

@@ -19,7 +19,12 @@ sampled as a printer would (every GRID_S). Instead of the announcements,
   G-code's last heat-and-wait before the first extrusion is raised to the
   planned nozzle temperature there, kept if it is hotter, or an M109 added
   (after a start macro, whose temperature the file does not show); no baked
-  M104 goes before that wait, which would override it.
+  M104 goes before that wait, which would override it;
+- with the printer's heater range known (flowloop.gcode.heater: [extruder]
+  min_temp/max_temp from --printer-cfg), every target is a whole degree
+  within it: the plan is capped at max_temp (below the profile's maximum
+  where that is lower), and the file's own M104/M109 outside the range are
+  brought within it, so Klipper refuses none of them.
 
 The timeline (demanded flow, targets, the modelled nozzle and the melt
 capacity there) is kept for `--plot` (timeline_svg).
@@ -30,7 +35,7 @@ from __future__ import annotations
 import codecs
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import BinaryIO, List, Optional, Tuple
 
@@ -54,6 +59,7 @@ from .annotate import (
     quantise_flow,
 )
 from .fastplan import Segments, plan_batches
+from .heater import HeaterRange, cap_line
 from .melt import Cells
 from .planner import PrinterLimits
 from .start import StartFix, find_start_heat, start_fix
@@ -86,6 +92,11 @@ class BakeResult:
     print_time_s: float
     under_capacity_s: float  # extruding time the modelled nozzle melts too little
     start: Optional[StartFix] = None  # what was done so the print starts on plan
+    heater: Optional[HeaterRange] = None  # the printer's range, where known
+    cap_c: float = 0.0       # the plan's highest target: the lower of the
+    # profile's max_temp_c and the heater's max_temp
+    capped_by_heater: bool = False   # the heater's max_temp is that cap
+    brought_within: int = 0  # the file's own M104/M109 outside the heater's range
 
 
 class _Recorder(_Annotator):
@@ -166,9 +177,10 @@ def replay(commands: List[Tuple[int, float, str]], end_s: float,
 
 
 def _placements(moves: List[Tuple[float, int]], targets: List[Optional[float]],
-                from_offset: int = 0) -> List[Tuple[int, int]]:
+                from_offset: int = 0, heater: Optional[HeaterRange] = None
+                ) -> List[Tuple[int, int]]:
     """(byte offset, whole-degree target) of each M104 to write, at move
-    lines from byte from_offset on."""
+    lines from byte from_offset on (within the heater's range, if known)."""
     emit_at: List[Tuple[float, int]] = []
     for time_s, offset in moves:
         if offset < from_offset:
@@ -184,11 +196,18 @@ def _placements(moves: List[Tuple[float, int]], targets: List[Optional[float]],
         span = [x for x in targets[lo:hi + 1] if x is not None]
         if not span:
             continue
-        value = math.ceil(max(span) - 1e-6)
+        value = _whole(max(span), heater)
         if value != last:
             out.append((offset, value))
             last = value
     return out
+
+
+def _whole(temp_c: float, heater: Optional[HeaterRange]) -> int:
+    """A target as written: whole degrees, rounded up, within the heater's
+    range where known."""
+    return heater.whole(temp_c) if heater is not None \
+        else math.ceil(temp_c - 1e-6)
 
 
 def _simulate(timeline: Timeline, targets: List[Optional[float]],
@@ -234,9 +253,10 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
               params: HotendParams = DEFAULT_PARAMS,
               limits: Optional[PrinterLimits] = None,
               settings: Optional[AnnotateSettings] = None,
-              heater_max_temp_c: Optional[float] = None
+              heater: Optional[HeaterRange] = None
               ) -> Tuple[BakeResult, Timeline]:
-    """Bake src into dst (written whole or not at all)."""
+    """Bake src into dst (written whole or not at all); heater: the
+    printer's [extruder] min_temp..max_temp, where known."""
     limits = limits if limits is not None else PrinterLimits()
     settings = settings if settings is not None else AnnotateSettings()
     src, dst = Path(src), Path(dst)
@@ -250,6 +270,7 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
                             " slicer's file")
     newline = _newline_of(src)
     rec = plan_announcements(src, limits, settings, newline)
+    heater_max_temp_c = None if heater is None else heater.max_temp_c
     controller = Autotemp(params, heater_max_temp_c)
     controller.set_profile(profile, working_point)
     if controller.plan is None:
@@ -259,20 +280,22 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
     timeline = Timeline(demand_mm3_s=rec.demand + [0.0] * max(
         0, len(targets) - len(rec.demand)), target_c=targets)
     known = [x for x in targets if x is not None]
-    fix, from_s = _start(src, rec, params, heater_max_temp_c, profile,
-                         working_point, newline)
+    fix, from_s = _start(src, rec, params, heater, profile, working_point,
+                         newline)
     start_c = fix.start_c if fix is not None else (
         known[0] if known else controller.plan.limits.min_temp_c)
     short_s = _simulate(timeline, targets, controller, start_c, from_s)
     placements = _placements(rec.moves, targets,
-                             fix.end if fix is not None else 0)
-    overridden = 0
+                             fix.end if fix is not None else 0, heater)
+    overridden = brought_within = 0
 
     def write(out: BinaryIO) -> None:
-        nonlocal overridden
-        overridden = _write(src, out, placements, newline, profile,
-                            working_point, params, fix)
+        nonlocal overridden, brought_within
+        overridden, brought_within = _write(src, out, placements, newline,
+                                            profile, working_point, params, fix,
+                                            heater)
     _replace_atomically(dst, write, src)
+    cap_c = controller.plan.limits.max_temp_c
     result = BakeResult(
         commands=len(placements), overridden=overridden,
         # what the file sets, not what the plan held before the start's wait
@@ -281,12 +304,15 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
         capped_windows=controller.plan.capped_windows,
         # the file's peak as its annotation announces it (annotate's summary)
         peak_flow_mm3_s=quantise_flow(rec.peak),
-        print_time_s=rec.end_s, under_capacity_s=short_s, start=fix)
+        print_time_s=rec.end_s, under_capacity_s=short_s, start=fix,
+        heater=heater, cap_c=cap_c,
+        capped_by_heater=cap_c < profile.bounds.max_temp_c,
+        brought_within=brought_within)
     return result, timeline
 
 
 def _start(src: Path, rec: _Recorder, params: HotendParams,
-           heater_max_temp_c: Optional[float], profile: Profile,
+           heater: Optional[HeaterRange], profile: Profile,
            working_point: float, newline: bytes
            ) -> Tuple[Optional[StartFix], float]:
     """What the start G-code is made to do (None: nothing is extruded), and
@@ -296,12 +322,17 @@ def _start(src: Path, rec: _Recorder, params: HotendParams,
     first_s, first_offset = rec.first_extrusion
     # The plan's nozzle when the first extrusion starts, as the printer knows
     # it then: the announcements up to that time, replayed afresh.
-    probe = Autotemp(params, heater_max_temp_c)
+    probe = Autotemp(params, None if heater is None else heater.max_temp_c)
     probe.set_profile(profile, working_point)
     replay(rec.commands, first_s, probe)
-    plan_start_c = math.ceil(probe.plan.nozzle_c(first_s) - 1e-6)
+    plan_start_c = _whole(probe.plan.nozzle_c(first_s), heater)
     with open(src, "rb") as f:
         heat = find_start_heat(f, first_offset)
+    if heater is not None and heat.kind == "m109" and heat.temp_c is not None \
+            and not heater.accepts(heat.temp_c):
+        # the wait as written, brought within the range (_write's cap_line)
+        whole = heater.whole(heat.temp_c)
+        heat = replace(heat, temp_c=float(whole), text=f"M109 S{whole}")
     fix = start_fix(heat, plan_start_c, newline.decode())
     from_s = next((t for t, offset in rec.moves if offset >= fix.end), first_s)
     return fix, from_s
@@ -318,8 +349,11 @@ def marker_line(profile: Profile, working_point: float,
 
 def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
            newline: bytes, profile: Profile, working_point: float,
-           params: HotendParams, fix: Optional[StartFix] = None) -> int:
-    overridden = 0
+           params: HotendParams, fix: Optional[StartFix] = None,
+           heater: Optional[HeaterRange] = None) -> Tuple[int, int]:
+    """Write the baked file; (slicer M104 commented out, the file's own
+    M104/M109 brought within the heater's range)."""
+    overridden = brought_within = 0
     i = 0
     first = placements[0][0] if placements else None
     with open(src, "rb") as f:
@@ -345,10 +379,14 @@ def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
                 out.write(b"; " + line.rstrip(b"\r\n")
                           + b" ; overridden by flowloop bake" + newline)
                 overridden += 1
+            elif heater is not None:
+                capped, changed = cap_line(line, heater, newline)
+                out.write(capped)
+                brought_within += changed
             else:
                 out.write(line)
             offset += len(line)
-    return overridden
+    return overridden, brought_within
 
 
 # --- the timeline as SVG (flowloop.material.plot's primitives) -----------------
