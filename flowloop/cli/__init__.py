@@ -23,6 +23,7 @@ COMMANDS = {
     "install": "flowloop.cli.install",
     "info": "flowloop.cli.info",
     "doctor": "flowloop.cli.doctor",
+    "firmware": "flowloop.cli.firmware",
     "ab-calibrate": "flowloop.cli.diff_ab",
     "ab-pylons": "flowloop.cli.diff_ab",
     "profile": "flowloop.cli.profile",

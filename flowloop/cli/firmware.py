@@ -29,11 +29,14 @@ def register(subparsers) -> None:
                    help="say where make would run, change nothing")
     p.add_argument("make_args", nargs=argparse.REMAINDER, metavar="MAKE_ARGUMENT",
                    help="what Klipper's make is given: menuconfig, nothing (a"
-                        " build), flash FLASH_DEVICE=/dev/serial/by-id/..., clean")
+                        " build), flash FLASH_DEVICE=/dev/serial/by-id/..., clean;"
+                        " make's own options after --")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    if args.make_args[:1] == ["--"]:  # `flowloop firmware -- -j4`: make's options
+        args.make_args = args.make_args[1:]
     klipper = args.klipper or default_klipper()
     source = install.source_tree()
     build = firmware.plan_build(klipper, source)

@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 from typing import List
 
+from ..host.firmware import firmware_hint
 from ..host.install import (
     Change,
     InstallError,
@@ -17,6 +18,7 @@ from ..host.install import (
     plan_klipper,
     plan_moonraker,
     plan_moonraker_conf,
+    plan_printer_cfg,
     source_tree,
 )
 
@@ -24,9 +26,10 @@ from ..host.install import (
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "install", help="link flowloop into Klipper and Moonraker",
-        description="Link flowloop's klippy modules, MCU sensor source and Moonraker "
-                    "component into the user's trees. Idempotent; --uninstall "
-                    "restores every file as it was.")
+        description="Link flowloop's klippy modules and Moonraker component into "
+                    "the user's trees (no file git tracks is changed), add [flowloop] "
+                    "to moonraker.conf. Idempotent; --uninstall restores every file "
+                    "as it was and comments flowloop's sections in printer.cfg out.")
     home = Path("~")
     p.add_argument("--klipper", type=Path, default=None,
                    help="Klipper or Kalico checkout (default: $KLIPPER_PATH, else "
@@ -35,7 +38,8 @@ def register(subparsers) -> None:
                    help="Moonraker checkout or virtualenv (default: ~/moonraker, "
                         "else ~/moonraker-env)")
     p.add_argument("--config-dir", type=Path, default=home / "printer_data" / "config",
-                   help="folder with moonraker.conf (default: ~/printer_data/config)")
+                   help="folder with moonraker.conf and printer.cfg (default:"
+                        " ~/printer_data/config)")
     p.add_argument("--no-moonraker", action="store_true",
                    help="only patch Klipper")
     p.add_argument("--dry-run", action="store_true", help="print what would change")
@@ -65,6 +69,7 @@ def plan(args, source: Path) -> List[Change]:
     if args.klipper is None:
         args.klipper = default_klipper()
     changes = plan_klipper(args.klipper, source, args.uninstall)
+    changes += plan_printer_cfg(args.config_dir, source, args.uninstall)
     if not args.no_moonraker:
         moonraker = args.moonraker or _default_moonraker()
         changes += plan_moonraker(moonraker, source, args.uninstall)
@@ -75,6 +80,10 @@ def plan(args, source: Path) -> List[Change]:
 def run(args) -> int:
     source = source_tree()
     changes = plan(args, source)
+    notes = [change.what for change in changes if change.note]
+    changes = [change for change in changes if not change.note]
+    for note in notes:
+        print(note)
     if not changes:
         print("nothing to do: " + ("flowloop is not installed" if args.uninstall
                                    else "flowloop is installed"))
@@ -89,10 +98,8 @@ def run(args) -> int:
         print(change.what)
     host = host_name(args.klipper)
     if not args.uninstall and mcu_sources(source):
-        where = ("Firmware Extras > Support EMS22 filament flow sensor"
-                 if host == "Kalico" else "the EMS22 sensor command")
-        print(f"MCU: rebuild and flash {host}'s firmware to get {where} "
-              f"(cd {args.klipper}; make menuconfig; make flash)")
+        print(f"MCU: build and flash {host}'s firmware with the EMS22 sensor"
+              f" command: {firmware_hint(host)}")
     if not args.uninstall and not args.no_moonraker and not is_checkout(source):
         print("flowloop runs from a pip install: update it with pip install "
               "-U klipper-flowloop, then run flowloop install again")

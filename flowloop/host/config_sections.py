@@ -35,9 +35,9 @@ _HEADER = re.compile(r"\[([^\]]+)\]")
 _INCLUDE = re.compile(r"\[include\s+([^\]]+)\]")
 
 
-def _newline(line: str) -> str:
+def _newline(line: str, default: str) -> str:
     stripped = line.rstrip("\r\n")
-    return line[len(stripped):] or "\n"
+    return line[len(stripped):] or default
 
 
 def _split(line: str, autosave: bool) -> Tuple[str, str]:
@@ -66,6 +66,7 @@ def disable(text: str, names: Iterable[str]) -> Tuple[str, List[str]]:
     """Comment out every section whose first word is one of names; returns
     the new text and the sections ("[flow_sensor x]") commented out."""
     names = set(names)
+    newline = "\r\n" if "\r\n" in text else "\n"  # for a last line without one
     out: List[str] = []
     found: List[str] = []
     for lines, autosave in _regions(text):
@@ -82,15 +83,15 @@ def disable(text: str, names: Iterable[str]) -> Tuple[str, List[str]]:
             while end - 1 > i and not _split(lines[end - 1], autosave)[1].strip(
                     "\r\n \t"):
                 end -= 1  # blank lines after the section stay as they are
-            out += _commented(lines[i:end], autosave)
+            out += _commented(lines[i:end], autosave, newline)
             found.append(f"[{section}]")
             i = end
     return "".join(out), found
 
 
-def _commented(lines: Sequence[str], autosave: bool) -> List[str]:
+def _commented(lines: Sequence[str], autosave: bool, default: str) -> List[str]:
     prefix = _split(lines[0], autosave)[0]
-    newline = _newline(lines[0])
+    newline = _newline(lines[0], default)
     lines = list(lines)
     added = not lines[-1].endswith(("\n", "\r"))
     if added:

@@ -15,7 +15,7 @@ from typing import Dict, List, Optional, Tuple
 
 from .. import __version__
 from ..sensor import ems22
-from . import install
+from . import firmware, install
 
 OK, FAIL, SKIP = "ok", "FAIL", "skip"
 
@@ -24,18 +24,10 @@ OK, FAIL, SKIP = "ok", "FAIL", "skip"
 MIN_KLIPPER_DESCRIBE = ((0, 13, 0), 568)
 
 SENSOR_COMMAND = ems22.QUERY_CMD.split()[0]
-_KCONFIG_PROMPT = re.search(r'bool "([^"]+)"', install.KCONFIG_PROMPT).group(1)
-_MENUS = {"Klipper": "on small MCUs: '"
-          + install.LIMITED_MENU.split('"')[1] + "'",
-          "Kalico": "'Firmware Extras'"}
 
 
 def firmware_fix(host: str = "Klipper") -> str:
-    return ("rebuild and flash the MCU firmware: cd ~/klipper; make menuconfig"
-            f" ({_MENUS.get(host, _MENUS['Klipper'])} -> '{_KCONFIG_PROMPT}' on,"
-            " it is CONFIG_WANT_SENSOR_EMS22); make; make flash"
-            " FLASH_DEVICE=<your MCU's serial>; then FIRMWARE_RESTART (flowloop"
-            " install must have run first)")
+    return f"{firmware.firmware_hint(host)}; then FIRMWARE_RESTART"
 
 
 INSTALL_FIX = ("run flowloop install from this checkout's virtualenv, then"

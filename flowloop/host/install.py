@@ -15,12 +15,15 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import subprocess
+import time
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence
 
 from .. import files
 from ..errors import FlowloopError
+from . import config_sections
 
 PROJECT_URL = "https://github.com/flowloop/klipper-flowloop"
 SENSOR_C = "sensor_ems22.c"
@@ -190,8 +193,11 @@ class Change:
     link_to: Optional[Path] = None      # create this symlink
     unlink_from: Optional[str] = None   # remove the symlink, which points here
     folder: Optional[str] = None        # "make" or "remove" this (empty) folder
+    note: bool = False                  # nothing to do: only `what` is said
 
     def apply(self) -> None:
+        if self.note:
+            return
         if self.folder == "make":
             os.mkdir(self.path)
         elif self.folder == "remove":
@@ -206,6 +212,8 @@ class Change:
             _write_atomic(self.path, self.new_text)
 
     def revert(self) -> None:
+        if self.note:
+            return
         if self.folder == "make":
             os.rmdir(self.path)
         elif self.folder == "remove":
@@ -220,6 +228,8 @@ class Change:
 
     def check(self, made: Sequence[Path] = ()) -> None:
         """made: folders an earlier change of the same plan creates."""
+        if self.note:
+            return
         parent = self.path.parent
         while parent in made:
             parent = parent.parent
@@ -260,10 +270,15 @@ def apply(changes: Sequence[Change]) -> None:
 
 def _edit(changes: List[Change], path: Path, what: str,
           edit: Callable[[str], str]) -> None:
-    old = path.read_text(encoding="utf-8")
+    old = read_text(path)
     new = edit(old)
     if new != old:
         changes.append(Change(path, what, new_text=new, old_text=old))
+
+
+def read_text(path: Path) -> str:
+    """A config file's text with its line endings as they are (CRLF kept)."""
+    return path.read_bytes().decode("utf-8")
 
 
 def _link(changes: List[Change], path: Path, target: Path, uninstall: bool) -> None:
@@ -453,21 +468,26 @@ def plan_kalico(klipper: Path, source: Path, uninstall: bool) -> List[Change]:
     _edit(changes, klipper / "src" / "Kconfig",
           f"remove the EMS22 sensor option from {klipper / 'src' / 'Kconfig'}",
           lambda t: drop_block(drop_block(t, "sensor-prompt"), "sensor"))
-    _exclude_changes(changes, klipper, [], uninstall=True)
-
     folder = klipper / "src" / "extras" / KALICO_EXTRA
     c_files = mcu_sources(source)
     remove = uninstall or not c_files
+    # Kalico's src/extras/.gitignore ignores all it holds; a tree without it
+    # (src/extras not made yet) gets the extra listed in .git/info/exclude.
+    ignored = (folder.parent / ".gitignore").is_file()
+    _exclude_changes(changes, klipper, [f"src/extras/{KALICO_EXTRA}"],
+                     uninstall=remove or ignored)
     if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
         if remove:
             return changes
         raise InstallError(f"{folder} exists and is not flowloop's firmware extra;"
                            f" move it away first")
     if not folder.exists():
-        if not remove:
-            changes.append(Change(folder, f"make folder {folder}", folder="make"))
-        else:
+        if remove:
             return changes
+        if not folder.parent.exists():
+            changes.append(Change(folder.parent, f"make folder {folder.parent}",
+                                  folder="make"))
+        changes.append(Change(folder, f"make folder {folder}", folder="make"))
     before = len(changes)
     for c_file in c_files:
         _link(changes, folder / c_file.name, c_file, remove)
@@ -479,10 +499,17 @@ def plan_kalico(klipper: Path, source: Path, uninstall: bool) -> List[Change]:
         if all(p in gone for p in folder.iterdir()):
             changes.append(Change(folder, f"remove folder {folder}",
                                   folder="remove"))
+            if not ignored and list(folder.parent.iterdir()) == [folder]:
+                changes.append(Change(folder.parent, "remove folder"
+                                      f" {folder.parent}", folder="remove"))
     return changes
 
 
 def plan_klipper(klipper: Path, source: Path, uninstall: bool = False) -> List[Change]:
+    """Klipper's checkout: links in klippy/extras/, listed in .git/info/exclude,
+    and no tracked file changed, so Moonraker's update manager sees it
+    pristine. The MCU code is built from a copy (flowloop firmware); the
+    src/ edits an older flowloop made here are taken out."""
     klipper = Path(klipper).expanduser()
     check_klipper_tree(klipper)
     if is_kalico(klipper):
@@ -495,33 +522,53 @@ def plan_klipper(klipper: Path, source: Path, uninstall: bool = False) -> List[C
         rel = f"klippy/extras/{module.name}"
         _link(changes, klipper / rel, module, uninstall)
         excluded.append(rel)
-    c_files = mcu_sources(source)
-    for c_file in c_files:
-        rel = f"src/{c_file.name}"
-        _link(changes, klipper / rel, c_file, uninstall)
-        excluded.append(rel)
     _stale_links(changes, klipper / "klippy" / "extras", source,
                  klippy_modules(source))
-    _stale_links(changes, klipper / "src", source, c_files)
-    makefile = klipper / "src" / "Makefile"
-    kconfig = klipper / "src" / "Kconfig"
-    if uninstall or not c_files:
+    for change in plan_firmware(klipper, source, uninstall=True):
+        change.what += OLD_FIRMWARE_EDIT
+        changes.append(change)
+    _exclude_changes(changes, klipper, excluded, uninstall)
+    return changes
+
+
+# Said of each src/ edit an older flowloop made in the checkout, as it goes.
+OLD_FIRMWARE_EDIT = (" (left by an older flowloop; Klipper's checkout keeps no"
+                     " flowloop edit now: flowloop firmware builds the sensor)")
+
+
+def plan_firmware(tree: Path, source: Path, uninstall: bool = False) -> List[Change]:
+    """The EMS22 command in a Klipper tree's MCU build: the sources linked
+    into src/, one line in src/Makefile, the option in src/Kconfig. Made
+    only in a copy make builds from (flowloop firmware's, the tests'), never
+    in the user's checkout; Kalico takes it as a firmware extra instead
+    (plan_kalico), so there is nothing to do here."""
+    tree = Path(tree).expanduser()
+    if is_kalico(tree):
+        return []
+    changes: List[Change] = []
+    c_files = mcu_sources(source)
+    remove = uninstall or not c_files
+    for c_file in c_files:
+        _link(changes, tree / "src" / c_file.name, c_file, remove)
+    _stale_links(changes, tree / "src", source, c_files)
+    makefile = tree / "src" / "Makefile"
+    kconfig = tree / "src" / "Kconfig"
+    if remove:
         _edit(changes, makefile, f"remove the EMS22 sensor source from {makefile}",
               lambda t: drop_block(t, "sensor"))
         _edit(changes, kconfig, f"remove the EMS22 sensor option from {kconfig}",
               lambda t: drop_block(drop_block(t, "sensor-prompt"), "sensor"))
-    else:
-        _edit(changes, makefile, f"add the EMS22 sensor source to {makefile}",
-              lambda t: put_block(t, "sensor", MAKEFILE_LINES))
+        return changes
+    _edit(changes, makefile, f"add the EMS22 sensor source to {makefile}",
+          lambda t: put_block(t, "sensor", MAKEFILE_LINES))
 
-        def kconfig_edit(text: str) -> str:
-            text = put_block(text, "sensor", KCONFIG_HIDDEN,
-                             lambda t: _line_offset(t, LIMITED_MENU, kconfig))
-            return put_block(text, "sensor-prompt", KCONFIG_PROMPT,
-                             lambda t: _prompt_offset(t, kconfig))
-        _edit(changes, kconfig, f"add the EMS22 sensor option (make menuconfig)"
-              f" to {kconfig}", kconfig_edit)
-    _exclude_changes(changes, klipper, excluded, uninstall)
+    def kconfig_edit(text: str) -> str:
+        text = put_block(text, "sensor", KCONFIG_HIDDEN,
+                         lambda t: _line_offset(t, LIMITED_MENU, kconfig))
+        return put_block(text, "sensor-prompt", KCONFIG_PROMPT,
+                         lambda t: _prompt_offset(t, kconfig))
+    _edit(changes, kconfig, f"add the EMS22 sensor option (make menuconfig)"
+          f" to {kconfig}", kconfig_edit)
     return changes
 
 
@@ -583,24 +630,122 @@ def _git_origin(source: Path) -> Optional[str]:
     return proc.stdout.strip() or None
 
 
+# A user's own [flowloop] in moonraker.conf (uncommented, at a line's start).
+FLOWLOOP_SECTION = re.compile(r"^\[flowloop\][ \t]*(?:[#;].*)?\r?$", re.MULTILINE)
+COMPONENT_BLOCK = "\n[flowloop]\n"
+# Backups sit beside the file; not named *.cfg or *.conf, so no [include *.cfg]
+# of klippy's or Moonraker's reads one.
+BACKUP_SUFFIX = ".flowloop-backup-"
+
+
+def backup_path(path: Path) -> Path:
+    stamp = time.strftime("%Y%m%d_%H%M%S")
+    candidate = path.with_name(f"{path.name}{BACKUP_SUFFIX}{stamp}")
+    n = 1
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.name}{BACKUP_SUFFIX}{stamp}-{n}")
+    return candidate
+
+
+def _edit_with_backup(changes: List[Change], path: Path, what: str,
+                      edit: Callable[[str], str]) -> None:
+    """An edit of a user's config file, its old text kept in a backup first."""
+    old = read_text(path)
+    new = edit(old)
+    if new == old:
+        return
+    backup = backup_path(path)
+    changes.append(Change(backup, f"back up {path} to {backup.name}",
+                          new_text=old))
+    changes.append(Change(path, what, new_text=new, old_text=old))
+
+
+def _keeping_crlf(edit: Callable[[str], str]) -> Callable[[str], str]:
+    """A block edit of a CRLF file writes CRLF too (a mixed file: as it is)."""
+    def edited(text: str) -> str:
+        if "\r\n" in text and "\n" not in text.replace("\r\n", ""):
+            return edit(text.replace("\r\n", "\n")).replace("\n", "\r\n")
+        return edit(text)
+    return edited
+
+
 def plan_moonraker_conf(config_dir: Path, source: Path,
                         uninstall: bool = False) -> List[Change]:
+    """moonraker.conf: the component's own [flowloop] section and, for a git
+    checkout, [update_manager flowloop]; each a marked block that uninstall
+    takes out again. A section of the user's own is left alone."""
     conf = Path(config_dir).expanduser() / "moonraker.conf"
     if not conf.is_file():
         raise InstallError(f"{conf}: no such file (use --config-dir)")
     changes: List[Change] = []
-    drop = f"remove [update_manager flowloop] from {conf}"
+    text = read_text(conf).replace("\r\n", "\n")
     if uninstall:
-        _edit(changes, conf, drop, lambda t: drop_block(t, "update-manager"))
+        _edit_with_backup(changes, conf, f"remove [flowloop] and [update_manager"
+                          f" flowloop] from {conf}", _keeping_crlf(lambda t: drop_block(
+                              drop_block(t, "update-manager"), "component")))
         return changes
+    edits: List[Callable[[str], str]] = []
+    said: List[str] = []
+    if FLOWLOOP_SECTION.search(drop_block(text, "component")):
+        changes.append(Change(conf, f"{conf} has a [flowloop] section of its own:"
+                              f" left as it is", note=True))
+        edits.append(lambda t: drop_block(t, "component"))
+    else:
+        edits.append(lambda t: put_block(t, "component", COMPONENT_BLOCK))
+        said.append("[flowloop]")
     if not is_checkout(source):
         # Installed from a wheel: pip updates it, not a git_repo updater.
-        _edit(changes, conf, drop, lambda t: drop_block(t, "update-manager"))
-        return changes
-    text = conf.read_text(encoding="utf-8")
-    has_own = find_block(text, "update-manager") is not None
-    if not has_own and "[update_manager flowloop]" in text:
-        return changes  # the user wrote one: theirs wins
-    _edit(changes, conf, f"add [update_manager flowloop] to {conf}",
-          lambda t: put_block(t, "update-manager", "\n" + update_manager_block(source)))
+        edits.append(lambda t: drop_block(t, "update-manager"))
+    elif (find_block(text, "update-manager") is not None
+          or "[update_manager flowloop]" not in text):  # the user's own wins
+        edits.append(lambda t: put_block(t, "update-manager",
+                                         "\n" + update_manager_block(source)))
+        said.append("[update_manager flowloop]")
+
+    def edit(t: str) -> str:
+        for one in edits:
+            t = one(t)
+        return t
+    what = (f"add {' and '.join(said)} to {conf}" if said
+            else f"update flowloop's blocks in {conf}")
+    _edit_with_backup(changes, conf, what, _keeping_crlf(edit))
+    return changes
+
+
+def klippy_sections(source: Path) -> List[str]:
+    """The config sections flowloop's klippy modules provide (one per module,
+    named as it is: flow_sensor gives [flow_sensor NAME])."""
+    return [m.name[:-3] if m.suffix == ".py" else m.name
+            for m in klippy_modules(source)]
+
+
+def plan_printer_cfg(config_dir: Path, source: Path,
+                     uninstall: bool = False) -> List[Change]:
+    """printer.cfg and the files it includes: uninstall comments flowloop's
+    sections out (klippy refuses a section no module provides), install
+    restores what an uninstall commented out."""
+    main = Path(config_dir).expanduser() / "printer.cfg"
+    if not main.is_file():
+        return []
+    changes: List[Change] = []
+    names = klippy_sections(source)
+    for path in config_sections.config_files(main):
+        text = read_text(path)
+        if uninstall:
+            new, found = config_sections.disable(text, names)
+        else:
+            new, found = config_sections.restore(text)
+        if new == text:
+            continue
+        if Path(source).resolve() in path.resolve().parents:
+            changes.append(Change(path, f"{main} includes {path} from flowloop"
+                                  f" itself, with {', '.join(found)}: remove that"
+                                  f" [include] by hand", note=True))
+            continue
+        what = (f"comment out {', '.join(found)} in {path} (klippy starts without"
+                f" flowloop; flowloop install restores them)" if uninstall else
+                f"restore {', '.join(found)} in {path} (commented out by flowloop"
+                f" install --uninstall)")
+        _edit_with_backup(changes, path, what, lambda t, new=new: new)
     return changes

@@ -7,6 +7,7 @@
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import logging
 
+from flowloop.host.firmware import FLASH_COMMAND
 from flowloop.sensor import ems22
 from flowloop.sensor import pipeline as fl_pipeline
 
@@ -17,9 +18,8 @@ else:   # Klipper: klippy/extras/flow_sensor/, extras one up
     from .. import bulk_sensor, bus
 
 MIN_MSG_TIME = 0.100
-REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: install "
-               "flowloop ('flowloop install'), then rebuild and flash Klipper "
-               "(cd ~/klipper; make menuconfig; make flash)")
+REBUILD_MSG = ("MCU '{}' firmware has no EMS22 sensor support: build and "
+               "flash it with the sensor command: " + FLASH_COMMAND)
 
 
 class Ems22Source:

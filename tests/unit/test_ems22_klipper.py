@@ -62,7 +62,7 @@ def test_the_menuconfig_prompt_sits_with_klippers_sensor_chips(tmp_path):
     mcu_py = "class MCU:\n    def register_serial_response(self, cb, msg):\n"
     tree = _tree(tmp_path, mcu_py)
     (tree / "src" / "Kconfig").write_text(kconfig.read_text())
-    install.apply(install.plan_klipper(tree, Path(__file__).resolve().parents[2]))
+    install.apply(install.plan_firmware(tree, Path(__file__).resolve().parents[2]))
     text = (tree / "src" / "Kconfig").read_text()
     menu = text.index(install.LIMITED_MENU)
     prompt = text.index('bool "Support EMS22 filament flow sensor (flowloop)"')

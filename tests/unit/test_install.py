@@ -23,6 +23,8 @@ def snapshot(root: Path) -> dict:
     out = {}
     for dirpath, dirnames, filenames in os.walk(root):
         for name in dirnames + filenames:
+            if install.BACKUP_SUFFIX in name:
+                continue  # install's backups of config files: documented
             path = Path(dirpath) / name
             rel = str(path.relative_to(root))
             st = path.lstat()
@@ -145,13 +147,14 @@ def test_dry_run_then_install_then_uninstall_restores_every_byte(
     assert [snapshot(t) for t in trees] == before
 
 
-def test_sensor_source_adds_makefile_and_kconfig_lines(klipper_tree, tmp_path):
+def test_the_firmware_patch_adds_makefile_and_kconfig_lines(klipper_tree, tmp_path):
+    """What flowloop firmware does to its copy (never to the checkout)."""
     source = tmp_path / "source"
     shutil.copytree(PROJECT / "klippy_extras", source / "klippy_extras")
     (source / "mcu_sensor").mkdir()
     (source / "mcu_sensor" / install.SENSOR_C).write_text("/* sensor */\n")
     before = snapshot(klipper_tree)
-    install.apply(install.plan_klipper(klipper_tree, source))
+    install.apply(install.plan_firmware(klipper_tree, source))
     makefile = (klipper_tree / "src" / "Makefile").read_text()
     kconfig = (klipper_tree / "src" / "Kconfig").read_text()
     assert install.MAKEFILE_LINES in makefile
@@ -161,7 +164,7 @@ def test_sensor_source_adds_makefile_and_kconfig_lines(klipper_tree, tmp_path):
     prompt = kconfig.index(install.KCONFIG_PROMPT)
     assert menu < prompt < kconfig.index("endmenu", menu)
     assert (klipper_tree / "src" / install.SENSOR_C).is_symlink()
-    install.apply(install.plan_klipper(klipper_tree, source, uninstall=True))
+    install.apply(install.plan_firmware(klipper_tree, source, uninstall=True))
     assert snapshot(klipper_tree) == before
 
 
@@ -280,7 +283,9 @@ def test_a_venv_without_moonraker_is_refused(tmp_path):
 def test_a_users_own_update_manager_section_is_kept(config_dir):
     conf = config_dir / "moonraker.conf"
     conf.write_text("[update_manager flowloop]\ntype: git_repo\npath: ~/mine\n")
-    assert install.plan_moonraker_conf(config_dir, PROJECT) == []
+    install.apply(install.plan_moonraker_conf(config_dir, PROJECT))
+    text = conf.read_text()
+    assert text.count("[update_manager flowloop]") == 1 and "~/mine" in text
 
 
 def test_links_of_a_module_an_older_flowloop_had_are_removed(klipper_tree, tmp_path):
@@ -519,11 +524,14 @@ def test_an_installed_package_links_its_bundled_copy(tmp_path, monkeypatch):
 def test_no_update_manager_block_for_a_pip_installed_flowloop(config_dir, tmp_path):
     bundle = tmp_path / "bundle"
     (bundle / "klippy_extras").mkdir(parents=True)
-    assert install.plan_moonraker_conf(config_dir, bundle) == []
+    conf = config_dir / "moonraker.conf"
+    install.apply(install.plan_moonraker_conf(config_dir, bundle))
+    assert "update_manager" not in conf.read_text()
     install.apply(install.plan_moonraker_conf(config_dir, PROJECT))  # a checkout's
-    assert "[update_manager flowloop]" in (config_dir / "moonraker.conf").read_text()
+    assert "[update_manager flowloop]" in conf.read_text()
     install.apply(install.plan_moonraker_conf(config_dir, bundle))  # now a wheel's
-    assert "update_manager" not in (config_dir / "moonraker.conf").read_text()
+    assert "update_manager" not in conf.read_text()
+    assert "[flowloop]" in conf.read_text()
 
 
 def test_without_klipper_path_the_default_is_klipper_else_kalico(tmp_path,
@@ -542,19 +550,274 @@ def test_without_klipper_path_the_default_is_klipper_else_kalico(tmp_path,
 def test_a_dry_run_says_each_change_once_and_what_it_adds(klipper_tree, capsys):
     assert install.mcu_sources(install.source_tree())  # the Makefile gets lines
     assert run_install("--klipper", str(klipper_tree), "--no-moonraker",
-                       "--dry-run") == 0
+                       "--config-dir", str(klipper_tree), "--dry-run") == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines and all(line.startswith("would ") for line in lines)
     for line in lines:   # the path once: "would link A -> B", not "...: A"
         path = line.split()[2].rstrip(":")
         assert line.count(path) == 1, line
-    makefile = klipper_tree / "src" / "Makefile"
-    assert f"would add the EMS22 sensor source to {makefile}" in lines
+    # the checkout's tracked files are not touched: no src/ edit is planned
+    assert not any("/src/" in line for line in lines)
 
 
-def test_without_moonraker_only_klipper_is_to_be_restarted(klipper_tree, capsys):
-    assert run_install("--klipper", str(klipper_tree), "--no-moonraker") == 0
+def test_without_moonraker_only_klipper_is_to_be_restarted(klipper_tree, tmp_path,
+                                                          capsys):
+    where = ("--klipper", str(klipper_tree), "--config-dir", str(tmp_path))
+    assert run_install(*where, "--no-moonraker") == 0
     last = capsys.readouterr().out.splitlines()[-1]
     assert last == "restart klipper to load the change"
-    assert run_install("--klipper", str(klipper_tree), "--no-moonraker",
-                       "--uninstall") == 0
+    assert run_install(*where, "--no-moonraker", "--uninstall") == 0
+
+
+# --- Klipper stays updatable: nothing git tracks is changed ------------------
+
+# What Moonraker's update manager counts as source (git_deploy.py SRC_EXTS):
+# an untracked file with one of these suffixes makes the repo not pristine.
+MOONRAKER_SRC_EXTS = (".py", ".c", ".cpp", ".h", ".s", ".S", ".js", ".sh")
+
+
+def git_out(tree: Path, *args: str) -> str:
+    return subprocess.run(["git", "-C", str(tree), *args], check=True,
+                          capture_output=True, text=True).stdout
+
+
+def update_manager_view(tree: Path) -> dict:
+    """The repo as Moonraker's git_deploy judges it: `git describe --dirty`,
+    modified files and untracked source files from `git status --porcelain`."""
+    described = git_out(tree, "describe", "--always", "--tags", "--long",
+                        "--dirty").strip()
+    modified, untracked = [], []
+    for line in git_out(tree, "status", "--porcelain", "-b").splitlines():
+        prefix, _, name = line.strip().partition(" ")
+        if prefix == "M":
+            modified.append(name.strip())
+        elif prefix == "??" and Path(name.strip()).suffix in MOONRAKER_SRC_EXTS:
+            untracked.append(name.strip())
+    return {"dirty": described.endswith("-dirty"), "modified": modified,
+            "untracked": untracked}
+
+
+def clone_of(path: Path, where: Path) -> Path:
+    """A git clone of a user's checkout (objects shared, nothing written there)."""
+    if not (path / ".git").exists():
+        pytest.skip(f"no git checkout at {path}")
+    subprocess.run(["git", "clone", "-q", "--shared", str(path), str(where)],
+                   check=True)
+    return where
+
+
+@pytest.fixture
+def klipper_clone(tmp_path):
+    return clone_of(stack.klipper_path(), tmp_path / "klipper")
+
+
+@pytest.mark.parametrize("host", ["klipper", "kalico"])
+def test_after_install_the_checkout_is_pristine_as_moonraker_judges_it(
+        host, tmp_path, capsys):
+    tree = clone_of(stack.klipper_path() if host == "klipper" else kalico_path(),
+                    tmp_path / host)
+    where = ("--klipper", str(tree), "--config-dir", str(tmp_path))
+    assert run_install(*where, "--no-moonraker") == 0
+    assert update_manager_view(tree) == {"dirty": False, "modified": [],
+                                         "untracked": []}
+    assert (tree / "klippy" / ("plugins" if host == "kalico" else "extras")
+            / "flowloop.py").is_symlink()
+    assert run_install(*where, "--no-moonraker", "--uninstall") == 0
+    assert git_out(tree, "status", "--porcelain", "--ignored") == ""
+
+
+def test_an_install_over_an_older_one_restores_klippers_src_files_and_says_so(
+        klipper_clone, tmp_path, capsys):
+    kconfig = (klipper_clone / "src" / "Kconfig").read_bytes()
+    makefile = (klipper_clone / "src" / "Makefile").read_bytes()
+    # what an older flowloop install left: src/ edited, its links excluded
+    install.apply(install.plan_firmware(klipper_clone, PROJECT))
+    install._exclude_changes(changes := [], klipper_clone,
+                             [f"src/{install.SENSOR_C}"], uninstall=False)
+    install.apply(changes)
+    assert update_manager_view(klipper_clone)["modified"] == ["src/Kconfig",
+                                                              "src/Makefile"]
+    assert run_install("--klipper", str(klipper_clone), "--config-dir",
+                       str(tmp_path), "--no-moonraker") == 0
+    out = capsys.readouterr().out
+    assert (klipper_clone / "src" / "Kconfig").read_bytes() == kconfig
+    assert (klipper_clone / "src" / "Makefile").read_bytes() == makefile
+    assert not (klipper_clone / "src" / install.SENSOR_C).exists()
+    assert update_manager_view(klipper_clone) == {"dirty": False, "modified": [],
+                                                  "untracked": []}
+    said = [line for line in out.splitlines() if "left by an older flowloop" in line]
+    assert all("/src/" in line for line in said)
+    assert {line.split(" (")[0] for line in said} >= {
+        f"remove the EMS22 sensor option from {klipper_clone}/src/Kconfig",
+        f"remove the EMS22 sensor source from {klipper_clone}/src/Makefile",
+        f"remove link {klipper_clone}/src/{install.SENSOR_C}"}
+
+
+def test_flowloop_firmware_builds_the_sensor_from_a_copy_and_keeps_the_checkout_clean(
+        klipper_clone, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    shutil.copy(klipper_clone / "test" / "configs" / "linuxprocess.config",
+                klipper_clone / ".config")
+    assert cli.main(["firmware", "--klipper", str(klipper_clone), "olddefconfig"]) == 0
+    assert cli.main(["firmware", "--klipper", str(klipper_clone), "--",
+                     f"-j{os.cpu_count() or 2}"]) == 0
+    out = capsys.readouterr().out
+    copy = tmp_path / "cache" / "flowloop" / "firmware" / "klipper"
+    assert f"in {copy}, a copy of {klipper_clone}" in out
+    # .config and out/ where Klipper keeps them; the EMS22 command is built in
+    assert "CONFIG_WANT_SENSOR_EMS22=y" in (klipper_clone / ".config").read_text()
+    dictionary = (klipper_clone / "out" / "klipper.dict").read_text()
+    assert "config_ems22" in dictionary and "query_ems22" in dictionary
+    # the firmware's version is the checkout's
+    head = git_out(klipper_clone, "describe", "--always", "--tags", "--long").strip()
+    assert f"{head}-flowloop" in dictionary
+    assert update_manager_view(klipper_clone) == {"dirty": False, "modified": [],
+                                                  "untracked": []}
+    # a Klipper update (a new commit) reaches the next build's copy
+    (klipper_clone / "src" / "Kconfig").write_text(
+        (klipper_clone / "src" / "Kconfig").read_text() + "# updated upstream\n")
+    git_out(klipper_clone, "-c", "user.name=t", "-c", "user.email=t@t", "commit",
+            "-qam", "an update")
+    assert cli.main(["firmware", "--klipper", str(klipper_clone), "olddefconfig"]) == 0
+    assert "# updated upstream" in (copy / "src" / "Kconfig").read_text()
+    assert "WANT_SENSOR_EMS22" in (copy / "src" / "Kconfig").read_text()
+
+
+def test_flowloop_firmware_on_kalico_needs_the_installed_extra(tmp_path, kalico_tree,
+                                                              capsys):
+    args = ["firmware", "--klipper", str(kalico_tree), "--dry-run"]
+    assert cli.main(args) == 2
+    assert "run flowloop install first" in capsys.readouterr().err
+    install.apply(install.plan_klipper(kalico_tree, PROJECT))
+    assert cli.main(args) == 0
+    assert f"would run make in {kalico_tree.resolve()}" in capsys.readouterr().out
+
+
+# --- moonraker.conf: the component's own section -----------------------------
+
+def test_install_adds_the_flowloop_section_with_a_backup_and_uninstall_takes_it_out(
+        config_dir, capsys):
+    conf = config_dir / "moonraker.conf"
+    before = conf.read_bytes()
+    install.apply(install.plan_moonraker_conf(config_dir, PROJECT))
+    text = conf.read_text()
+    assert "\n[flowloop]\n" in text and "[update_manager flowloop]" in text
+    backups = list(config_dir.glob("moonraker.conf" + install.BACKUP_SUFFIX + "*"))
+    assert [b.read_bytes() for b in backups] == [before]
+    assert install.plan_moonraker_conf(config_dir, PROJECT) == []  # idempotent
+    install.apply(install.plan_moonraker_conf(config_dir, PROJECT, uninstall=True))
+    assert conf.read_bytes() == before
+    assert install.plan_moonraker_conf(config_dir, PROJECT, uninstall=True) == []
+
+
+def test_a_moonraker_conf_with_its_own_flowloop_section_is_left_alone(config_dir,
+                                                                      capsys):
+    conf = config_dir / "moonraker.conf"
+    conf.write_text("[server]\nhost: 0.0.0.0\n\n[flowloop]  # mine\nhotend: v6\n")
+    changes = install.plan_moonraker_conf(config_dir, PROJECT)
+    notes = [c.what for c in changes if c.note]
+    assert notes == [f"{conf} has a [flowloop] section of its own: left as it is"]
+    install.apply(changes)
+    assert conf.read_text().count("[flowloop]") == 1
+
+
+def test_a_commented_flowloop_section_is_not_counted_as_present(config_dir):
+    conf = config_dir / "moonraker.conf"
+    conf.write_text("[server]\nhost: 0.0.0.0\n#[flowloop]\n# [flowloop]\n")
+    install.apply(install.plan_moonraker_conf(config_dir, PROJECT))
+    assert "\n[flowloop]\n" in conf.read_text()
+
+
+def test_a_crlf_moonraker_conf_stays_crlf_and_round_trips(config_dir):
+    conf = config_dir / "moonraker.conf"
+    conf.write_bytes(b"[server]\r\nhost: 0.0.0.0\r\n")
+    install.apply(install.plan_moonraker_conf(config_dir, PROJECT))
+    data = conf.read_bytes()
+    assert b"[flowloop]\r\n" in data and b"\n" not in data.replace(b"\r\n", b"")
+    install.apply(install.plan_moonraker_conf(config_dir, PROJECT, uninstall=True))
+    assert conf.read_bytes() == b"[server]\r\nhost: 0.0.0.0\r\n"
+
+
+# --- printer.cfg: uninstall leaves a configuration klippy starts with --------
+
+PRINTER_CFG = """\
+[include extras/*.cfg]
+
+[printer]
+kinematics: corexy
+
+[flowloop]
+
+[flow_sensor filament]
+sensor_type: ems22
+cs_pin: PA4
+# my note on the sensor
+
+[extruder]
+max_temp: 260
+
+[diff_ab_calibrate]
+#*# <---------------------- SAVE_CONFIG ---------------------->
+#*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.
+#*#
+#*# [extruder]
+#*# control = pid
+#*#
+#*# [flowrate_limiter]
+#*# max_flow = 12.0
+"""
+
+
+@pytest.fixture
+def printer_cfg(config_dir):
+    """printer.cfg with flowloop's sections in it, in an included CRLF file,
+    and in its SAVE_CONFIG block."""
+    (config_dir / "printer.cfg").write_text(PRINTER_CFG)
+    (config_dir / "extras").mkdir()
+    (config_dir / "extras" / "flow.cfg").write_bytes(
+        b"[autotemp]\r\nextruder: extruder\r\n\r\n[heater_bed]\r\nmax_temp: 100"
+        b"\r\n\r\n[measure_profile]")  # no newline at the end
+    (config_dir / "extras" / "other.cfg").write_text("[fan]\npin: PA8\n")
+    return config_dir / "printer.cfg"
+
+
+def flowloop_sections_klippy_reads(cfg: Path) -> list:
+    from flowloop.host import klipper_config
+    parsed = klipper_config.parse_config(cfg.read_text(), cfg)
+    return [s for s in parsed.sections()
+            if s.split()[0] in install.klippy_sections(PROJECT)]
+
+
+def test_uninstall_comments_out_flowloop_sections_everywhere_and_install_restores(
+        klipper_tree, printer_cfg, capsys):
+    config_dir = printer_cfg.parent
+    before = snapshot(config_dir)
+    assert len(flowloop_sections_klippy_reads(printer_cfg)) == 6
+    where = ("--klipper", str(klipper_tree), "--config-dir", str(config_dir),
+             "--no-moonraker")
+    assert run_install(*where) == 0
+    capsys.readouterr()
+    assert run_install(*where, "--uninstall") == 0
+    out = capsys.readouterr().out
+    assert flowloop_sections_klippy_reads(printer_cfg) == []
+    from flowloop.host import klipper_config
+    parsed = klipper_config.parse_config(printer_cfg.read_text(), printer_cfg)
+    # everything else as it was, the SAVE_CONFIG block still read by klippy
+    assert parsed.get("extruder", "max_temp") == "260"
+    assert parsed.get("extruder", "control") == "pid"
+    assert parsed.get("heater_bed", "max_temp") == "100"
+    assert parsed.get("fan", "pin") == "PA8"
+    assert klipper_config.split_autosave(printer_cfg.read_text())[1]
+    flow = (config_dir / "extras" / "flow.cfg").read_bytes()
+    assert b"\n" not in flow.replace(b"\r\n", b"")  # still CRLF
+    assert f"comment out [flowloop], [flow_sensor filament], [diff_ab_calibrate]," \
+           f" [flowrate_limiter] in {printer_cfg}" in out
+    assert "[autotemp], [measure_profile]" in out
+    assert len(list(config_dir.rglob("*" + install.BACKUP_SUFFIX + "*"))) == 2
+    assert not list(config_dir.rglob("*.cfg" + install.BACKUP_SUFFIX))
+    # twice: nothing more to do
+    assert run_install(*where, "--uninstall") == 0
+    assert "nothing to do" in capsys.readouterr().out
+    assert run_install(*where) == 0
+    assert "restore [flowloop], [flow_sensor filament]" in capsys.readouterr().out
+    assert snapshot(config_dir) == before
