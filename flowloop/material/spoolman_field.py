@@ -28,6 +28,7 @@ import re
 from typing import Any, Dict, Mapping, Optional
 
 from ..errors import FlowloopError
+from ..nesting import check_json_depth
 from .profile import Profile, profile_from_dict, profile_to_dict
 
 FIELD_KEY = "flowloop_profiles"
@@ -35,6 +36,15 @@ FIELD_NAME = "flowloop profiles"
 FIELD_VERSION = 1
 WRITE_ATTEMPTS = 3
 HOTEND_KEY = re.compile(r"[a-z0-9][a-z0-9_.-]{0,63}")
+# Spoolman's ids are SQL integers (PostgreSQL's and MySQL's 32-bit): a larger
+# one is no filament it can hold (it answers 500, not 404, for it)
+MAX_FILAMENT_ID = 2 ** 31 - 1
+# Work Spoolman could not take (unreachable, too slow, a 5xx) is tried again
+# after RETRY_FIRST_S, the wait doubling per failure up to RETRY_MAX_S, until
+# it is done: a Spoolman that is slow but stays connected never makes
+# Moonraker reconnect, which is the other moment it is tried.
+RETRY_FIRST_S = 2.0
+RETRY_MAX_S = 300.0
 
 
 def check_hotend(key: Any) -> str:
@@ -44,6 +54,19 @@ def check_hotend(key: Any) -> str:
             f"hotend {key!r} is not a hotend key (lower-case letters, digits,"
             " '_', '.' and '-', e.g. revo_0.4)")
     return key
+
+
+def check_filament_id(fid: int) -> int:
+    """A filament id Spoolman can hold (1..MAX_FILAMENT_ID)."""
+    if not 1 <= fid <= MAX_FILAMENT_ID:
+        raise FlowloopError(f"Spoolman numbers filaments 1..{MAX_FILAMENT_ID}, "
+                            f"not {fid}")
+    return fid
+
+
+def retry_delay_s(failures: int) -> float:
+    """The wait before the next try after `failures` failed ones in a row."""
+    return min(RETRY_MAX_S, RETRY_FIRST_S * 2.0 ** min(failures, 32))
 
 
 def field_registration() -> Dict[str, Any]:
@@ -65,8 +88,14 @@ def read_field(filament: Mapping[str, Any]) -> Dict[str, Profile]:
     if raw in (None, "", '""'):
         return {}
     where = f"{filament_label(filament)}: its {FIELD_KEY} field"
+    if not isinstance(raw, str):
+        raise FlowloopError(f"{where} is not JSON text")
     try:
+        # nested too deep for json (RecursionError): refused before decoding
+        check_json_depth(raw, where)
         text = json.loads(raw)
+        if isinstance(text, str):
+            check_json_depth(text, where)
         document = json.loads(text) if isinstance(text, str) else text
     except (TypeError, ValueError) as e:
         raise FlowloopError(f"{where} is not JSON ({e})") from None

@@ -88,6 +88,10 @@ class Flowloop:
         if self.spoolman is not None:
             self.spoolman.check_spoolman()
 
+    async def close(self) -> None:
+        if self.spoolman is not None:
+            self.spoolman.close()
+
 
 def load_component(config: ConfigHelper) -> Flowloop:
     return Flowloop(config)

@@ -10,6 +10,8 @@
 #   the reason phrase itself is errors.reason_phrase (`<` as `\x3c`).
 # - a JSON body that does not decode is refused as such. Moonraker drops it
 #   and the endpoint would see no arguments at all ("the profile is missing").
+#   So is one nested deeper than flowloop.nesting.MAX_JSON_DEPTH: decoding
+#   it recurses once per level (RecursionError, a 500, at ~1000).
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -20,6 +22,9 @@ import traceback
 from typing import TYPE_CHECKING, Any, Optional
 
 import tornado.web
+
+from flowloop.errors import FlowloopError
+from flowloop.nesting import check_json_depth
 
 from ...utils import json_wrapper as jsonw
 from ..application import DynamicRequestHandler
@@ -35,7 +40,11 @@ def body_refusal(content_type: str, body: bytes) -> Optional[str]:
     if not content_type.strip().startswith("application/json") or not body.strip():
         return None
     try:
+        check_json_depth(body, "the request body")
         decoded = jsonw.loads(body)
+    except FlowloopError as e:
+        logging.info(f"flowloop: request refused: {one_line(e)}")
+        return str(e)
     except jsonw.JSONDecodeError as e:
         return f"the request body is not valid JSON: {e}"
     if not isinstance(decoded, dict):

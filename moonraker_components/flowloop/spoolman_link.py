@@ -11,8 +11,10 @@
 #
 # Spoolman down (unreachable, over 2 s, 5xx): one line in the log and in
 # flowloop's info, the active profile unchanged; the spool is looked up and
-# the profiles not yet written are written once Moonraker reconnects to
-# Spoolman (Moonraker does not announce the same spool twice).
+# the profiles not yet written are written on a timer with backoff
+# (spoolman_field.retry_delay_s: 2 s doubling to 5 min, until done) and once
+# Moonraker reconnects to Spoolman (Moonraker does not announce the same
+# spool twice; a slow Spoolman stays connected).
 #
 # Moonraker keeps one active spool per printer: on a toolchanger the spool is
 # the tool's that prints when it is set (the tool change macro sets each
@@ -31,10 +33,11 @@ from flowloop.errors import FlowloopError
 from flowloop.material import spoolman_field as sf
 from flowloop.material.active import ActiveProfile, follow_spool, spool_extruder
 from flowloop.material.profile import Profile
+from flowloop.nesting import check_json_depth
 
 from ...utils import json_wrapper as jsonw
 from .args import refusal
-from .errors import quoted
+from .errors import one_line, quoted
 from .profiles import NOTIFICATION, Profiles
 from .store import ProfileStore
 
@@ -65,6 +68,10 @@ class SpoolmanLink:
         self.unwritten: Set[str] = set()
         self.field_registered = False
         self.last_problem: Optional[str] = None
+        # retries of the work above: failed tries in a row, one at a time
+        self.failures = 0
+        self.retry_timer = server.get_event_loop().register_timer(self._retry)
+        self.catch_up_lock = asyncio.Lock()
         server.register_event_handler("spoolman:active_spool_set",
                                       self._on_active_spool_set)
         server.register_event_handler("spoolman:spoolman_status_changed",
@@ -104,8 +111,10 @@ class SpoolmanLink:
         if resp.status_code == 599 or resp.status_code >= 500:
             raise SpoolmanDown(f"HTTP {resp.status_code}")
         try:
+            check_json_depth(resp.content, "Spoolman's answer")
             return resp.status_code, resp.json() if resp.content else None
-        except jsonw.JSONDecodeError:    # not JSON
+        except (jsonw.JSONDecodeError, FlowloopError) as e:  # not JSON we read
+            logging.info(f"flowloop: Spoolman {method} {path}: {one_line(e)}")
             return resp.status_code, None
 
     # --- loading a spool --------------------------------------------------------
@@ -121,6 +130,7 @@ class SpoolmanLink:
             self.unresolved_spool = spool_id
             self._problem(f"Spoolman spool {spool_id}: {e}; the active profile"
                           " stays until Spoolman answers")
+            self._schedule_retry()
             return
         self.last_problem = None
         if status != 200 or not isinstance(spool, dict):
@@ -216,6 +226,11 @@ class SpoolmanLink:
         if fid is None or source == "spoolman":
             return
         try:
+            sf.check_filament_id(fid)
+        except FlowloopError as e:
+            raise refusal(f"profile {quoted(profile.name)}: {e} "
+                          f"(identity.spoolman_filament_id)") from None
+        try:
             status, _ = await self._api("GET", f"/v1/filament/{fid}")
         except SpoolmanDown:
             return
@@ -273,6 +288,7 @@ class SpoolmanLink:
             self.unwritten.add(profile.name)
             self._problem(f"Spoolman filament {fid}: {e}; profile"
                           f" {quoted(profile.name)} is written when it answers")
+            self._schedule_retry()
 
     def _lost_to(self, fid: int, profile: Profile, kept: Optional[Profile]) -> None:
         if kept is None:
@@ -311,16 +327,45 @@ class SpoolmanLink:
         if not (isinstance(data, dict) and data.get("spoolman_connected")):
             return
         self.last_problem = None
-        for name in sorted(self.unwritten):
-            profile = self.store.profiles.get(name)
-            if profile is None:
-                self.unwritten.discard(name)
-            else:
-                await self._write(profile)
-        spoolman = self.server.lookup_component("spoolman", None)
-        spool_id = self.unresolved_spool
-        if spool_id is not None and spoolman is not None \
-                and getattr(spoolman, "spool_id", None) == spool_id:
-            logging.info(f"flowloop: Spoolman is back: looking up spool "
-                         f"{spool_id} again")
+        await self._catch_up()
+
+    def _work_left(self) -> bool:
+        return bool(self.unwritten) or self.unresolved_spool is not None
+
+    def _schedule_retry(self) -> None:
+        """The next try of what is left, after the backoff's wait (a try
+        already waiting is not moved)."""
+        if self._work_left() and not self.retry_timer.is_running():
+            self.retry_timer.start(delay=sf.retry_delay_s(self.failures))
+
+    async def _retry(self, eventtime: float) -> float:
+        await self._catch_up()
+        if not self._work_left():
+            self.failures = 0
+            self.retry_timer.stop()
+            return eventtime
+        self.failures += 1
+        return eventtime + sf.retry_delay_s(self.failures)
+
+    def close(self) -> None:
+        self.retry_timer.stop()
+
+    async def _catch_up(self) -> None:
+        """Write the profiles not yet written, look up the spool not yet
+        resolved (still Moonraker's active one)."""
+        async with self.catch_up_lock:
+            for name in sorted(self.unwritten):
+                profile = self.store.profiles.get(name)
+                if profile is None:
+                    self.unwritten.discard(name)
+                else:
+                    await self._write(profile)
+            spoolman = self.server.lookup_component("spoolman", None)
+            spool_id = self.unresolved_spool
+            if spool_id is None:
+                return
+            if spoolman is None or getattr(spoolman, "spool_id", None) != spool_id:
+                self.unresolved_spool = None   # another spool since: its own event
+                return
+            logging.info(f"flowloop: looking up Spoolman spool {spool_id} again")
             await self._on_active_spool_set({"spool_id": spool_id})

@@ -101,6 +101,13 @@ NOT_JSON = "the request body is not valid JSON: "
      b'{"name": "p", "working_point": NaN}', NOT_JSON),
     ("/server/flowloop/profile/activate", b'["p"]',
      "the request body must be a JSON object of arguments, got list"),
+    # decoding recurses once per level: ~1000 would be a RecursionError (500)
+    ("/server/flowloop/profile",
+     b'{"profile": ' + b"[" * 1000 + b"]" * 1000 + b"}",
+     "the request body nests 1001 levels deep; at most 64 are read"),
+    ("/server/flowloop/nozzle_health",
+     b'{"job_id": "000001", "evidence": ' + b"{\"a\": " * 3000 + b"1"
+     + b"}" * 3001, "the request body nests 3001 levels deep"),
 ])
 def test_a_body_moonraker_cannot_decode_is_refused_as_such(server, path, body,
                                                            message):

@@ -7,7 +7,10 @@ is down changes nothing until Spoolman is back."""
 from __future__ import annotations
 
 import contextlib
+import json
+import os
 import shutil
+import signal
 import time
 
 import pytest
@@ -102,8 +105,43 @@ def test_a_spool_loaded_while_spoolman_is_down_is_looked_up_when_it_is_back(farm
     # Moonraker has reconnected to Spoolman
     assert stack.wait_until(lambda: _active(mr) == {
         "name": "blue pla", "working_point": 0.5}, 20.0)
-    assert "flowloop: Spoolman is back: looking up spool" in (
+    assert f"flowloop: looking up Spoolman spool {blue_spool} again" in (
         mr.data_dir / "moonraker.log").read_text()
+
+
+@contextlib.contextmanager
+def hung(sm):
+    """Spoolman stopped in its tracks (SIGSTOP): connections are taken and
+    nothing is answered, and Moonraker's websocket to it stays open (its
+    ping comes every 20 s), so Moonraker never reconnects."""
+    os.kill(sm.pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        os.kill(sm.pid, signal.SIGCONT)
+
+
+def _disconnects(mr):
+    return (mr.data_dir / "moonraker.log").read_text().count(
+        "Spoolman Disconnected")
+
+
+def test_a_spool_loaded_while_spoolman_hangs_is_looked_up_once_it_answers(farm):
+    sm, mr = farm
+    pink = sm.add_filament("PLA pink")
+    pink_spool = sm.add_spool(pink["id"])["id"]
+    assert mr.request("POST", "/server/flowloop/profile", {"profile": make(
+        name="pink pla", identity={"spoolman_filament_id": pink["id"]})})[0] == 200
+    disconnects = _disconnects(mr)
+    with hung(sm):
+        _load_spool(mr, pink_spool)
+        time.sleep(3.0)     # flowloop's request times out in 2 s
+        assert _active_name(mr) != "pink pla"
+        info = mr.request("GET", "/server/flowloop/info")[1]["result"]
+        assert info["spoolman"]["unresolved_spool"] == pink_spool
+    # no reconnect to wait for: the link tries again on its own timer
+    assert stack.wait_until(lambda: _active_name(mr) == "pink pla", 20.0)
+    assert _disconnects(mr) == disconnects
 
 
 # --- a farm: profiles kept on the filament, shared by hotend ------------------
@@ -267,3 +305,52 @@ def test_a_profile_stored_while_spoolman_is_down_is_written_when_it_is_back(prin
         "revo_0.4": "black pla"}, 20.0)
     info = mr["a"].request("GET", "/server/flowloop/info")[1]["result"]
     assert info["spoolman"]["unwritten"] == []
+
+
+def test_a_profile_stored_while_spoolman_hangs_is_written_once_it_answers(printers):
+    sm, mr, _ = printers
+    grey = sm.add_filament("PLA grey")
+    disconnects = _disconnects(mr["c"])
+    with hung(sm):
+        # the filament check times out (2 s): stored, written later
+        assert _store(mr["c"], name="grey pla",
+                      identity={"spoolman_filament_id": grey["id"]})[0] == 200
+        assert stack.wait_until(lambda: "grey pla" in mr["c"].request(
+            "GET", "/server/flowloop/info")[1]["result"]["spoolman"]["unwritten"],
+            10.0)
+    # (a write sent while it hung may land when it resumes: the link knows
+    # only once its own next try reads the field back)
+    assert stack.wait_until(lambda: mr["c"].request(
+        "GET", "/server/flowloop/info")[1]["result"]["spoolman"]["unwritten"]
+        == [], 30.0)
+    assert _shared(sm, grey["id"]) == {"v6_0.6": "grey pla"}
+    assert _disconnects(mr["c"]) == disconnects
+
+
+def test_a_filament_id_spoolman_cannot_hold_is_refused_not_left_unwritten(printers):
+    _, mr, _ = printers
+    status, body = _store(mr["a"], name="huge pla",
+                          identity={"spoolman_filament_id": 10 ** 30})
+    assert status == 400, body
+    assert body["error"]["message"] == (
+        'profile "huge pla": Spoolman numbers filaments 1..2147483647, not '
+        f"{10 ** 30} (identity.spoolman_filament_id)")
+    assert "huge pla" not in _names(mr["a"])
+
+
+def test_a_field_nested_3000_deep_is_one_line_not_a_recursion_error(printers):
+    sm, mr, _ = printers
+    deep = sm.add_filament("PLA deep")
+    sm.request("POST", "/api/v1/field/filament/flowloop_profiles",
+               {"name": "flowloop profiles", "field_type": "text", "order": 0})
+    status, answer = sm.request("PATCH", f"/api/v1/filament/{deep['id']}", {
+        "extra": {"flowloop_profiles": json.dumps("[" * 3000 + "]" * 3000)}})
+    assert status == 200, answer
+    before = _active(mr["b"])
+    _load_spool(mr["b"], sm.add_spool(deep["id"])["id"])
+    assert stack.wait_until(lambda: "nests 3000 levels deep" in (
+        mr["b"].request("GET", "/server/flowloop/info")[1]["result"]["spoolman"]
+        ["problem"] or ""), 10.0)
+    assert _active(mr["b"]) == before
+    log = (mr["b"].data_dir / "moonraker.log").read_text()
+    assert "RecursionError" not in log

@@ -93,3 +93,28 @@ def test_the_same_time_goes_to_the_writer():
     a = profile(when="2026-11-01T10:00:00Z")
     b = profile(when="2026-11-01T10:00:00Z", real=(0.15, 210.0, 11.0))
     assert sf.merged({"revo_0.4": a}, "revo_0.4", b)["revo_0.4"] == b
+
+
+@pytest.mark.parametrize("value", [
+    "[" * 3000 + "]" * 3000,                               # the field itself
+    json.dumps("[" * 3000 + "]" * 3000),                   # inside its string
+    json.dumps(json.dumps({"flowloop": 1, "profiles": {"revo_0.4": {
+        "deep": json.loads("[" * 200 + "]" * 200)}}})),
+])
+def test_a_field_nested_too_deep_is_one_line_not_a_recursion_error(value):
+    with pytest.raises(FlowloopError, match="nests .* levels deep; at most 64"):
+        sf.read_field(filament(value))
+
+
+def test_a_filament_id_spoolman_cannot_hold_is_refused():
+    assert sf.check_filament_id(sf.MAX_FILAMENT_ID) == 2 ** 31 - 1
+    for fid in (0, 2 ** 31, 10 ** 30):
+        with pytest.raises(FlowloopError, match="Spoolman numbers filaments"):
+            sf.check_filament_id(fid)
+
+
+def test_work_spoolman_could_not_take_is_tried_again_sooner_then_later():
+    waits = [sf.retry_delay_s(n) for n in range(12)]
+    assert waits[:4] == [2.0, 4.0, 8.0, 16.0]
+    assert waits == sorted(waits) and max(waits) == sf.RETRY_MAX_S
+    assert sf.retry_delay_s(10 ** 6) == sf.RETRY_MAX_S
