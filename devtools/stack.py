@@ -290,6 +290,74 @@ def moonraker_venv() -> Venv:
 
 
 # ---------------------------------------------------------------------------
+# Moonraker as KIAUH installs it: a git checkout, run from its source
+
+
+MOONRAKER_URL = "https://github.com/Arksine/moonraker"
+
+
+def moonraker_checkout_path() -> Path:
+    """The user's Moonraker checkout: $MOONRAKER_PATH or ~/moonraker."""
+    return Path(os.environ.get("MOONRAKER_PATH", "~/moonraker")).expanduser()
+
+
+def missing_moonraker_checkout_reason() -> Optional[str]:
+    path = moonraker_checkout_path()
+    if not (path / "moonraker" / "moonraker.py").is_file() \
+            or not (path / "scripts" / "moonraker-requirements.txt").is_file():
+        return (f"no Moonraker checkout at {path}: the moonraker tier's runs on a"
+                f" git checkout (tests/moonraker/test_moonraker_checkout.py) are"
+                f" SKIPPED. Get one with 'git clone {MOONRAKER_URL} ~/moonraker'"
+                f" or set MOONRAKER_PATH.")
+    return None
+
+
+class MoonrakerCheckout:
+    """A copy of the user's Moonraker checkout (its .git too, so its update
+    manager sees a checkout) with flowloop installed as `flowloop install`
+    installs it into a checkout, and a virtualenv of the checkout's own
+    requirements plus flowloop."""
+
+    def __init__(self, tree: Path, venv: Venv):
+        self.tree = tree
+        self.venv = venv
+
+    @property
+    def script(self) -> Path:
+        """What KIAUH's moonraker.service runs."""
+        return self.tree / "moonraker" / "moonraker.py"
+
+
+def moonraker_checkout() -> MoonrakerCheckout:
+    source = moonraker_checkout_path()
+    h = hashlib.sha256()
+    for args in (["rev-parse", "HEAD"], ["status", "--porcelain"], ["diff"]):
+        h.update(_run(["git", "-C", str(source), *args]).encode())
+    h.update(str(PROJECT).encode())
+    h.update(" ".join(p.name for p in install.moonraker_components(PROJECT)).encode())
+    tree = cache_dir() / f"moonraker-checkout-{h.hexdigest()[:16]}"
+    # the mark is beside the tree: in it, git would see an untracked file
+    ready = tree.with_name(tree.name + ".ready")
+    with _locked("moonraker-checkout"):
+        if not ready.exists() or not tree.is_dir():
+            log(f"copying {source} to {tree}, flowloop installed into the copy")
+            tmp = tree.with_name(tree.name + ".tmp")
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.copytree(source, tmp, symlinks=True,
+                            ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+            _prune(cache_dir().glob("moonraker-checkout-[0-9a-f]*"), keep=tmp)
+            shutil.rmtree(tree, ignore_errors=True)
+            tmp.rename(tree)
+            ready.write_text("ok")
+        # the links point at this checkout: made (idempotently) on every use
+        install.apply(install.plan_moonraker(tree, PROJECT))
+    reqs = source / "scripts" / "moonraker-requirements.txt"
+    venv = _build_venv("moonraker-checkout-venv", ["-r", str(reqs)],
+                       "[moonraker]", [reqs.read_bytes()])
+    return MoonrakerCheckout(tree, venv)
+
+
+# ---------------------------------------------------------------------------
 # Processes
 
 
@@ -443,11 +511,13 @@ class Moonraker(Process):
     def __init__(self, venv: Venv, data_dir: Path, klippy_uds: Optional[Path] = None,
                  extra_conf: str = "", port: Optional[int] = None,
                  trusted: str = "127.0.0.0/8", moonraker_path: Optional[Path] = None,
-                 cwd: Optional[Path] = None):
+                 cwd: Optional[Path] = None, script: Optional[Path] = None):
         """moonraker_path: a folder holding a `moonraker` package to run instead
         of the venv's own (put first on PYTHONPATH; the venv still gives its
         dependencies). cwd: the working directory it is started in (`python
-        -m moonraker` puts it first on sys.path; None: this process's)."""
+        -m moonraker` puts it first on sys.path; None: this process's).
+        script: a checkout's moonraker/moonraker.py to run with the venv's
+        python, as KIAUH's service runs it, instead of `-m moonraker`."""
         self.port = port or free_port()
         self.data_dir = data_dir
         config_dir = data_dir / "config"
@@ -462,7 +532,8 @@ class Moonraker(Process):
             port=self.port,
             klippy_uds=klippy_uds or data_dir / "comms" / "none.sock",
             trusted=trusted, extra=extra_conf))
-        cmd = [str(venv.python), "-m", "moonraker", "-d", str(data_dir),
+        run = [str(script)] if script is not None else ["-m", "moonraker"]
+        cmd = [str(venv.python), *run, "-d", str(data_dir),
                "-l", str(data_dir / "moonraker.log")]
         env = None
         if moonraker_path is not None:

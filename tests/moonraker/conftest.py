@@ -158,6 +158,7 @@ def moonraker_from(site: Path, moonraker_venv, prefix: str):
 
 
 def pytest_terminal_summary(terminalreporter):
-    reason = spoolman.missing_spoolman_reason()
-    if reason:
-        terminalreporter.write_line("!!! " + reason, red=True, bold=True)
+    for reason in (spoolman.missing_spoolman_reason(),
+                   stack.missing_moonraker_checkout_reason()):
+        if reason:
+            terminalreporter.write_line("!!! " + reason, red=True, bold=True)
