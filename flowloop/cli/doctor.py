@@ -10,7 +10,7 @@ from typing import Dict, List, Optional, Tuple
 from urllib.parse import quote, urlparse
 
 from .. import __version__
-from ..host import doctor, install
+from ..host import doctor, firmware, install
 from ..host.moonraker_api import DEFAULT_URL, MoonrakerApi
 from .install import _default_moonraker as default_moonraker
 from .install import default_klipper
@@ -70,17 +70,44 @@ def gather(client: Client, klipper: Optional[Path] = None,
     if server_info.get("klippy_connected"):
         printer_info, _ = client.get("/printer/info")
         objects = _objects(client)
-    update_status = None
+    update_status = klipper_status = None
     if "update_manager" in server_info.get("components", []):
         updates, _ = client.get("/machine/update/status")
-        update_status = ((updates or {}).get("version_info") or {}).get("flowloop")
+        version_info = (updates or {}).get("version_info") or {}
+        update_status = version_info.get("flowloop")
+        klipper_status = version_info.get("klipper")
+    config, _ = client.get("/server/config")
+    sections = tuple((config or {}).get("config", {})) if config else None
     if klipper is None and local and printer_info:
         klipper = Path(printer_info["klipper_path"])
+    port_error = None
+    if local and printer_info and printer_info.get("state") != "ready":
+        port_error = mcu_port_error(printer_info.get("log_file"))
     return doctor.Facts(
         client.url, server_info=server_info, endpoint_errors=endpoints,
         flowloop_info=results["/server/flowloop/info"], printer_info=printer_info,
         objects=objects or {}, update_status=update_status,
+        klipper_update_status=klipper_status, moonraker_sections=sections,
+        mcu_port_error=port_error,
         on_this_machine=local, **_local_trees(klipper, moonraker_dir, local))
+
+
+def mcu_port_error(log_file: Optional[str]) -> Optional[str]:
+    """klippy.log's last "Unable to open ... port" line since klippy last
+    started (klippy's own words, naming the port), from the log's tail."""
+    if not log_file:
+        return None
+    try:
+        with open(log_file, "rb") as log:
+            log.seek(0, os.SEEK_END)
+            log.seek(max(0, log.tell() - 256 * 1024))
+            tail = log.read().decode("utf-8", errors="replace")
+    except OSError:
+        return None
+    tail = tail.rsplit("Starting Klippy...", 1)[-1]
+    found = [line.strip() for line in tail.splitlines()
+             if "Unable to open" in line and "port" in line]
+    return found[-1] if found else None
 
 
 def _local_trees(klipper: Optional[Path], moonraker_dir: Optional[Path],
@@ -106,7 +133,8 @@ def _klipper_tree(klipper: Optional[Path]) -> dict:
     if klipper is None or not klipper.expanduser().exists():
         return {}
     klipper = klipper.expanduser()
-    facts = {"klipper_tree_checked": True, "klipper_host": install.host_name(klipper)}
+    facts = {"klipper_tree_checked": True, "klipper_host": install.host_name(klipper),
+             "klipper_repo": _klipper_repo(klipper)}
     try:
         install.check_klipper_tree(klipper)
         if not install.is_kalico(klipper):  # Kalico: its notes say what lacks
@@ -114,6 +142,24 @@ def _klipper_tree(klipper: Optional[Path]) -> dict:
     except install.InstallError as e:
         facts["klipper_tree_problem"] = str(e)
     return facts
+
+
+def _klipper_repo(klipper: Path) -> Optional[doctor.KlipperRepo]:
+    """The checkout as Moonraker's update manager reads it (git_deploy.py's
+    `git status --porcelain -b` and `git describe --dirty`)."""
+    if not (klipper / ".git").exists():
+        return None
+    # not `describe --dirty` (Moonraker's): it rewrites the index whatever
+    # --no-optional-locks says; status tells what makes it dirty instead
+    describe = firmware.git(klipper, "describe", "--always", "--tags", "--long")
+    status = firmware.git(klipper, "status", "--porcelain", "-b")
+    if describe is None or status is None:
+        return None
+    behind = firmware.git(klipper, "rev-list", "--count", "HEAD..@{upstream}")
+    kconfig = klipper / "src" / "Kconfig"
+    edits = kconfig.is_file() and install.find_block(
+        kconfig.read_text(errors="replace"), "sensor") is not None
+    return doctor.klipper_repo(str(klipper), describe, status, behind, edits)
 
 
 def _install_plan(klipper: Optional[Path], moonraker_dir: Optional[Path],

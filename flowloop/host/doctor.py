@@ -71,6 +71,53 @@ class Facts:
     install_error: Optional[str] = None
     moonraker_tree_checked: bool = True      # the plan covered Moonraker's link
     on_this_machine: bool = False            # Moonraker's URL is a loopback address
+    # The Klipper checkout as Moonraker's update manager judges it (read here
+    # with git, read-only): KlipperRepo; None: not a git checkout or not here.
+    klipper_repo: Optional[KlipperRepo] = None
+    # Moonraker's own entry for Klipper in /machine/update/status, if any.
+    klipper_update_status: Optional[dict] = None
+    # moonraker.conf's sections as Moonraker reports them (GET /server/config).
+    moonraker_sections: Optional[Tuple[str, ...]] = None
+    # klippy.log's last "Unable to open ... port" line since klippy started.
+    mcu_port_error: Optional[str] = None
+
+
+# What Moonraker's update manager counts as source (git_deploy.py SRC_EXTS):
+# such an untracked file makes the repo "not pristine".
+MOONRAKER_SRC_EXTS = (".py", ".c", ".cpp", ".h", ".s", ".S", ".js", ".sh")
+
+
+@dataclasses.dataclass(frozen=True)
+class KlipperRepo:
+    """A Klipper checkout as git_deploy.py reads it."""
+    path: str
+    version: str                        # git describe --always --tags --long
+    modified: Tuple[str, ...] = ()      # `git status --porcelain` "M" lines
+    untracked_source: Tuple[str, ...] = ()
+    behind: Optional[int] = None        # commits on its upstream, as last fetched
+    flowloop_edits: bool = False        # an older flowloop's blocks in src/
+
+    @property
+    def dirty(self) -> bool:
+        return self.version.endswith("-dirty") or bool(self.modified)
+
+
+def klipper_repo(path: str, describe: str, status: str, behind: Optional[str],
+                 flowloop_edits: bool = False) -> KlipperRepo:
+    """KlipperRepo from git's output, parsed as git_deploy.py parses it."""
+    modified, untracked = [], []
+    for line in status.splitlines():
+        parts = line.strip().split(maxsplit=1)
+        if len(parts) != 2:
+            continue
+        if parts[0] == "M":
+            modified.append(parts[1])
+        elif parts[0] == "??" and any(parts[1].endswith(ext)
+                                      for ext in MOONRAKER_SRC_EXTS):
+            untracked.append(parts[1])
+    count = int(behind) if behind and behind.strip().isdigit() else None
+    return KlipperRepo(path, describe.strip(), tuple(modified), tuple(untracked),
+                       count, flowloop_edits)
 
 
 # ---------------------------------------------------------------------------
@@ -80,7 +127,16 @@ class Facts:
 def check_klipper(facts: Facts) -> Check:
     info = facts.printer_info
     if facts.moonraker_error is not None:
-        return Check("klipper", SKIP, "not known: Moonraker did not answer")
+        if not facts.klipper_tree_checked:
+            return Check("klipper", SKIP, "not known: Moonraker did not answer")
+        if facts.klipper_tree_problem is not None:
+            return Check("klipper", FAIL, facts.klipper_tree_problem,
+                         "update Klipper (cd ~/klipper; git pull), or pass"
+                         " --klipper with the tree klippy runs from")
+        repo = facts.klipper_repo
+        where = f" {repo.version}" if repo else ""
+        return Check("klipper", OK, f"{facts.klipper_host or 'Klipper'}{where}"
+                     " here, supported (klippy not asked: Moonraker did not answer)")
     if info is None:
         return Check("klipper", FAIL, "klippy is not connected to Moonraker",
                      "sudo systemctl start klipper; read klippy.log if it stops")
@@ -214,6 +270,9 @@ def check_sections(facts: Facts) -> Check:
     if info is None:
         return Check("config", SKIP, "not known: klippy is not connected")
     state = info.get("state")
+    unreachable = mcu_unreachable(facts)
+    if unreachable is not None:
+        return unreachable
     if state != "ready":
         # Klipper's own words name the section and option; its advice that
         # follows a blank line ("Once the underlying issue...") is dropped.
@@ -226,7 +285,38 @@ def check_sections(facts: Facts) -> Check:
                  f" {', '.join(sections) or 'none'}")
 
 
+# klippy's own words when it cannot open an MCU's port (serialhdl.py)
+_PORT_ERROR = re.compile(
+    r"(mcu '[^']*': )?Unable to (open (serial |CAN )?port|connect)")
+MCU_PORT_FIX = ("check the MCU's USB cable and power, and that [mcu] serial: in"
+                " printer.cfg names a port ls /dev/serial/by-id/ lists; then"
+                " FIRMWARE_RESTART")
+
+
+def mcu_unreachable(facts: Facts) -> Optional[Check]:
+    """klippy waiting for (startup) or given up on (error) an MCU whose port
+    does not open: said in klippy's own words, which name the port."""
+    info = facts.printer_info or {}
+    state = info.get("state")
+    message = str(info.get("state_message", ""))
+    if state == "ready" or (facts.mcu_port_error is None
+                            and not _PORT_ERROR.search(message)):
+        return None
+    said = facts.mcu_port_error or " ".join(message.split("\n\n")[0].split())
+    ports = [f"[{name}] serial: {options['serial']}" for name, options
+             in sorted(_settings(facts).items())
+             if name.split()[0] == "mcu" and options.get("serial")]
+    if ports and not any(o.split(": ", 1)[1] in said for o in ports):
+        said += f" ({', '.join(ports)})"
+    return Check("config", FAIL, f"klippy cannot reach its MCU ({state}): {said}",
+                 MCU_PORT_FIX)
+
+
 def check_sensors(facts: Facts) -> List[Check]:
+    if (facts.printer_info or {}).get("state") not in (None, "ready"):
+        return [Check(f"sensor {name.split()[-1]}", SKIP, "not known: klippy is"
+                      " not ready") for name in sorted(facts.objects)
+                if name.split()[0] == "flow_sensor"]
     checks = []
     for name, status in sorted(facts.objects.items()):
         if name.split()[0] != "flow_sensor":
@@ -304,9 +394,19 @@ def check_updates(facts: Facts) -> Check:
     """The checkout Moonraker's update manager pulls: a dirty or diverged one
     is refused by an update (and a diverged one reset if it diverged after
     Moonraker last looked), so it is named before the user clicks update."""
+    if facts.moonraker_error is not None:
+        return Check("updates", SKIP, "not known: Moonraker did not answer")
     server = facts.server_info or {}
+    if "update_manager" in server.get("failed_components", []):
+        return Check("updates", FAIL, "Moonraker failed to load its update"
+                     " manager", "read moonraker.log for its error")
     if "update_manager" not in server.get("components", []):
-        return Check("updates", SKIP, "Moonraker's update manager is not enabled")
+        if "update_manager" in (facts.moonraker_sections or ()):
+            return Check("updates", FAIL, "moonraker.conf has [update_manager]"
+                         " but Moonraker has not loaded it", "read moonraker.log;"
+                         " sudo systemctl restart moonraker")
+        return Check("updates", SKIP, "Moonraker's update manager is not enabled"
+                     " (no [update_manager] in moonraker.conf)")
     status = facts.update_status
     if status is None:
         return Check("updates", SKIP, "no [update_manager flowloop] in"
@@ -333,6 +433,51 @@ def check_updates(facts: Facts) -> Check:
     return Check("updates", OK, f"{version}, up to date with its origin")
 
 
+def check_klipper_updates(facts: Facts) -> Check:
+    """Klipper's checkout as Moonraker's update manager judges it: a modified
+    tracked file makes it dirty, and Moonraker then refuses to update it (its
+    Recover resets the file)."""
+    repo = facts.klipper_repo
+    if repo is None:
+        status = facts.klipper_update_status
+        if status is None:
+            return Check("klipper updates", SKIP, "not known: no Klipper git"
+                         " checkout here and no klipper entry in Moonraker's"
+                         " update manager")
+        repo = KlipperRepo(status.get("path", "klipper"), str(
+            status.get("full_version_string") or status.get("version") or "?"),
+            tuple(_modified_files(status.get("warnings", []))),
+            behind=status.get("commits_behind_count"))
+        if status.get("is_dirty") and not repo.modified:
+            repo = dataclasses.replace(repo, version=repo.version + "-dirty")
+    if repo.dirty:
+        fix = ("flowloop install (it takes an older flowloop's edits of src/ out;"
+               " firmware comes from flowloop firmware now)" if repo.flowloop_edits
+               else f"in {repo.path}, keep your changes elsewhere and git checkout"
+               " the files, then refresh the updates in Mainsail/Fluidd")
+        return Check("klipper updates", FAIL, "dirty: Moonraker's update manager"
+                     " refuses to update Klipper; modified: "
+                     + (", ".join(repo.modified) or "(see git status)"), fix)
+    note = (f"; untracked source files Moonraker lists as an anomaly: "
+            f"{', '.join(repo.untracked_source)}" if repo.untracked_source else "")
+    if repo.behind:
+        return Check("klipper updates", OK, f"valid, {repo.version}, {repo.behind}"
+                     " commits behind its upstream (as last fetched): update it in"
+                     " Mainsail/Fluidd" + note)
+    return Check("klipper updates", OK, f"valid, {repo.version}" + (
+        ", up to date with its upstream as last fetched" if repo.behind == 0
+        else "") + note)
+
+
+def _modified_files(warnings: List[str]) -> List[str]:
+    """The files Moonraker's "Repo is dirty" warning lists."""
+    for warning in warnings:
+        if "modified files:" in warning:
+            listed = warning.split("modified files:", 1)[1]
+            return re.findall(r"'([^']+)'", listed)
+    return []
+
+
 def _settings(facts: Facts) -> Dict[str, dict]:
     return (facts.objects.get("configfile") or {}).get("settings") or {}
 
@@ -342,7 +487,7 @@ def run_checks(facts: Facts) -> List[Check]:
              check_sections(facts), check_firmware(facts)]
             + check_sensors(facts)
             + [check_profiles(facts), check_gcode_processor(facts),
-               check_updates(facts)])
+               check_updates(facts), check_klipper_updates(facts)])
 
 
 def exit_status(checks: List[Check]) -> int:

@@ -127,17 +127,25 @@ def refresh_copy(build: Build, source: Path) -> None:
 
 
 def git_describe(tree: Path) -> Optional[str]:
-    """The checkout's version as Klipper's build names it; read only (no
-    index refresh written, so Moonraker's git never waits for a lock)."""
+    """The checkout's version as Klipper's build names it (`git describe
+    --dirty`), read only: `describe --dirty` itself rewrites the index, so
+    the dirty mark comes from `status` with --no-optional-locks."""
+    describe = git(tree, "describe", "--always", "--tags", "--long")
+    if not describe:
+        return None
+    modified = git(tree, "status", "--porcelain", "--untracked-files=no")
+    return describe.strip() + ("-dirty" if modified and modified.strip() else "")
+
+
+def git(tree: Path, *args: str) -> Optional[str]:
+    """git on a user's checkout, read only: --no-optional-locks, so no index
+    refresh is written while Moonraker's own git may run."""
     try:
-        proc = subprocess.run(
-            ["git", "--no-optional-locks", "-C", str(tree), "describe", "--always",
-             "--tags", "--long", "--dirty"], capture_output=True, text=True)
-    except OSError:
+        proc = subprocess.run(["git", "--no-optional-locks", "-C", str(tree), *args],
+                              capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
         return None
-    if proc.returncode != 0:
-        return None
-    return proc.stdout.strip() or None
+    return proc.stdout if proc.returncode == 0 else None
 
 
 def run_make(build: Build, make_args: List[str]) -> int:

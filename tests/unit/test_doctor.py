@@ -48,7 +48,7 @@ def test_a_healthy_printer_passes_every_check_but_the_missing_processor():
     assert {n: c.status for n, c in checks.items()} == {
         "klipper": OK, "links": OK, "moonraker": OK, "config": OK,
         "firmware": OK, "sensor sim": OK, "profiles": OK,
-        "gcode processor": SKIP, "updates": SKIP}
+        "gcode processor": SKIP, "updates": SKIP, "klipper updates": SKIP}
     assert doctor.exit_status(list(checks.values())) == 0
 
 
@@ -335,3 +335,126 @@ def test_a_loopback_moonraker_without_a_tree_is_not_called_another_machine(
     out = capsys.readouterr().out
     links = next(line for line in out.splitlines() if " links:" in line)
     assert "another machine" not in links and "--klipper" in links
+
+
+# --- an MCU whose port is missing: klippy's words, naming the port -----------
+
+PORT = "/dev/serial/by-id/usb-Klipper_stm32f446xx_1A0038-if00"
+PORT_LINE = (f"mcu 'mcu': Unable to open serial port: [Errno 2] could not open port"
+             f" {PORT}: [Errno 2] No such file or directory: '{PORT}'")
+
+
+def without_mcu(state: str, message: str, **changes) -> doctor.Facts:
+    info = dict(healthy().printer_info, state=state, state_message=message)
+    objects = dict(healthy().objects)
+    objects["flow_sensor sim"] = {"samples": 0, "fault": None, "errors": {}}
+    objects["configfile"] = {"settings": dict(
+        healthy().objects["configfile"]["settings"], mcu={"serial": PORT})}
+    return healthy(printer_info=info, objects=objects, **changes)
+
+
+def test_a_missing_mcu_port_is_said_in_klippys_words_naming_the_port():
+    # klippy retries for 90 s ("startup"); its log names the port meanwhile
+    checks = by_name(without_mcu("startup", "Printer is not ready\nThe klippy"
+                                 " host software is attempting to connect.",
+                                 mcu_port_error=PORT_LINE))
+    assert checks["config"].status == FAIL
+    assert PORT_LINE in checks["config"].detail
+    assert "/dev/serial/by-id" in checks["config"].fix
+    assert "correct printer.cfg" not in checks["config"].line()
+    # the sensor is not blamed on its wiring while the MCU is away
+    assert checks["sensor sim"].status == SKIP
+    assert "cs_pin" not in "".join(c.line() for c in checks.values())
+
+
+def test_after_klippy_gives_up_the_port_comes_from_printer_cfg():
+    checks = by_name(without_mcu("error", "mcu 'mcu': Unable to connect\nOnce the"
+                                 " underlying issue is corrected, use the"))
+    line = checks["config"].line()
+    assert "mcu 'mcu': Unable to connect" in line and f"serial: {PORT}" in line
+    assert "cs_pin" not in "".join(c.line() for c in checks.values())
+
+
+def test_the_port_line_is_read_from_klippy_log_since_the_last_start(tmp_path):
+    from flowloop.cli.doctor import mcu_port_error
+    log = tmp_path / "klippy.log"
+    log.write_text(f"Starting Klippy...\n{PORT_LINE.replace(PORT, '/dev/old')}\n"
+                   f"Starting Klippy...\nStarting serial connect\n{PORT_LINE}\n")
+    assert mcu_port_error(str(log)) == PORT_LINE
+    log.write_text("Starting Klippy...\nLoaded MCU 'mcu' 114 commands\n")
+    assert mcu_port_error(str(log)) is None
+    assert mcu_port_error(str(tmp_path / "none.log")) is None
+
+
+# --- updates: Moonraker's update manager, and Klipper as it judges it --------
+
+def test_updates_are_not_called_not_enabled_when_moonraker_did_not_answer():
+    down = doctor.Facts("http://127.0.0.1:7125", moonraker_error="no answer")
+    check = by_name(down)["updates"]
+    assert check.status == SKIP and "not enabled" not in check.detail
+    assert "Moonraker did not answer" in check.detail
+
+
+def test_an_update_manager_in_moonraker_conf_that_is_not_loaded_fails():
+    check = by_name(healthy(moonraker_sections=("server", "update_manager",
+                                                "flowloop")))["updates"]
+    assert check.status == FAIL and "moonraker.log" in check.fix
+    server = dict(healthy().server_info, failed_components=["update_manager"])
+    assert by_name(healthy(server_info=server))["updates"].status == FAIL
+
+
+def test_a_local_klipper_checkout_is_recognised_when_moonraker_is_down(tmp_path,
+                                                                        capsys):
+    tree = klipper_tree(tmp_path / "k")
+    main(["doctor", "--moonraker", "http://127.0.0.1:9", "--klipper", str(tree)])
+    lines = capsys.readouterr().out.splitlines()
+    klipper = next(line for line in lines if " klipper:" in line)
+    assert klipper.startswith("ok   klipper: Klipper") and "not known" not in klipper
+
+
+def repo(**changes) -> doctor.KlipperRepo:
+    return dataclasses.replace(doctor.KlipperRepo(
+        "/home/pi/klipper", "v0.13.0-730-g84104bbbd"), **changes)
+
+
+def test_klipper_is_reported_as_moonrakers_update_manager_sees_it():
+    ok = by_name(healthy(klipper_repo=repo(behind=0)))["klipper updates"]
+    assert ok.status == OK and ok.detail.startswith("valid, v0.13.0-730")
+    behind = by_name(healthy(klipper_repo=repo(behind=3)))["klipper updates"]
+    assert behind.status == OK and "3 commits behind" in behind.detail
+    dirty = by_name(healthy(klipper_repo=repo(
+        version="v0.13.0-730-g84104bbbd-dirty",
+        modified=("src/Kconfig", "src/Makefile"))))["klipper updates"]
+    assert dirty.status == FAIL
+    assert "dirty" in dirty.detail and "src/Kconfig, src/Makefile" in dirty.detail
+    assert "git checkout" in dirty.fix
+    old = by_name(healthy(klipper_repo=repo(modified=("src/Kconfig",),
+                                            flowloop_edits=True)))
+    assert "flowloop install" in old["klipper updates"].fix
+    # from another machine: Moonraker's own entry for klipper
+    remote = by_name(healthy(klipper_update_status={
+        "is_dirty": True, "version": "v0.13.0-730", "warnings": [
+            "Repo is dirty.  Detected the following modified files:"
+            " ['src/Kconfig', 'src/Makefile']"]}))["klipper updates"]
+    assert remote.status == FAIL and "src/Kconfig, src/Makefile" in remote.detail
+
+
+def test_the_klipper_checkout_is_read_with_git_read_only(tmp_path):
+    """git status refreshes the index unless told not to: the doctor must not
+    write into ~/klipper/.git while Moonraker's git may run."""
+    import subprocess
+
+    from flowloop.cli.doctor import _klipper_repo
+    tree = klipper_tree(tmp_path / "k")
+    who = ["-c", "user.name=t", "-c", "user.email=t@t"]
+    for args in (["init", "-q"], ["add", "."], [*who, "commit", "-qm", "k"]):
+        subprocess.run(["git", "-C", str(tree), *args], check=True)
+    (tree / "src" / "Kconfig").write_text("edited\n")
+    (tree / "klippy" / "mine.py").write_text("")
+    index = (tree / ".git" / "index").read_bytes()
+    stat = (tree / ".git" / "index").stat().st_mtime_ns
+    found = _klipper_repo(tree)
+    assert found.modified == ("src/Kconfig",) and found.dirty
+    assert found.untracked_source == ("klippy/mine.py",)
+    assert (tree / ".git" / "index").read_bytes() == index
+    assert (tree / ".git" / "index").stat().st_mtime_ns == stat
