@@ -34,6 +34,9 @@ MACROS = PROJECT / "macros"
 CONFIG_GETTER = re.compile(r"^get(int|float|boolean|choice|list|lists|intlist|"
                            r"floatlist)?$")
 GCMD_GETTER = re.compile(r"^get(_int|_float)?$")
+# flowloop's one number reader for G-code (klippy_extras/flowloop.py, and the
+# adapters' short names for it), called as reader(gcmd, 'NAME', ...)
+GCMD_READERS = ("gcode_number", "gcode_integer", "number", "integer")
 COMMAND_NAME = re.compile(r"^[A-Z][A-Z0-9_]*$")
 # Klipper helpers that read options of the calling section (klippy/extras/bus.py
 # MCU_SPI_from_config, klippy/extras/probe.py ProbePointsHelper).
@@ -164,6 +167,11 @@ def _gcmd_params(methods: Dict[str, List[ast.FunctionDef]], name: str,
                     and node.args:
                 param = _str(node.args[0])
                 if param is not None:      # f-string families (A1..A9) unchecked
+                    params.add(param)
+            elif called in GCMD_READERS and len(node.args) > 1 \
+                    and _hands_on_gcmd(node):
+                param = _str(node.args[1])
+                if param is not None:
                     params.add(param)
             elif called and (_hands_on_gcmd(node) or (
                     isinstance(func, ast.Attribute)
