@@ -158,9 +158,6 @@ def skip_without_klipper(host: str = "klipper") -> None:
 # (test_x[klipper], test_x[kalico]); elsewhere klipper_build is Klipper's.
 # What does not apply on a host is listed here with the reason, so a skip is
 # never silent: {host: {test name or .test file: reason}}.
-KALICO_REFUSES_NAN = (
-    "Kalico's G-code parser refuses a nan parameter itself ('unable to parse "
-    "nan') before flowloop sees it; the command still fails, nothing changed")
 NOT_ON_HOST = {
     "kalico": {
         # hidden until the simulated sensor ran on Kalico; not yet judged there
@@ -179,8 +176,6 @@ NOT_ON_HOST = {
             "nozzle_scrubber_gcode, ...) from [endstop_calibrate]; Klipper's "
             "access tracking then lists options flowloop never reads",
         # Kalico behaves otherwise, by design
-        "endstop_calibrate_bad_nan.test": KALICO_REFUSES_NAN,
-        "diff_ab_calibrate_fail_timeout.test": KALICO_REFUSES_NAN,
         "test_endstop_calibrate.py::test_klippy_puts_the_carriages_where_"
         "flowloop_says":
             "Kalico retracts homing_retract_dist again after the second homing "
