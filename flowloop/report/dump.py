@@ -49,7 +49,7 @@ def check_job_id(value: Any) -> str:
     if isinstance(value, str) and value.isascii() \
             and MOONRAKER_JOB_ID.fullmatch(value.upper()):
         return value.upper()
-    shown = json.dumps(value)[:40] if isinstance(value, str) \
+    shown = json.dumps(value[:40]) if isinstance(value, str) \
         else type(value).__name__
     raise FlowloopError(f"job id {shown} is not a job of Moonraker's history "
                         f"(6 to 16 hex digits, e.g. 00002A)")
