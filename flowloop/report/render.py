@@ -26,13 +26,13 @@ from ..material.plot import (
     svg_open,
     tooltip,
 )
-from .recorder import Recorder, Span, duration_text
+from .recorder import MAX_SAMPLE_GAP_S, Recorder, Span, duration_text
 
 # Shading under the grid: solid pale colours (no renderer-dependent opacity).
 SHADES = {"fault": "#f6d0cc", "no data": "#e0e0e0", "max_flow": "#e8e8e8",
           "temperature": "#fbd9d2", "grip": "#cdeff3", "model": "#d3f0d3",
           "mixed": "#fde3c8"}
-GRIP_RANGE = (0.0, 1.4)  # room above 1 for the legend
+GRIP_FLOOR = 1.0  # the axis holds full grip; room above it for the legend
 # Above this many seconds the time axis is in minutes.
 MINUTES_FROM_S = 600.0
 STYLE = """
@@ -58,37 +58,60 @@ class _Time:
         return seconds / self.scale
 
 
-def _segments(points: Sequence[Tuple[float, Optional[float]]]
+def _segments(points: Sequence[Tuple[float, Optional[float]]], join: float
               ) -> List[List[Tuple[float, float]]]:
-    """Runs of points without a gap (None)."""
-    out: List[List[Tuple[float, float]]] = [[]]
+    """Runs of known points: empty bins between two samples less than `join`
+    apart are bridged (samples sparser than the bins), a longer gap breaks
+    the line (the recorder counts it lost)."""
+    out: List[List[Tuple[float, float]]] = []
     for x, y in points:
         if y is None:
-            if out[-1]:
-                out.append([])
-        else:
+            continue
+        if out and x - out[-1][-1][0] <= join:
             out[-1].append((x, y))
-    return [seg for seg in out if seg]
+        else:
+            out.append([(x, y)])
+    return out
 
 
-def _line(panel: Panel, points, color: str, ident: str, dash: str = "",
-          width: float = 2) -> None:
+def _widened(seg: List[Tuple[float, float]], half: float
+             ) -> List[Tuple[float, float]]:
+    """A lone point as a level stroke one bin wide: a polyline of one point
+    (or of one point twice) draws nothing."""
+    if len(seg) > 1:
+        return seg
+    (x, y), = seg
+    return [(x - half, y), (x + half, y)]
+
+
+class _Spacing:
+    """How far apart drawn points may be and still be one line, and how wide
+    a lone point is drawn, in the time axis' units."""
+
+    def __init__(self, rec: Recorder, time: _Time) -> None:
+        # two samples up to the recorder's gap apart land in bins whose
+        # centres are up to one bin further apart
+        self.join = time(MAX_SAMPLE_GAP_S + rec.bins.width_s + 1e-9)
+        self.half = time(rec.bins.width_s) / 2
+
+
+def _line(panel: Panel, points, color: str, ident: str, spacing: _Spacing,
+          dash: str = "", width: float = 2) -> None:
     panel.add(f'<g id="{ident}" class="series">')
-    for k, seg in enumerate(_segments(points)):
-        if len(seg) == 1:  # one bin: a short level line, not nothing
-            seg = seg * 2
-        panel.polyline(seg, color, f"{ident}-{k}", dash, width)
+    for k, seg in enumerate(_segments(points, spacing.join)):
+        panel.polyline(_widened(seg, spacing.half), color, f"{ident}-{k}",
+                       dash, width)
     panel.add("</g>")
 
 
-def _band(panel: Panel, low, high, color: str, ident: str) -> None:
+def _band(panel: Panel, low, high, color: str, ident: str,
+          spacing: _Spacing) -> None:
     """The area between each bin's min and max."""
     panel.add(f'<g id="{ident}" class="band">')
     pairs = [(x, None if lo is None or hi is None else (lo, hi))
              for (x, lo), (_, hi) in zip(low, high)]
-    for seg in _segments(pairs):
-        if len(seg) == 1:
-            seg = seg * 2
+    for seg in _segments(pairs, spacing.join):
+        seg = _widened(seg, spacing.half)
         coords = [(x, hi) for x, (lo, hi) in seg] + \
             [(x, lo) for x, (lo, hi) in reversed(seg)]
         text = " ".join(f"{panel.x(a):.2f},{panel.y(b):.2f}" for a, b in coords)
@@ -130,10 +153,17 @@ def _svg(ident: str, panel: Panel) -> str:
                      + panel.parts + ["</svg>"])
 
 
-def _top(values: Sequence[Optional[float]], floor: float) -> float:
-    """The y axis' top: room above the data for the legend."""
-    known = [v for v in values if v is not None]
-    return max(known + [floor]) * 1.3
+def _y_range(rec: Recorder, channels: Sequence[str], floor: float,
+             room: float = 0.3) -> Tuple[float, float]:
+    """A y axis from 0 (or the lowest value drawn, if below) to the highest
+    value drawn (at least `floor`), with `room` of the span above it for
+    the legend: every drawn value, bands included, inside the frame."""
+    lows = [rec.bins.extreme(c, "min") for c in channels]
+    highs = [rec.bins.extreme(c, "max") for c in channels]
+    low = min([v for v in lows if v is not None] + [0.0])
+    high = max([v for v in highs if v is not None] + [floor])
+    span = high - low
+    return (low - (0.05 * span if low < 0 else 0.0), high + room * span)
 
 
 def _time_panel(rec: Recorder, time: _Time, y_range, title: str, y_label: str,
@@ -152,22 +182,22 @@ def _series(rec: Recorder, time: _Time, channel: str, stat: str = "mean"):
 
 
 def flow_svg(rec: Recorder, time: _Time) -> str:
-    channels = ("commanded_flow", "measured_flow", "cap")
-    top = _top([rec.bins.extreme(c, "max") for c in channels], 1.0)
-    panel = _time_panel(rec, time, (0.0, top), "Flow: commanded and measured",
+    spacing = _Spacing(rec, time)
+    y_range = _y_range(rec, ("commanded_flow", "measured_flow", "cap"), 1.0)
+    panel = _time_panel(rec, time, y_range, "Flow: commanded and measured",
                         "flow [mm³/s]")
     if rec.bins.extreme("commanded_flow", "max") is None:
         _missing(panel, "no flow data (no flow sensor reported)")
     _band(panel, _series(rec, time, "measured_flow", "min"),
           _series(rec, time, "measured_flow", "max"), COLORS["band"],
-          "measured_flow_range")
+          "measured_flow_range", spacing)
     _line(panel, _series(rec, time, "commanded_flow"), COLORS["demand"],
-          "commanded_flow")
+          "commanded_flow", spacing)
     _line(panel, _series(rec, time, "measured_flow"), COLORS["measured"],
-          "measured_flow")
+          "measured_flow", spacing)
     _line(panel, _series(rec, time, "measured_flow", "max"), COLORS["measured"],
-          "measured_flow_max", "2,3", 1)
-    _line(panel, _series(rec, time, "cap"), COLORS["cap"], "cap", "6,4")
+          "measured_flow_max", spacing, "2,3", 1)
+    _line(panel, _series(rec, time, "cap"), COLORS["cap"], "cap", spacing, "6,4")
     panel.legend([("commanded (mean per bin)", COLORS["demand"], ""),
                   ("measured (mean, band: min..max)", COLORS["measured"], ""),
                   ("limiter cap", COLORS["cap"], "6,4")])
@@ -175,7 +205,9 @@ def flow_svg(rec: Recorder, time: _Time) -> str:
 
 
 def grip_svg(rec: Recorder, time: _Time) -> str:
-    panel = _time_panel(rec, time, GRIP_RANGE, "Grip, and where the limiter "
+    spacing = _Spacing(rec, time)
+    panel = _time_panel(rec, time, _y_range(rec, ("grip",), GRIP_FLOOR, 0.4),
+                        "Grip, and where the limiter "
                         "slowed the print", "grip (measured / commanded)",
                         slowdowns=True)
     if rec.bins.extreme("grip", "min") is None:
@@ -183,9 +215,9 @@ def grip_svg(rec: Recorder, time: _Time) -> str:
     limit = 1.0 - rec.grip_noise
     panel.add(svg_line(panel.left, panel.y(limit), panel.right, panel.y(limit),
                        COLORS["bound"], "2,3", 1, "grip_noise_limit"))
-    _line(panel, _series(rec, time, "grip"), COLORS["grip"], "grip")
+    _line(panel, _series(rec, time, "grip"), COLORS["grip"], "grip", spacing)
     _line(panel, _series(rec, time, "grip", "min"), COLORS["grip"], "grip_min",
-          "3,3", 1)
+          spacing, "3,3", 1)
     panel.legend([("grip (mean per bin)", COLORS["grip"], ""),
                   ("grip (lowest per bin)", COLORS["grip"], "3,3"),
                   (f"1 - sensor noise ({limit:g})", COLORS["bound"], "2,3")])
@@ -193,6 +225,7 @@ def grip_svg(rec: Recorder, time: _Time) -> str:
 
 
 def temperature_svg(rec: Recorder, time: _Time) -> str:
+    spacing = _Spacing(rec, time)
     channels = ("temp", "target", "planned_temp")
     highs = [rec.bins.extreme(c, "max") for c in channels]
     lows = [rec.bins.extreme(c, "min") for c in channels]
@@ -207,10 +240,11 @@ def temperature_svg(rec: Recorder, time: _Time) -> str:
         _missing(panel, "no hotend temperature was recorded")
     elif rec.planned_samples == 0:
         _missing(panel, "autotemp planned no temperature for this print")
-    _line(panel, _series(rec, time, "target"), COLORS["target"], "target", "6,4")
+    _line(panel, _series(rec, time, "target"), COLORS["target"], "target",
+          spacing, "6,4")
     _line(panel, _series(rec, time, "planned_temp"), COLORS["planned"],
-          "planned_temp")
-    _line(panel, _series(rec, time, "temp"), COLORS["nozzle"], "temp")
+          "planned_temp", spacing)
+    _line(panel, _series(rec, time, "temp"), COLORS["nozzle"], "temp", spacing)
     panel.legend([("nozzle", COLORS["nozzle"], ""),
                   ("heater target", COLORS["target"], "6,4"),
                   ("autotemp's plan", COLORS["planned"], "")])
@@ -221,7 +255,7 @@ def layers_svg(rec: Recorder) -> str:
     layers = [layer for _, layer in sorted(rec.layers.items())]
     first = layers[0].layer if layers else 1
     last = layers[-1].layer if layers else 1
-    top = _top([layer.under_mm for layer in layers], 0.1)
+    top = max([layer.under_mm for layer in layers] + [0.1]) * 1.3
     panel = Panel(0, (first - 0.5, last + 0.5), (0.0, top))
     panel.frame("Filament under-extruded per layer", "layer",
                 "under-extruded filament [mm]")
@@ -284,14 +318,14 @@ def summary_rows(rec: Recorder) -> List[Tuple[str, str]]:
     ]
 
 
-def _top_layers(rec: Recorder, count: int = 10) -> List[List[str]]:
-    worst = sorted((layer for layer in rec.layers.values() if layer.under_mm > 0),
-                   key=lambda layer: -layer.under_mm)[:count]
+def _layer_rows(rec: Recorder) -> List[List[str]]:
+    """Every layer, in print order: the layers that extruded well show as
+    much as the ones that did not."""
     return [[str(layer.layer), "-" if layer.z_mm is None else f"{layer.z_mm:g}",
              f"{layer.under_mm:.2f}", f"{layer.commanded_mm:.1f}",
              f"{100 * layer.under_mm / layer.commanded_mm:.1f}"
              if layer.commanded_mm > 0 else "-"]
-            for layer in worst]
+            for _, layer in sorted(rec.layers.items())]
 
 
 def html(rec: Recorder) -> str:
@@ -321,8 +355,7 @@ def html(rec: Recorder) -> str:
         "<h2>Under-extrusion by layer</h2>", layers_svg(rec),
         _table("layer-table", ("layer", "z [mm]", "under-extruded [mm]",
                                "commanded [mm]", "share [%]"),
-               _top_layers(rec), "No layer was under-extruded beyond the "
-               f"sensor's noise (grip below {1 - rec.grip_noise:g})."),
+               _layer_rows(rec), "No layer was recorded."),
         "<h2>Sensor faults and lost time</h2>",
         _table("faults", ("fault", "from", "to", "lost [s]", "layer"),
                [[s.kind, duration_text(s.start_s), duration_text(s.end_s),

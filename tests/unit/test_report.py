@@ -377,11 +377,80 @@ def test_the_flow_report_worked_example(tmp_path, capsys):
     rows = [[td.text for td in tr] for tr in by_id(root, "layer-table")[1:]]
     figures = re.search(r"names the three layers: ([0-9.]+), ([0-9.]+) and "
                         r"([0-9.]+) mm", section).groups()
-    assert sorted(rows, key=lambda r: int(r[0])) == [
+    assert [int(r[0]) for r in rows] == list(range(1, 31))   # every layer
+    assert [r for r in rows if r[2] != "0.00"] == [
         [layer, z, under, commanded, "15.0"] for (layer, z, commanded), under
         in zip((("12", "2.4", "149.7"), ("13", "2.6", "174.6"),
                 ("14", "2.8", "199.6")), figures)]
     assert "a 20-minute print of 30 layers" in section
+
+
+# --- the charts -------------------------------------------------------------------
+
+def _points(root: ET.Element, ident: str):
+    """The (x, y) of every vertex of a series' polylines."""
+    return [tuple(map(float, pair.split(",")))
+            for line in by_id(root, ident).iter(f"{SVG}polyline")
+            for pair in line.get("points").split()]
+
+
+def _frame(root: ET.Element, plot: str):
+    """The plot frame's top and bottom y (the grid lines' extent)."""
+    svg = by_id(root, plot)
+    ys = [float(line.get(k)) for line in svg.iter(f"{SVG}line")
+          if line.get("x1") == line.get("x2") for k in ("y1", "y2")]
+    return min(ys), max(ys)
+
+
+def test_samples_three_seconds_apart_still_draw_every_series():
+    # the demo samples every 3 s: one sample per three 1 s bins
+    rec = Recorder(job=Job(filename="a.gcode"))
+    for i in range(40):
+        rec.sample(steady(3.0 * i, grip=0.9))
+    rec.finish("completed")
+    root = parse(render.html(rec))
+    for ident in ("commanded_flow", "measured_flow", "grip", "temp"):
+        (line,) = by_id(root, ident).iter(f"{SVG}polyline")   # one line, not dots
+        xs = {pair.split(",")[0] for pair in line.get("points").split()}
+        assert len(xs) == 40, ident
+
+
+def test_a_lone_sample_draws_a_stroke_not_nothing():
+    rec = Recorder(job=Job(filename="a.gcode"))
+    rec.sample(steady(0.0))
+    rec.sample(steady(30.0, grip=0.95))    # after a gap: a lone point
+    rec.finish("completed")
+    for line in parse(render.html(rec)).iter(f"{SVG}polyline"):
+        xs = {pair.split(",")[0] for pair in line.get("points").split()}
+        assert len(xs) >= 2, line.get("id")
+
+
+def test_negative_measured_flow_and_grip_stay_inside_the_frame():
+    # a retraction the sensor sees: measured flow and grip below zero
+    rec = Recorder(job=Job(filename="a.gcode"))
+    for i in range(40):
+        rec.sample(steady(i / 4, measured_flow_mm3_s=-4.0 if i % 10 == 0 else 10.0,
+                          grip=-0.3 if i % 10 == 0 else 1.6))
+    rec.finish("completed")
+    root = parse(render.html(rec))
+    for plot, idents in (("flow-plot", ("measured_flow", "measured_flow_max")),
+                         ("grip-plot", ("grip", "grip_min"))):
+        top, bottom = _frame(root, plot)
+        for ident in idents:
+            ys = [y for _, y in _points(root, ident)]
+            assert ys and top <= min(ys) and max(ys) <= bottom, (plot, ident)
+
+
+def test_the_layer_table_lists_every_layer_also_those_that_extruded_well():
+    rec = Recorder(job=Job(filename="two_layers.gcode"))
+    for i in range(80):
+        rec.sample(steady(i / 4, layer=1 + i // 40,
+                          grip=0.8 if i < 40 else 1.0))
+    rec.finish("completed")
+    rows = [[td.text for td in tr]
+            for tr in by_id(parse(render.html(rec)), "layer-table")[1:]]
+    assert [r[0] for r in rows] == ["1", "2"]
+    assert rows[1][2] == "0.00" and float(rows[1][3]) > 0
 
 
 # --- storing ----------------------------------------------------------------------
