@@ -55,6 +55,7 @@ import re
 import uuid
 from dataclasses import dataclass, field
 from typing import Any, Collection, Dict, List, Mapping, Optional, Sequence, Tuple
+from urllib.parse import urlencode
 
 import numpy as np
 
@@ -608,6 +609,25 @@ def load_history(stored: Any) -> Tuple[List[Dict[str, Any]],
             continue
         kept.append(entry)
     return kept, estimates, problems
+
+
+def warning_text(verdict: Verdict, prints: Sequence[Dict[str, Any]]) -> str:
+    """The warning in words: the verdict, then the last prints' melt capacity
+    (one sentence each, no doubled punctuation)."""
+    said = verdict.text if verdict.text[-1:] in ".?!" else f"{verdict.text}."
+    ratios = [p["ratio"] for p in prints[-8:] if p.get("ratio") is not None]
+    if not ratios:
+        return said
+    evidence = ", ".join(f"{r:.0%}" for r in ratios)
+    return (f"{said} Melt capacity against the profile over the last prints: "
+            f"{evidence}.")
+
+
+def plot_path(hotend: str, profile: str) -> str:
+    """The health plot's address on Moonraker: absolute, so it resolves from
+    a UI served by the same host (nginx proxies /server/ to Moonraker)."""
+    query = urlencode({"profile": profile, "hotend": hotend})
+    return f"/server/flowloop/nozzle_health/plot?{query}"
 
 
 def label(name: str) -> str:

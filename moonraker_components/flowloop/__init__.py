@@ -33,6 +33,7 @@ from flowloop.material.active import ACTIVE_TOOL, extruder_arg
 
 from .api import Api
 from .info import Info
+from .job_history import JobHistory
 from .klippy_sync import KlippySync
 from .nozzle_health import NozzleHealth
 from .page import Page
@@ -79,9 +80,12 @@ class Flowloop:
                          self.processor.registered_name)
         self.api = Api(self.server, self.store, self.profiles, self.info, default_wp)
         self.page = Page(self.server, self.store)
+        self.job_history = JobHistory(self.server)
         self.reports = Reports(self.server, config.getint(
-            "number_of_reports_to_keep", DEFAULT_REPORTS_TO_KEEP, minval=1))
-        self.nozzle_health = NozzleHealth(self.server, self.store, hotend)
+            "number_of_reports_to_keep", DEFAULT_REPORTS_TO_KEEP, minval=1),
+            self.job_history)
+        self.nozzle_health = NozzleHealth(self.server, self.store, hotend,
+                                          self.job_history)
 
     async def component_init(self) -> None:
         await self.store.load()

@@ -6,11 +6,13 @@
 # estimate (the hotend's melt capacity against the profile) is kept in the
 # database per hotend (`hotend:` of [flowloop]) and profile, one record per
 # job, the newest MAX_PRINTS_KEPT; the verdict over them decides a warning,
-# which goes out as a Moonraker announcement (Mainsail's and Fluidd's
-# notification list shows it), a console line and
+# which goes out as a Moonraker announcement linking the health plot
+# (Mainsail's and Fluidd's notification list shows it), a console line and
 # notify_flowloop_nozzle_health, names in them as nh.label shows them (one
 # line, no markup). A POST (a print from elsewhere) is checked whole before
-# anything is stored; a DELETE removes one profile's history. Everything
+# anything is stored; a DELETE removes one profile's history. The melt ratio
+# last judged for the profile a job starts with goes to the job's history
+# entry (job_history.py). Everything
 # that decides is in flowloop.control.nozzle_health.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
@@ -26,11 +28,13 @@ from flowloop.control import nozzle_health as nh
 from flowloop.control.health_plot import svg
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import is_extruder_name
+from flowloop.report import job_figures
 
 from ...common import RequestType, TransportType, WebRequest
 from . import args
 from .endpoints import register_endpoint
 from .errors import one_line, quoted
+from .job_history import JobHistory
 from .store import ProfileStore
 
 if TYPE_CHECKING:
@@ -49,8 +53,9 @@ def history_key(hotend: str, profile: str) -> str:
 
 class NozzleHealth:
     def __init__(self, server: Server, store: ProfileStore,
-                 hotend: Optional[str]) -> None:
+                 hotend: Optional[str], job_history: JobHistory) -> None:
         self.server = server
+        self.job_history = job_history
         self.store = store
         self.db = store.db  # the flowloop namespace
         # one read-change-write of a history at a time
@@ -100,6 +105,7 @@ class NozzleHealth:
         if event.get("action") == "added":
             self.started = {"job_id": job.get("job_id"),
                             "evidence": await self._evidence()}
+            await self._history_melt_ratio(self.started["evidence"])
         elif event.get("action") == "finished" and self.started is not None \
                 and self.started["job_id"] == job.get("job_id"):
             start, self.started = self.started["evidence"], None
@@ -112,6 +118,21 @@ class NozzleHealth:
             for extruder, evidence in end.items():
                 await self._record_tool(job.get("job_id"), extruder,
                                         start.get(extruder), evidence)
+
+    async def _history_melt_ratio(
+            self, evidence: Dict[str, Optional[Dict[str, Any]]]) -> None:
+        """The melt ratio last judged for the profile the job starts with
+        (the first tool that has one), into the job's history entry."""
+        for extruder, found in evidence.items():
+            profile = found.get("profile") if isinstance(found, dict) else None
+            if not isinstance(profile, str) or not profile:
+                continue
+            key = history_key(self.tool_hotend(extruder), profile)
+            _, estimates = self._loaded(key, await self.db.get(key, None))
+            self.job_history.update({job_figures.MELT_RATIO.name: job_figures.
+                                     melt_ratio([e.ratio for e in estimates
+                                                 if e.known])})
+            return
 
     async def _record_tool(self, job_id: str, extruder: str, before: Any,
                            after: Any) -> None:
@@ -183,19 +204,17 @@ class NozzleHealth:
               first: bool) -> None:
         title = (f"flowloop: nozzle health, hotend {nh.label(stored['hotend'])}, "
                  f"profile {nh.label(stored['profile'])}")
-        evidence = ", ".join(
-            f"{p['ratio']:.0%}" for p in stored["prints"][-8:]
-            if p.get("ratio") is not None)
-        text = (f"{verdict.text}. Melt capacity against the profile over the "
-                f"last prints: {evidence}.")
+        text = nh.warning_text(verdict, stored["prints"])
+        url = nh.plot_path(stored["hotend"], stored["profile"])
         self.server.send_event("flowloop:nozzle_health",
-                               {**stored, "title": title, "text": text})
+                               {**stored, "title": title, "text": text,
+                                "url": url})
         self.server.send_event("server:gcode_response", f"// {title}: {text}")
         if first:  # once when it starts, not every print it goes on
             announcements = self.server.lookup_component("announcements", None)
             if announcements is not None:
                 announcements.add_internal_announcement(
-                    title, text, "", "high", ANNOUNCEMENT_FEED)
+                    title, text, url, "high", ANNOUNCEMENT_FEED)
 
     # --- endpoints -------------------------------------------------------------
     async def histories(self) -> List[Dict[str, Any]]:

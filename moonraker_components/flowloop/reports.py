@@ -8,7 +8,11 @@
 # in Moonraker's history (it reuses ids once cleared: a report whose job is
 # gone, or whose id now names another job, goes). Everything that decides
 # (what a sample is, what the report says, which reports go) is in
-# flowloop.report.
+# flowloop.report. The job's figures (under-extruded filament, lowest grip,
+# the limiter's cost, peak flow) go to Moonraker's job history as numbers
+# (job_history.py) as each sample is taken; the report itself is served at
+# /server/flowloop/report?job_id=JOB, a path that resolves from a UI's
+# origin too (nginx passes /server/ to Moonraker).
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -23,7 +27,7 @@ from typing import TYPE_CHECKING, Any, Dict, List, Optional
 from flowloop.control.tools import tool_objects
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import is_extruder_name
-from flowloop.report import dump, render
+from flowloop.report import dump, job_figures, render
 from flowloop.report.recorder import (
     DEFAULT_FILAMENT_DIAMETER_MM,
     SAMPLE_PERIOD_S,
@@ -34,10 +38,11 @@ from flowloop.report.recorder import (
     status_objects,
 )
 
-from ...common import HistoryFieldData, RequestType, TransportType, WebRequest
+from ...common import RequestType, TransportType, WebRequest
 from . import args
 from .endpoints import register_endpoint
 from .errors import one_line, quoted
+from .job_history import JobHistory
 
 if TYPE_CHECKING:
     from ...server import Server
@@ -46,15 +51,11 @@ DEFAULT_REPORTS_TO_KEEP = 10
 REPORTS_FOLDER = ("flowloop", "reports")
 
 
-def report_path(job_id: str) -> str:
-    """The report's address on this Moonraker (what the history links):
-    the endpoint registered below."""
-    return "/server/flowloop/report" + f"?job_id={job_id}"
-
-
 class Reports:
-    def __init__(self, server: Server, keep: int) -> None:
+    def __init__(self, server: Server, keep: int,
+                 job_history: JobHistory) -> None:
         self.server = server
+        self.job_history = job_history
         self.keep = keep
         self.eventloop = server.get_event_loop()
         self.klippy_apis = server.lookup_component("klippy_apis")
@@ -69,14 +70,6 @@ class Reports:
         self._sampler: Optional[asyncio.Task] = None
         server.register_event_handler("server:klippy_ready", self._on_klippy_ready)
         server.register_event_handler("history:history_changed", self._on_history)
-        # Each job of the history links its report (its auxiliary data, as
-        # Moonraker's spoolman component keeps the spools a job used)
-        self.history_field = HistoryFieldData(
-            "flow_report", "flowloop", "Flow report", "basic",
-            reset_callback=lambda: None)
-        history = server.lookup_component("history", None)
-        if history is not None:
-            history.register_auxiliary_field(self.history_field)
         register_endpoint(server, "/server/flowloop/reports", RequestType.GET,
                           self._handle_list)
         register_endpoint(server, "/server/flowloop/report", RequestType.GET,
@@ -128,14 +121,13 @@ class Reports:
             filament_diameter_mm=self.filament_diameter_mm)
         self._started = time.monotonic()
         self._sampler = self.eventloop.create_task(self._sample_loop())
-        if job.get("job_id"):
-            self.history_field.tracker.update(report_path(job["job_id"]))
 
     async def _sample_loop(self) -> None:
         try:
             while self.recorder is not None:
                 self.recorder.sample(sample_from_status(
                     time.monotonic() - self._started, self.status, self.tools))
+                self.job_history.update(job_figures.recorded(self.recorder))
                 await asyncio.sleep(SAMPLE_PERIOD_S)
         except (TypeError, ValueError, AttributeError, IndexError) as e:
             # a status of a shape flowloop does not know: one line, the job

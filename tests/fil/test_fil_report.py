@@ -148,13 +148,22 @@ def test_a_job_printed_through_moonraker_gets_a_flow_report(mr):
     text = "".join(root.itertext())
     assert "report_job.gcode" in text
     assert list(root.iter(f"{SVG}polyline")), "no series drawn"
-    # the job in Moonraker's history links its report
+    # the job in Moonraker's history holds flowloop's figures as numbers with
+    # units (what Mainsail and Fluidd show as their own), the report's
+    # figures among them; no string field (Mainsail would show "NaN")
     status, body = mr.request("GET", f"/server/history/job?uid={job['job_id']}")
     assert status == 200, body
-    links = [f for f in body["result"]["job"]["auxiliary_data"]
-             if (f["provider"], f["name"]) == ("flowloop", "flow_report")]
-    assert links and links[0]["value"] == (
-        f"/server/flowloop/report?job_id={job['job_id']}"), links
+    figures = {f["name"]: f for f in body["result"]["job"]["auxiliary_data"]
+               if f["provider"] == "flowloop"}
+    assert set(figures) == {"under_extruded", "lowest_grip", "limiter_slowed",
+                            "peak_flow", "melt_ratio"}, figures
+    for field in figures.values():
+        assert isinstance(field["value"], (int, float)) and field["units"], field
+    assert figures["under_extruded"]["value"] == pytest.approx(
+        summary["under_extruded_mm"], abs=0.05)
+    assert figures["limiter_slowed"]["value"] == pytest.approx(
+        summary["slowed_s"], abs=0.2)
+    assert figures["peak_flow"]["value"] > 0, figures
 
 
 def test_a_job_cancelled_half_way_gets_a_report_that_says_so(mr):

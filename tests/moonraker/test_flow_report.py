@@ -58,3 +58,23 @@ def test_stored_reports_are_listed_newest_first_and_served(printer):
 def test_a_bad_or_unknown_job_id_is_refused_in_one_line(printer, query, code, says):
     status, body = get(printer, f"/server/flowloop/report?{query}")
     assert status == code and says in body["error"]["message"], body
+
+
+def test_the_jobs_figures_are_numeric_history_fields_with_totals(printer):
+    # each job's history entry gets flowloop's figures as numbers with units
+    # (Mainsail renders every auxiliary value as a number); the report is no
+    # history field: it is served at an absolute /server/ path instead
+    status, body = printer.moonraker.request("POST", "/server/history/reset_totals")
+    assert status == 200, body
+    status, body = get(printer, "/server/history/totals")
+    assert status == 200, body
+    totals = {t["field"]: t for t in body["result"]["auxiliary_totals"]
+              if t["provider"] == "flowloop"}
+    assert totals == {
+        "under_extruded": {"provider": "flowloop", "field": "under_extruded",
+                           "maximum": None, "total": 0},
+        "limiter_slowed": {"provider": "flowloop", "field": "limiter_slowed",
+                           "maximum": None, "total": 0},
+        "peak_flow": {"provider": "flowloop", "field": "peak_flow",
+                      "maximum": 0, "total": None},
+    }, totals

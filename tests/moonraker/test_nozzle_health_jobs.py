@@ -76,6 +76,12 @@ def test_a_degrading_hotend_is_warned_with_its_history(printer, rpc):
     assert len(entries) == 1, entries          # once, when it started
     assert 'profile "known"' in entries[0]["title"]
     assert "92%" in entries[0]["description"]
+    assert "?." not in entries[0]["description"]
+    # the announcement links the health plot, a path from the UI's origin
+    assert entries[0]["url"] == (
+        "/server/flowloop/nozzle_health/plot?profile=known&hotend=v6-0.4")
+    status, svg = printer.moonraker.request("GET", entries[0]["url"])
+    assert status == 200 and "<svg" in svg
 
     async def steps(client):
         await client.call("server.connection.identify", client_name="test",

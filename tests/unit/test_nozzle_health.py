@@ -332,3 +332,16 @@ def test_a_name_is_shown_on_one_line_without_markup():
     shown = nh.label("PLA\n!! MCU 'mcu' shutdown <img src=x onerror=alert(1)> & é")
     assert "\n" not in shown and not set("<>&'") & set(shown)
     assert shown.isascii() and shown.startswith('"PLA\\n!! MCU')
+
+
+def test_the_warning_reads_without_stray_punctuation_and_links_its_plot():
+    verdict = nh.Verdict(True, "persistent", "melt capacity 90% of the profile; "
+                         "a partial clog, a worn nozzle or the wrong nozzle?", 5)
+    prints = [{"ratio": 0.92}, {"ratio": None}, {"ratio": 0.9}]
+    text = nh.warning_text(verdict, prints)
+    assert "?." not in text and ".." not in text
+    assert text.endswith("wrong nozzle? Melt capacity against the profile over "
+                         "the last prints: 92%, 90%.")
+    assert nh.warning_text(nh.Verdict(True, "trend", "falling", 5), []) == "falling."
+    assert nh.plot_path("v6 0.4", "PLA & co") == (
+        "/server/flowloop/nozzle_health/plot?profile=PLA+%26+co&hotend=v6+0.4")

@@ -1,0 +1,51 @@
+"""A job's flowloop figures as Moonraker's history keeps them: a finite
+number with units for every field, from the job's first moment."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from flowloop.report import job_figures
+from flowloop.report.recorder import Job, Recorder, Sample
+
+pytestmark = pytest.mark.unit
+
+
+def names():
+    return {f.name for f in job_figures.FIGURES}
+
+
+def test_every_field_has_units_and_a_number_for_unknown():
+    assert {"under_extruded", "lowest_grip", "limiter_slowed", "peak_flow",
+            "melt_ratio"} <= names()
+    for figure in job_figures.FIGURES:
+        assert figure.units and math.isfinite(figure.unknown), figure
+
+
+def test_a_job_just_started_has_numbers_not_nulls():
+    figures = job_figures.recorded(Recorder())
+    assert figures == {"under_extruded": 0.0, "lowest_grip": 100.0,
+                       "limiter_slowed": 0.0, "peak_flow": 0.0}
+    assert all(isinstance(v, float) for v in figures.values())
+
+
+def test_the_figures_follow_the_recording():
+    rec = Recorder(job=Job(filename="a.gcode"))
+    for i in range(40):
+        rec.sample(Sample(i / 4, commanded_flow_mm3_s=12.0,
+                          measured_flow_mm3_s=-2.0 if i == 5 else 10.2,
+                          grip=0.85, slowed_time_s=0.1 * i, cap_reason="grip",
+                          layer=1))
+    figures = job_figures.recorded(rec)
+    assert figures["lowest_grip"] == 85.0
+    assert figures["peak_flow"] == 10.2
+    assert figures["limiter_slowed"] == 3.9
+    assert figures["under_extruded"] == round(rec.under_mm, 2) > 0
+
+
+def test_the_melt_ratio_is_the_newest_judged_in_percent():
+    assert job_figures.melt_ratio([0.97, None, 0.912]) == 91.2
+    assert job_figures.melt_ratio([None, float("nan")]) == 0.0
+    assert job_figures.melt_ratio([]) == 0.0
