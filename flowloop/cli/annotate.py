@@ -158,6 +158,8 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits,
           f" {result.peak_flow_mm3_s:.1f} mm^3/s; {result.overridden} slicer M104"
           f" commented out")
     if result.start is not None:
+        if result.start.heat_fix is not None:   # what the message below judges
+            print(f"  {result.start.heat_fix.message}")
         print(f"  {result.start.message}")
     for line in bake_notes(result, args.printer_cfg, profile, wp):
         print(f"  {line}")

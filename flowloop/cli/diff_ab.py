@@ -12,6 +12,7 @@ from pathlib import Path
 
 from ..calibrate import diff_ab, pylons
 from ..errors import FlowloopError
+from ..gcode.heater import check_part_temp
 from .flags import with_flags
 
 # --a3/--b3/--d3 ... for rows of more pylons
@@ -190,6 +191,9 @@ def _register_pylons(subparsers) -> None:
                    help="start G-code, lines split by '\\n' (G28)")
     p.add_argument("--wait-bed-equilibrium", action="store_true",
                    help="add WAIT_BED_EQUILIBRIUM (needs [diff_ab_calibrate])")
+    p.add_argument("--printer-cfg", type=Path, metavar="FILE",
+                   help="printer.cfg whose [extruder] min_temp..max_temp"
+                        " --hotend-temp must be within (refused outside it)")
     p.set_defaults(func=run_pylons)
 
 
@@ -209,6 +213,10 @@ def run_pylons(args) -> int:
         options = pylon_options_from_args(args)
     except FlowloopError as e:
         raise with_flags(e, PYLON_OPTIONS) from None
+    note = check_part_temp(args.printer_cfg, options.hotend_temp_c,
+                           "--hotend-temp")
+    if note is not None:
+        print(note, file=sys.stderr)
     text = pylons.render(options)
     if args.output == "-":
         sys.stdout.write(text)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import sys
 from pathlib import Path
 
 from ..errors import FlowloopError
 from ..gcode import measure_part
+from ..gcode.heater import check_part_temp
 from .flags import with_flags
 
 # flag -> PartOptions field, help
@@ -42,6 +44,9 @@ def register(subparsers) -> None:
         default = getattr(defaults, field)
         p.add_argument(f"--{flag}", dest=field, type=float, default=default,
                        help=f"{text} ({default:g})")
+    p.add_argument("--printer-cfg", type=Path, metavar="FILE",
+                   help="printer.cfg whose [extruder] min_temp..max_temp --temp"
+                        " must be within (refused outside it)")
     p.set_defaults(func=run)
 
 
@@ -52,6 +57,9 @@ def run(args) -> int:
             **{k: v for k, v in vars(args).items() if k in fields})
     except FlowloopError as e:
         raise with_flags(e, OPTIONS) from None
+    note = check_part_temp(args.printer_cfg, options.hotend_temp_c, "--temp")
+    if note is not None:
+        print(note, file=sys.stderr)
     layers = measure_part.write(options, args.output)
     plan = measure_part.layer_plan(options)
     print(f"wrote {args.output}: {layers} layers, flow {plan[1].flow_mm3_s:.2f}"

@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Dict, Generic, List, Optional, TypeVar
 
 from ..errors import FlowloopError, option_message
+from ..gcode.heater import HeaterRange
 
 Member = TypeVar("Member")
 
@@ -79,7 +80,7 @@ def check_heater_target(temp_c: float, min_temp_c: float,
     """An M104/M109 S: 0 (off) or within the heater's min_temp..max_temp, as
     Klipper's heater checks it; checked before autotemp keeps it as the
     user's target or overrides it."""
-    if temp_c and not min_temp_c <= temp_c <= max_temp_c:
+    if not HeaterRange(min_temp_c, max_temp_c, "heater").accepts(temp_c):
         raise FlowloopError(f"S: must be 0 or from {min_temp_c:g} to"
                             f" {max_temp_c:g}, got {temp_c:g}")
     return temp_c

@@ -23,8 +23,9 @@ sampled as a printer would (every GRID_S). Instead of the announcements,
 - with the printer's heater range known (flowloop.gcode.heater: [extruder]
   min_temp/max_temp from --printer-cfg), every target is a whole degree
   within it: the plan is capped at max_temp (below the profile's maximum
-  where that is lower), and the file's own M104/M109 outside the range are
-  brought within it, so Klipper refuses none of them.
+  where that is lower), and the file's own M104/M109 and the start macro's
+  temperature outside the range are brought within it, so Klipper refuses
+  none of them.
 
 The timeline (demanded flow, targets, the modelled nozzle and the melt
 capacity there) is kept for `--plot` (timeline_svg).
@@ -59,10 +60,10 @@ from .annotate import (
     quantise_flow,
 )
 from .fastplan import Segments, plan_batches
-from .heater import HeaterRange, cap_line
+from .heater import HeaterRange, bake_note, cap_line
 from .melt import Cells
 from .planner import PrinterLimits
-from .start import StartFix, find_start_heat, start_fix
+from .start import LineFix, StartFix, StartHeat, find_start_heat, heat_at, start_fix
 
 BAKE_STEP_S = 0.5
 _ANNOUNCEMENT = re.compile(
@@ -328,14 +329,34 @@ def _start(src: Path, rec: _Recorder, params: HotendParams,
     plan_start_c = _whole(probe.plan.nozzle_c(first_s), heater)
     with open(src, "rb") as f:
         heat = find_start_heat(f, first_offset)
-    if heater is not None and heat.kind == "m109" and heat.temp_c is not None \
+    heat_fix = None
+    if heater is not None and heat.temp_c is not None \
             and not heater.accepts(heat.temp_c):
-        # the wait as written, brought within the range (_write's cap_line)
-        whole = heater.whole(heat.temp_c)
-        heat = replace(heat, temp_c=float(whole), text=f"M109 S{whole}")
-    fix = start_fix(heat, plan_start_c, newline.decode())
+        # the wait as written, brought within the range (an M109 by
+        # _write's cap_line, a start macro's parameter here)
+        capped = heat_at(heat, heater.whole(heat.temp_c))
+        if heat.kind == "macro":
+            heat_fix = _macro_fix(heat, capped, heater, newline)
+        heat = capped
+    fix = replace(start_fix(heat, plan_start_c, newline.decode()),
+                  heat_fix=heat_fix)
     from_s = next((t for t, offset in rec.moves if offset >= fix.end), first_s)
     return fix, from_s
+
+
+def _macro_fix(heat: StartHeat, capped: StartHeat, heater: HeaterRange,
+               newline: bytes) -> LineFix:
+    """The start macro's line with its temperature within the heater's
+    range, the original in a comment, as cap_line writes an M104."""
+    side = "lowered" if heat.temp_c > heater.max_temp_c else "raised"
+    name = heat.text.split()[0]
+    return LineFix(
+        heat.offset,
+        capped.text + bake_note(heat.text, heat.temp_c, heater)
+        + newline.decode(),
+        f"start: {name}'s {heat.param}={heat.temp_c:g} (line {heat.line_no})"
+        f" is outside the printer's {heater.limit(heat.temp_c)} C"
+        f" ({heater.source}): {side} to {heat.param}={capped.temp_c:g}")
 
 
 def marker_line(profile: Profile, working_point: float,
@@ -374,7 +395,10 @@ def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
             while i < len(placements) and placements[i][0] <= offset:
                 out.write(f"M104 S{placements[i][1]}".encode() + newline)
                 i += 1
-            if first is not None and offset > first and _M104.match(line) \
+            if fix is not None and fix.heat_fix is not None \
+                    and fix.heat_fix.offset == offset:
+                out.write(fix.heat_fix.line.encode())
+            elif first is not None and offset > first and _M104.match(line) \
                     and not _S_ZERO.search(line.split(b";")[0] + b" "):
                 out.write(b"; " + line.rstrip(b"\r\n")
                           + b" ; overridden by flowloop bake" + newline)

@@ -6,8 +6,10 @@ Klipper refuses a heater target outside `[extruder]` `min_temp`..`max_temp`
 refused M109 stops the print. Both options are required: klippy does not
 start without them, so a printer.cfg that lacks one is refused here the same
 way. Every target flowloop writes into G-code is a whole degree within
-`HeaterRange` (`whole`), and `cap_line` brings a file's own M104/M109 within
-it.
+`HeaterRange` (`whole`), `cap_line` brings a file's own M104/M109 within
+it, and a temperature the user asks of a test part outside it is refused
+(`check`). `accepts` is the one rule: klippy's M104 take-over
+(flowloop.control.tools) checks with it too.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from pathlib import Path
+from typing import Optional, Tuple, Union
 
 from ..errors import FlowloopError
 
@@ -46,7 +49,28 @@ class HeaterRange:
         return min(top, max(bottom, math.ceil(temp_c - 1e-6)))
 
     def accepts(self, temp_c: float) -> bool:
+        """As Klipper's heater judges a target: 0 (off), or within the range."""
         return temp_c == 0 or self.min_temp_c <= temp_c <= self.max_temp_c
+
+    def limit(self, temp_c: float) -> str:
+        """The limit a target Klipper refuses is beyond: "max_temp 250"."""
+        if temp_c > self.max_temp_c:
+            return f"max_temp {self.max_temp_c:g}"
+        return f"min_temp {self.min_temp_c:g}"
+
+    def check(self, temp_c: float, name: str) -> float:
+        """A temperature the user asked for (a test part's), refused in one
+        line naming the option and the limit where Klipper would refuse it,
+        as typed or as the whole degree the part writes."""
+        for value in (temp_c, round(temp_c)):
+            if not self.accepts(value):
+                written = "" if value == temp_c else f" (written as {value})"
+                side = "above" if value > self.max_temp_c else "below"
+                raise FlowloopError(
+                    f"{name} {temp_c:g} C{written} is {side} the printer's"
+                    f" {self.limit(value)} C ({self.source}): Klipper would"
+                    f" refuse it")
+        return temp_c
 
 
 def heater_range(config, source: str, section: str = "extruder"
@@ -59,6 +83,33 @@ def heater_range(config, source: str, section: str = "extruder"
     min_c = config.getfloat(section, "min_temp")
     max_c = config.getfloat(section, "max_temp", above=min_c)
     return HeaterRange(min_c, max_c, f"{source} [{section}]")
+
+
+def printer_heater(printer_cfg: Union[str, Path]) -> Optional[HeaterRange]:
+    """The [extruder] range of a printer.cfg file, read as klippy reads it
+    ([include]s, CRLF); None without [extruder]."""
+    from ..host.klipper_config import read_config
+    return heater_range(read_config(printer_cfg), str(printer_cfg))
+
+
+def check_part_temp(printer_cfg: Optional[Union[str, Path]], temp_c: float,
+                    name: str) -> Optional[str]:
+    """A test part's temperature (option `name`) checked against the
+    printer.cfg's [extruder] range (refused outside it); a note for the user
+    when it could not be checked, else None."""
+    if printer_cfg is None:
+        return None
+    heater = printer_heater(printer_cfg)
+    if heater is None:
+        return (f"{printer_cfg} has no [extruder]: {name} not checked against"
+                f" its min_temp/max_temp")
+    heater.check(temp_c, name)
+    return None
+
+
+def bake_note(was: str, temp_c: float, heater: HeaterRange) -> str:
+    """The comment a target brought within the range carries."""
+    return f" ; flowloop bake: was {was}, outside {heater.limit(temp_c)}"
 
 
 def cap_line(line: bytes, heater: HeaterRange, newline: bytes
@@ -83,8 +134,5 @@ def cap_line(line: bytes, heater: HeaterRange, newline: bytes
     new = heater.whole(temp)
     args = m[2][:value.start(2)] + str(new).encode() + m[2][value.end(2):]
     was = m[0].strip()     # the command, without the slicer's comment
-    side = "max_temp" if temp > heater.max_temp_c else "min_temp"
-    limit = heater.max_temp_c if side == "max_temp" else heater.min_temp_c
-    note = (f" ; flowloop bake: was {was.decode(errors='replace')}, outside"
-            f" {side} {limit:g}").encode()
+    note = bake_note(was.decode(errors="replace"), temp, heater).encode()
     return m[1] + args.rstrip() + note + newline, True

@@ -17,14 +17,16 @@ and decides (`start_fix`) so that the print starts at or above the plan's
 start temperature: a lower `M109` is raised, a higher one kept (hotter melts
 more; the plan's targets take over after it); after a start macro that heats
 to less than the plan, or to an unknown temperature, an `M109` is added;
-without either, one is added before the first extrusion.
+without either, one is added before the first extrusion. A wait the
+printer's heater would refuse is first brought within its range (`heat_at`,
+by the bake): a start macro's line is then rewritten (`LineFix`).
 """
 
 from __future__ import annotations
 
 import codecs
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import BinaryIO, Optional
 
 # Parameter names slicers' Klipper profiles pass the first layer's nozzle
@@ -52,6 +54,14 @@ class StartHeat:
 
 
 @dataclass(frozen=True)
+class LineFix:
+    """A line of the file written otherwise."""
+    offset: int                 # the line's first byte
+    line: str                   # written instead, with its newline
+    message: str                # one line for the user
+
+
+@dataclass(frozen=True)
 class StartFix:
     """What the bake writes so the print starts where the plan does."""
     action: str                 # "keep", "raise" or "add"
@@ -60,6 +70,7 @@ class StartFix:
     line: Optional[str]         # the line written (None: "keep")
     start_c: float              # the nozzle when the first extrusion starts
     message: str                # one line for the user
+    heat_fix: Optional[LineFix] = None  # the start macro's temperature changed
 
 
 def _code(line: bytes) -> bytes:
@@ -118,6 +129,16 @@ def _number(value: bytes) -> Optional[float]:
         return float(value)
     except ValueError:
         return None
+
+
+def heat_at(heat: StartHeat, temp_c: int) -> StartHeat:
+    """The same heat-and-wait at temp_c: its M109 S, or the start macro's
+    temperature parameter, changed."""
+    if heat.kind == "m109":
+        return replace(heat, temp_c=float(temp_c), text=f"M109 S{temp_c}")
+    value = re.compile(rf"(\s{heat.param}=)[-+]?[0-9.]+", re.IGNORECASE)
+    text = value.sub(lambda m: f"{m[1]}{temp_c}", " " + heat.text)[1:]
+    return replace(heat, temp_c=float(temp_c), text=text)
 
 
 def start_fix(heat: StartHeat, plan_start_c: float, newline: str = "\n"

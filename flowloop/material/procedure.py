@@ -192,10 +192,13 @@ class Hardware:
 
 
 def bounds_for(base: Optional[Profile], min_temp_c: Optional[float],
-               max_temp_c: Optional[float], heater_max_temp_c: float) -> Bounds:
+               max_temp_c: Optional[float], heater_max_temp_c: float,
+               heater_min_temp_c: float = 0.0) -> Bounds:
     """A measurement's bounds: MIN_TEMP= / MAX_TEMP= where given, else the
-    base profile's; never above the heater's max_temp. The recommended
-    temperature is the base's (else the middle), within the bounds."""
+    base profile's; within the heater's min_temp..max_temp (the run sets
+    its heater to the minimum, and Klipper refuses a target outside them).
+    The recommended temperature is the base's (else the middle), within the
+    bounds."""
     if base is not None:
         b = base.bounds
         min_temp_c = b.min_temp_c if min_temp_c is None else min_temp_c
@@ -205,6 +208,7 @@ def bounds_for(base: Optional[Profile], min_temp_c: Optional[float],
             "no active profile on this extruder gives the temperature "
             "limits: activate one, or give MIN_TEMP= and MAX_TEMP=")
     max_temp_c = min(max_temp_c, heater_max_temp_c)
+    min_temp_c = max(min_temp_c, heater_min_temp_c)
     if not min_temp_c < max_temp_c:
         raise FlowloopError(f"MIN_TEMP: {min_temp_c:g} degC is not below the"
                             f" maximum {max_temp_c:g} degC")

@@ -211,7 +211,7 @@ class MeasureProfile:
             sensor = self._sensor(extruder_name)
             base = self._base(extruder_name)
             bounds = fl_proc.bounds_for(base, min_temp, max_temp,
-                                        heater.max_temp)
+                                        heater.max_temp, heater.min_temp)
             plan = fl_measure.make_plan(
                 self._levels(gcmd.get('TEMPS', None), 'TEMPS'),
                 self._levels(gcmd.get('POWERS', None), 'POWERS'),
