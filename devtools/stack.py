@@ -162,6 +162,7 @@ def klipper_key(source: Path = PROJECT, host: str = "klipper") -> str:
     h.update(_run([*git, "status", "--porcelain"]).encode())
     h.update(_run([*git, "diff"]).encode())
     h.update(str(source).encode())  # the symlinks point into this checkout
+    h.update(b"firmware patch taken out after the build")  # trees before: stale
     _hash_files(h, source,
                 [source / "flowloop" / "host" / "install.py"]
                 + install.mcu_sources(source))
@@ -207,6 +208,9 @@ def build_klipper(source: Path = PROJECT, targets=TARGETS,
             shutil.copy(tmp / "out" / "klipper.elf", dict_dir / f"{target}.elf")
             shutil.copy(tmp / ".config", dict_dir / f"{target}.config")
         _run(["make", "distclean"], cwd=tmp)
+        # klippy runs from the tree as a user's checkout is after `flowloop
+        # install`: the EMS22 patch lives only in flowloop firmware's copy
+        install.apply(install.plan_firmware(tmp, source, uninstall=True))
         _prune(cache_dir().glob(f"{host}-[0-9a-f]*"), keep=tmp)
         tmp.rename(tree)
         (tree / ".flowloop-ready").write_text(key)
