@@ -23,7 +23,8 @@ pytestmark = pytest.mark.alone
 
 CLOCK_HZ = 16e6
 LINK_BYTES_S = 250000 / 10  # 8N1
-WARMUP_S, MEASURE_S = pick((1.5, 4.0), (0.5, 1.0))
+# the sample-age figure needs a dozen 100 ms dump messages at the least
+WARMUP_S, MEASURE_S = pick((1.5, 4.0), (0.5, 2.0))
 RATES_HZ = pick((250, 1000, 2000), (1000,))
 # chip selects per sample: the as5047d's sample is a command, then a read
 FRAMES_PER_SAMPLE = {"ems22": 1, "angle": 2}
