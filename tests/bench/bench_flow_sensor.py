@@ -71,10 +71,14 @@ def test_flash_cost_on_atmega2560(klipper_build, bench, tmp_path):
     if shutil.which("avr-size") is None or shutil.which("avr-gcc") is None:
         pytest.skip("no avr toolchain")
     from devtools import stack
+    from flowloop.host import install
     ignore = shutil.ignore_patterns("flowloop-dict", "out", ".git")
     stock, patched = tmp_path / "stock", tmp_path / "patched"
     shutil.copytree(stack.klipper_path(), stock, symlinks=True, ignore=ignore)
+    # the cached tree is a checkout after install (no MCU patch): the sensor
+    # goes into a copy, as `flowloop firmware` builds it
     shutil.copytree(klipper_build.tree, patched, symlinks=True, ignore=ignore)
+    install.apply(install.plan_firmware(patched, stack.PROJECT))
     assert "sensor_ems22.c" not in (stock / "src" / "Makefile").read_text()
     assert "sensor_ems22.c" in (patched / "src" / "Makefile").read_text()
     without, with_sensor = _build(stock), _build(patched)
