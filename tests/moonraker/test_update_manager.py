@@ -19,6 +19,7 @@ import subprocess
 import sys
 import types
 from pathlib import Path
+from typing import Optional
 
 import pytest
 
@@ -104,7 +105,12 @@ def venv_for(clone: Path, host: stack.Venv, where: Path) -> Path:
 class Printer:
     """klippy and Moonraker under supervisord, flowloop linked from `clone`."""
 
-    def __init__(self, root: Path, clone: Path, build, klippy_venv, moonraker_venv):
+    def __init__(self, root: Path, clone: Path, build, klippy_venv, moonraker_venv,
+                 klipper_origin: Optional[Path] = None):
+        """klipper_origin: a bare Klipper repository; Klipper is then a git
+        checkout of it, as KIAUH installs it, which Moonraker's update
+        manager judges and updates (else a copy without .git it leaves
+        alone)."""
         self.root, self.clone = root, clone
         self.port = stack.free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -116,11 +122,19 @@ class Printer:
         (data / "misc" / "usb.ids").write_text("")  # present: not downloaded
         # Klipper's runnable part, without .git and without the build's
         # links to this checkout; flowloop install links the clone into it.
-        klipper = root / "klipper"
-        for part in ("klippy", "src"):
-            shutil.copytree(build.tree / part, klipper / part, symlinks=True,
-                            ignore=self._links_to(stack.PROJECT))
-        shutil.copy(build.tree / "Makefile", klipper / "Makefile")
+        klipper = self.klipper = root / "klipper"
+        if klipper_origin is None:
+            for part in ("klippy", "src"):
+                shutil.copytree(build.tree / part, klipper / part, symlinks=True,
+                                ignore=self._links_to(stack.PROJECT))
+            shutil.copy(build.tree / "Makefile", klipper / "Makefile")
+        else:
+            subprocess.run(["git", "clone", "-q", str(klipper_origin),
+                            str(klipper)], check=True)
+            # the build's C helper (git-ignored), newer than the sources:
+            # klippy does not compile it again
+            shutil.copy(build.tree / "klippy" / "chelper" / "c_helper.so",
+                        klipper / "klippy" / "chelper" / "c_helper.so")
         install.apply(install.plan_klipper(klipper, clone))
         # Moonraker's package, copied, the component linked from the clone
         site = root / "site"
@@ -181,12 +195,12 @@ class Printer:
         assert info, "stack not ready:\n" + self.logs()
         return info
 
-    def flowloop_status(self) -> dict:
+    def flowloop_status(self, name: str = "flowloop") -> dict:
         # 503 "busy" while Moonraker's own first refresh of every updater runs
         answer = stack.wait_until(lambda: self.post(
-            "/machine/update/refresh", {"name": "flowloop"})[0] == 200, 60, 1.0)
+            "/machine/update/refresh", {"name": name})[0] == 200, 60, 1.0)
         assert answer, self.logs()
-        return self.get("/machine/update/status")["version_info"]["flowloop"]
+        return self.get("/machine/update/status")["version_info"][name]
 
     def supervisorctl(self, *args: str) -> str:
         return subprocess.run(
@@ -210,6 +224,18 @@ class Printer:
 
 @pytest.fixture
 def printer(klipper_build, klippy_venv, moonraker_venv):
+    yield from _printer(klipper_build, klippy_venv, moonraker_venv)
+
+
+@pytest.fixture
+def printer_on_klipper_git(klipper_build, klippy_venv, moonraker_venv):
+    """The printer with Klipper as a git checkout whose origin is a bare
+    clone of the user's Klipper (at the build's commit) on disk."""
+    yield from _printer(klipper_build, klippy_venv, moonraker_venv,
+                        klipper_git=True)
+
+
+def _printer(klipper_build, klippy_venv, moonraker_venv, klipper_git=False):
     root = stack.short_tempdir("fl-um-")
     bare, clone, pusher = root / "origin.git", root / "flowloop", root / "pusher"
     # The project as it is committed: the branch Moonraker follows is main.
@@ -227,8 +253,19 @@ def printer(klipper_build, klippy_venv, moonraker_venv):
         subprocess.run(["git", "clone", "-q", str(bare), str(path)], check=True)
         git(path, "config", "user.email", "test@flowloop.invalid")
         git(path, "config", "user.name", "flowloop test")
-    p = Printer(root, clone, klipper_build, klippy_venv, moonraker_venv)
-    p.bare, p.pusher = bare, pusher
+    klipper_bare = None
+    if klipper_git:
+        klipper_bare = root / "klipper-origin.git"
+        # read only from the user's checkout; the build's commit on master
+        commit = git(stack.klipper_path(), "--no-optional-locks", "rev-parse", "HEAD")
+        subprocess.run(["git", "--no-optional-locks", "clone", "-q", "--bare",
+                        "--shared", str(stack.klipper_path()),
+                        str(klipper_bare)], check=True)
+        git(klipper_bare, "update-ref", "refs/heads/master", commit)
+        git(klipper_bare, "symbolic-ref", "HEAD", "refs/heads/master")
+    p = Printer(root, clone, klipper_build, klippy_venv, moonraker_venv,
+                klipper_bare)
+    p.bare, p.pusher, p.klipper_bare = bare, pusher, klipper_bare
     try:
         yield p
     finally:
@@ -363,3 +400,47 @@ def test_a_clone_that_diverged_after_the_last_refresh_is_reset_by_moonraker(
         pass  # Moonraker restarting
     assert git(printer.clone, "rev-parse", "HEAD") == new_head
     assert mine in git(printer.clone, "reflog", "--format=%H")
+
+
+def test_klipper_stays_updatable_through_moonraker_after_install(
+        printer_on_klipper_git):
+    """Issue 35: after flowloop install, Moonraker's update manager finds
+    Klipper's checkout valid and clean, updates it to a new upstream commit,
+    and the update keeps flowloop: the links survive, the checkout stays
+    pristine, klippy restarts with flowloop loaded."""
+    printer = printer_on_klipper_git
+    printer.ready()
+    klipper = printer.klipper
+    assert git(klipper, "--no-optional-locks", "status", "--porcelain") == ""
+    status = printer.flowloop_status("klipper")
+    assert not status["is_dirty"] and status["is_valid"], status
+    assert status["commits_behind"] == []
+    # upstream moves on
+    pusher = printer.root / "klipper-pusher"
+    subprocess.run(["git", "clone", "-q", str(printer.klipper_bare), str(pusher)],
+                   check=True)
+    git(pusher, "config", "user.email", "test@flowloop.invalid")
+    git(pusher, "config", "user.name", "flowloop test")
+    (pusher / "docs" / "flowloop-update-test.md").write_text("upstream moved\n")
+    git(pusher, "add", "docs/flowloop-update-test.md")
+    git(pusher, "commit", "-qm", "upstream moves on")
+    git(pusher, "push", "-q", "origin", "HEAD:master")
+    new_head = git(pusher, "rev-parse", "HEAD")
+    status = printer.flowloop_status("klipper")
+    assert [c["sha"] for c in status["commits_behind"]] == [new_head]
+    assert not status["is_dirty"] and status["is_valid"], status
+    klippy_pid = printer.get("/printer/info")["process_id"]
+
+    answer = printer.post("/machine/update/klipper", timeout=180)
+    assert answer[0] == 200, (answer, printer.logs())
+    assert git(klipper, "rev-parse", "HEAD") == new_head
+    assert (klipper / "docs" / "flowloop-update-test.md").exists()
+    assert git(klipper, "--no-optional-locks", "status", "--porcelain") == ""
+    assert (klipper / "klippy" / "extras" / "flowrate_limiter.py").is_symlink()
+    # klippy restarted by Moonraker on the updated tree, flowloop loaded
+    assert stack.wait_until(lambda: (printer.get("/printer/info") or {}).get(
+        "process_id") not in (None, klippy_pid), 90, 0.5), printer.logs()
+    printer.ready()
+    assert printer.get("/server/flowloop/info"), printer.logs()
+    status = printer.flowloop_status("klipper")
+    assert status["commits_behind"] == [] and not status["is_dirty"], status
