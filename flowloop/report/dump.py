@@ -11,8 +11,9 @@ import dataclasses
 import json
 import math
 import re
+import time
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional, Sequence
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence
 
 from .. import files
 from ..errors import FlowloopError
@@ -167,10 +168,13 @@ class StoredReport:
                                   # file's time (written as the job ended)
 
 
-def _stored_report(path: Path) -> StoredReport:
+def _stored_report(path: Path, text: Optional[str] = None) -> StoredReport:
+    """The report stored at path (text: its dump, when not written yet)."""
     started = ended = None
     try:
-        job = json.loads(path.read_text(encoding="utf-8")).get("job") or {}
+        if text is None:
+            text = path.read_text(encoding="utf-8")
+        job = json.loads(text).get("job") or {}
         started, length = job.get("started_at"), job.get("end_s")
         started = float(started) if started is not None else None
         if started is not None and length is not None:
@@ -181,7 +185,7 @@ def _stored_report(path: Path) -> StoredReport:
         try:
             ended = path.stat().st_mtime
         except OSError:
-            ended = 0.0
+            ended = time.time() if text is not None else 0.0
     return StoredReport(path, path.stem, started, ended)
 
 
@@ -224,11 +228,16 @@ def to_remove(reports: Sequence[StoredReport], keep: int,
 
 
 def prune(folder: Path, keep: int,
-          history: Optional[Mapping[str, Optional[float]]] = None) -> List[str]:
+          history: Optional[Mapping[str, Optional[float]]] = None,
+          adding: Optional[StoredReport] = None) -> List[str]:
     """Remove the dumps (and their .html) that to_remove names; the job ids
-    removed."""
+    removed. adding: a report about to be stored, counted as stored already,
+    so that the old ones go before it is written and a listing never shows
+    more than `keep` (its own id is among those removed when it would go)."""
     reports = stored_reports(folder)
-    removed = to_remove(reports, keep, history)
+    if adding is not None:   # a stored report of its id (reused) is replaced
+        reports = [r for r in reports if r.job_id != adding.job_id]
+    removed = to_remove(reports + ([adding] if adding else []), keep, history)
     for report in reports:
         if report.job_id not in removed:
             continue
@@ -238,6 +247,27 @@ def prune(folder: Path, keep: int,
             except FileNotFoundError:
                 pass
     return removed
+
+
+def store(folder: Path, rec: Recorder, keep: int,
+          history: Optional[Mapping[str, Optional[float]]] = None,
+          html: Optional[Callable[[Recorder], str]] = None) -> bool:
+    """Store a finished job's dump (and its html(rec) page) in folder as
+    JOB.json, the reports to_remove names pruned first: a listing at any
+    moment shows at most `keep` reports, the new one among them once it is
+    there. False when the new report itself would be pruned (its job not in
+    `history`): nothing is written then."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    job_id = rec.job.job_id or "unknown"
+    text = dumps(rec)
+    new = _stored_report(folder / f"{job_id}.json", text)
+    if job_id in prune(folder, keep, history, adding=new):
+        return False
+    save(folder / f"{job_id}.json", text)
+    if html is not None:
+        save(folder / f"{job_id}.html", html(rec))
+    return True
 
 
 def summary(rec: Recorder) -> Dict[str, Optional[Any]]:

@@ -147,10 +147,11 @@ class Reports:
             return
         rec.finish(state, time.monotonic() - self._started)
         try:
-            await self.eventloop.run_in_thread(self._store, rec)
-            history = await self._history_starts()
+            # the history first, then the old reports pruned and the new one
+            # written in one go: a listing never shows more than keep
+            history = await self._history_starts(rec.job.job_id)
             await self.eventloop.run_in_thread(
-                dump.prune, self.folder, self.keep, history)
+                dump.store, self.folder, rec, self.keep, history, render.html)
         except OSError as e:  # a full disk: the job's history is Moonraker's, kept
             logging.error(f"flowloop: the flow report of job {rec.job.job_id} was "
                           f"not stored: {one_line(e)}")
@@ -158,27 +159,20 @@ class Reports:
             logging.exception(f"flowloop: the flow report of job {rec.job.job_id} "
                               f"failed: {one_line(e)}")
 
-    def _store(self, rec: Recorder) -> None:
-        """The dump and the report, whole or not at all (in a thread:
-        rendering is some ms of Python)."""
-        self.folder.mkdir(parents=True, exist_ok=True)
-        job_id = rec.job.job_id or "unknown"
-        dump.save(self.folder / f"{job_id}.json", dump.dumps(rec))
-        dump.save(self.folder / f"{job_id}.html", render.html(rec))
-
-    async def _history_starts(self) -> Optional[Dict[str, Optional[float]]]:
-        """Job id -> start time, for each stored report's job that
-        Moonraker's history holds (None: no history to ask)."""
+    async def _history_starts(self, new_job_id: Optional[str]
+                              ) -> Optional[Dict[str, Optional[float]]]:
+        """Job id -> start time, for each stored report's job and the new
+        one that Moonraker's history holds (None: no history to ask)."""
         history = self.server.lookup_component("history", None)
         if history is None:
             return None
         reports = await self.eventloop.run_in_thread(
             dump.stored_reports, self.folder)
         starts: Dict[str, Optional[float]] = {}
-        for report in reports:
-            job = await history.get_job(report.job_id)
+        for job_id in {r.job_id for r in reports} | ({new_job_id} - {None}):
+            job = await history.get_job(job_id)
             if job is not None:
-                starts[report.job_id] = job.get("start_time")
+                starts[job_id] = job.get("start_time")
         return starts
 
     # --- endpoints ---------------------------------------------------------------

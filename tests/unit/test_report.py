@@ -514,6 +514,44 @@ def test_a_report_of_a_job_no_longer_in_the_history_goes_first(tmp_path):
     assert dump.prune(tmp_path, 1) == ["000004"]
 
 
+def test_storing_a_report_prunes_the_old_ones_before_it_is_written(tmp_path,
+                                                                    monkeypatch):
+    """A listing between the new report's write and the pruning showed
+    keep + 1 reports (the fil tier's report test under load): the old ones
+    now go first, so any listing that shows the new one shows at most keep."""
+    _stored_dump(tmp_path, "000001", 1000.0, 30.0)
+    _stored_dump(tmp_path, "000002", 1100.0, 30.0)
+    seen = []
+    real_save = dump.save
+
+    def save(path, text):
+        seen.append(sorted(p.stem for p in tmp_path.glob("*.json")))
+        real_save(path, text)
+    monkeypatch.setattr(dump, "save", save)
+    rec = Recorder(job=Job(job_id="000003", started_at=1200.0))
+    rec.finish("completed", 30.0)
+    history = {"000001": 1000.0, "000002": 1100.0, "000003": 1200.0}
+    assert dump.store(tmp_path, rec, 2, history, lambda r: "<html>")
+    assert seen[0] == ["000002"]     # 000001 gone before 000003 was written
+    assert [p.stem for p in dump.stored(tmp_path)] == ["000003", "000002"]
+    assert (tmp_path / "000003.html").read_text() == "<html>"
+
+
+def test_a_stored_report_replaces_the_one_of_a_reused_id_and_one_of_no_job_is_not_kept(
+        tmp_path):
+    _stored_dump(tmp_path, "000001", 1000.0, 30.0)     # before the history was cleared
+    rec = Recorder(job=Job(job_id="000001", started_at=5000.0))
+    rec.finish("completed", 30.0)
+    assert dump.store(tmp_path, rec, 2, {"000001": 5000.0})
+    (stored,) = dump.stored_reports(tmp_path)
+    assert stored.started_at == 5000.0
+    # a job Moonraker's history does not hold: nothing written
+    rec = Recorder(job=Job(job_id="000009", started_at=6000.0))
+    rec.finish("completed", 30.0)
+    assert not dump.store(tmp_path, rec, 2, {"000001": 5000.0})
+    assert [p.stem for p in dump.stored(tmp_path)] == ["000001"]
+
+
 def test_a_job_id_is_moonrakers_and_never_case_folded():
     assert dump.check_job_id("00002a") == "00002A"
     for bad in ("\ufb00\ufb00\ufb00", "0000\ufb00", "2A", "00002A\n", "../x", 42):
