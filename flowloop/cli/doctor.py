@@ -83,12 +83,18 @@ def gather(client: Client, klipper: Optional[Path] = None,
     port_error = None
     if local and printer_info and printer_info.get("state") != "ready":
         port_error = mcu_port_error(printer_info.get("log_file"))
+    processor_run = None
+    if (results["/server/flowloop/info"] or {}).get("gcode_processor"):
+        # Moonraker runs its own processor command on a tiny file, in its
+        # working directory and environment, as on an upload
+        processor_run, _ = client.api.answer(
+            "POST", "/server/flowloop/annotation/check")
     return doctor.Facts(
         client.url, server_info=server_info, endpoint_errors=endpoints,
         flowloop_info=results["/server/flowloop/info"], printer_info=printer_info,
         objects=objects or {}, update_status=update_status,
         klipper_update_status=klipper_status, moonraker_sections=sections,
-        mcu_port_error=port_error,
+        mcu_port_error=port_error, processor_run=processor_run,
         on_this_machine=local, **_local_trees(klipper, moonraker_dir, local))
 
 

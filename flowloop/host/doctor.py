@@ -80,6 +80,10 @@ class Facts:
     moonraker_sections: Optional[Tuple[str, ...]] = None
     # klippy.log's last "Unable to open ... port" line since klippy started.
     mcu_port_error: Optional[str] = None
+    # POST /server/flowloop/annotation/check: Moonraker ran its registered
+    # annotator on a tiny file as it runs it on an upload; None: not asked
+    # (no processor registered) or a component too old to answer.
+    processor_run: Optional[dict] = None
 
 
 # What Moonraker's update manager counts as source (git_deploy.py SRC_EXTS):
@@ -379,8 +383,16 @@ def check_gcode_processor(facts: Facts) -> Check:
                      " Moonraker component reports no G-code processor (run"
                      " flowloop annotate on a file before printing it)")
     if info["gcode_processor"]:
+        run = facts.processor_run
+        if run is not None and not run.get("ok"):
+            return Check("gcode processor", FAIL, "registered"
+                         f" ({info['gcode_processor']}) but it does not annotate"
+                         f" a file as Moonraker runs it: {run.get('message')}",
+                         "see docs/install.md; then sudo systemctl restart"
+                         " moonraker and run flowloop doctor again")
+        ran = ", and annotates a test file as Moonraker runs it" if run else ""
         return Check("gcode processor", OK,
-                     f"registered ({info['gcode_processor']})")
+                     f"registered ({info['gcode_processor']}){ran}")
     if not any(section.split()[0] == "autotemp" for section in _settings(facts)):
         return Check("gcode processor", SKIP, "off, and no [autotemp] needs it")
     return Check("gcode processor", FAIL, "[autotemp] is set up but uploads are"

@@ -217,6 +217,20 @@ def test_the_processor_check_reads_the_components_report_when_there_is_one():
         "gcode processor"].status == OK
 
 
+def test_a_processor_that_fails_as_moonraker_runs_it_fails_the_check():
+    """Issue 35.4: Moonraker started from a home holding the clone's flowloop/
+    folder annotated nothing while doctor said the processor was registered."""
+    info = dict(healthy().flowloop_info, gcode_processor="flowloop_autotemp")
+    why = ("the G-code processor fails (exit 1) run from /home/pi: ImportError:"
+           " cannot import name '__version__'")
+    check = by_name(healthy(flowloop_info=info, processor_run={
+        "ok": False, "message": why}))["gcode processor"]
+    assert check.status == FAIL and why in check.detail
+    ran = by_name(healthy(flowloop_info=info, processor_run={"ok": True}))
+    assert ran["gcode processor"].status == OK
+    assert "annotates a test file" in ran["gcode processor"].detail
+
+
 def test_the_command_exits_1_and_prints_one_line_a_check(capsys):
     code = main(["doctor", "--moonraker", "http://127.0.0.1:9"])
     lines = capsys.readouterr().out.splitlines()
