@@ -221,7 +221,7 @@ def test_a_processor_that_fails_as_moonraker_runs_it_fails_the_check():
     """Issue 35.4: Moonraker started from a home holding the clone's flowloop/
     folder annotated nothing while doctor said the processor was registered."""
     info = dict(healthy().flowloop_info, gcode_processor="flowloop_autotemp")
-    why = ("the G-code processor fails (exit 1) run from /home/pi: ImportError:"
+    why = ("the G-code processor fails (exit 1) run from ~: ImportError:"
            " cannot import name '__version__'")
     check = by_name(healthy(flowloop_info=info, processor_run={
         "ok": False, "message": why}))["gcode processor"]
@@ -428,7 +428,7 @@ def test_a_local_klipper_checkout_is_recognised_when_moonraker_is_down(tmp_path,
 
 def repo(**changes) -> doctor.KlipperRepo:
     return dataclasses.replace(doctor.KlipperRepo(
-        "/home/pi/klipper", "v0.13.0-730-g84104bbbd"), **changes)
+        "~/klipper", "v0.13.0-730-g84104bbbd"), **changes)
 
 
 def test_klipper_is_reported_as_moonrakers_update_manager_sees_it():
