@@ -4,17 +4,21 @@ line each. Exit status 1 when a check fails."""
 
 from __future__ import annotations
 
+import copy
 import os
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 from urllib.parse import quote, urlparse
 
 from .. import __version__
-from ..host import doctor, firmware, install
+from ..host import doctor, firmware, install, processor_check
 from ..host.moonraker_api import DEFAULT_URL, MoonrakerApi
 from .install import _default_moonraker as default_moonraker
 from .install import default_klipper
 
+# How long doctor waits for Moonraker to run the G-code processor on a tiny
+# file: Moonraker's own check gives up first
+PROCESSOR_CHECK_WAIT_S = processor_check.CHECK_TIMEOUT_S + 10.0
 FLOWLOOP_ENDPOINTS = ("/server/flowloop/info", "/server/flowloop/profiles")
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
@@ -86,9 +90,14 @@ def gather(client: Client, klipper: Optional[Path] = None,
     processor_run = None
     if (results["/server/flowloop/info"] or {}).get("gcode_processor"):
         # Moonraker runs its own processor command on a tiny file, in its
-        # working directory and environment, as on an upload
-        processor_run, _ = client.api.answer(
+        # working directory and environment, as on an upload: a Python with
+        # numpy starting on a small board takes seconds, so a longer wait
+        slow = copy.copy(client.api)
+        slow.timeout_s = PROCESSOR_CHECK_WAIT_S
+        processor_run, error = slow.answer(
             "POST", "/server/flowloop/annotation/check")
+        if error is not None and "HTTP 404" not in error:   # 404: older flowloop
+            processor_run = {"ok": False, "message": error}
     return doctor.Facts(
         client.url, server_info=server_info, endpoint_errors=endpoints,
         flowloop_info=results["/server/flowloop/info"], printer_info=printer_info,

@@ -10,6 +10,7 @@ from pathlib import Path
 from urllib.parse import quote
 
 from devtools import stack
+from flowloop.cli import main
 from flowloop.gcode.annotate import is_annotated
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
@@ -84,7 +85,7 @@ def test_flowloop_info_names_the_registered_processor(printer):
 
 
 def test_moonraker_started_from_a_home_holding_the_clone_annotates_uploads(
-        moonraker_venv):
+        moonraker_venv, capsys):
     # `python -m moonraker` from a folder with flowloop/ in it (the clone):
     # the component loads, uploads are annotated, the check says so
     home = stack.short_tempdir("fl-home-")
@@ -106,6 +107,12 @@ def test_moonraker_started_from_a_home_holding_the_clone_annotates_uploads(
         check = body["result"]
         assert check["ok"] is True and check["message"] is None, check
         assert check["cwd"] == str(home) and "-m" in check["command"]
+        # doctor asks Moonraker to run it, and says it ran
+        capsys.readouterr()
+        main(["doctor", "--moonraker", mr.url])
+        out = capsys.readouterr().out
+        line = next(x for x in out.splitlines() if " gcode processor:" in x)
+        assert line.startswith("ok") and "annotates a test file" in line, out
     finally:
         mr.stop()
         shutil.rmtree(home, ignore_errors=True)
