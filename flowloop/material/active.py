@@ -7,7 +7,9 @@ Both are typed records; nothing reads them as loose dicts.
 The Spoolman link's rules live here too: when the active spool changes
 (`follow_spool`), the profile whose identity names that spool's Spoolman
 filament becomes active on the spool's extruder (`spool_extruder`: the tool
-that prints, or the one the link names), keeping that extruder's working point.
+that prints, or the one the link names), keeping that extruder's working point
+(`keeping_working_point`); of several, the latest measured
+(`profile_for_filament`, which the farm's path with `hotend:` uses too).
 """
 
 from __future__ import annotations
@@ -147,14 +149,26 @@ def spool_filament_id(spool: Any) -> Optional[int]:
 
 
 def profile_for_filament(profiles: Mapping[str, Profile],
-                         filament_id: Optional[int]) -> Optional[str]:
-    """The profile that names this Spoolman filament; of several, the first
-    by name (so the choice does not depend on the order they were stored)."""
+                         filament_id: Optional[int]) -> Optional[Profile]:
+    """The profile for a Spoolman filament, the one rule both paths of the
+    link use (with or without `hotend:`): of the profiles naming it, the
+    latest measured (`provenance.measured_at`); of equal times, the first
+    by name, so the choice never depends on the order they were stored."""
     if filament_id is None:
         return None
-    matches = sorted(name for name, p in profiles.items()
-                     if p.identity.spoolman_filament_id == filament_id)
-    return matches[0] if matches else None
+    matches = [p for _, p in sorted(profiles.items())
+               if p.identity.spoolman_filament_id == filament_id]
+    # max keeps the first of equal keys: the first by name
+    return max(matches, key=lambda p: p.provenance.measured_at, default=None)
+
+
+def keeping_working_point(name: str, current: Optional[ActiveProfile],
+                          default_wp: float = DEFAULT_WORKING_POINT
+                          ) -> ActiveProfile:
+    """`name` active on an extruder, at the working point that extruder
+    already runs (one with nothing active yet: default_wp)."""
+    wp = current.working_point if current is not None else default_wp
+    return ActiveProfile(name=name, working_point=wp)
 
 
 def follow_spool(spool: Any, profiles: Mapping[str, Profile],
@@ -163,8 +177,7 @@ def follow_spool(spool: Any, profiles: Mapping[str, Profile],
                  ) -> Optional[ActiveProfile]:
     """What the linked extruder should run for a newly active spool, or None
     to leave it as it is (no profile names the spool's filament)."""
-    name = profile_for_filament(profiles, spool_filament_id(spool))
-    if name is None:
+    profile = profile_for_filament(profiles, spool_filament_id(spool))
+    if profile is None:
         return None
-    wp = current.working_point if current is not None else default_wp
-    return ActiveProfile(name=name, working_point=wp)
+    return keeping_working_point(profile.name, current, default_wp)

@@ -3,8 +3,9 @@
 # Loading a spool (Moonraker's [spoolman] sets the active spool) activates,
 # on the spool's extruder, the profile for the spool's filament: the one kept
 # on the filament in Spoolman for this printer's hotend (`hotend:`), stored
-# here as the local copy, else a local profile naming the filament (the rule
-# is flowloop.material.active.follow_spool). A profile stored here for a
+# here as the local copy, else a local profile naming the filament; of
+# several local ones, the latest measured (one rule for both:
+# flowloop.material.active.profile_for_filament). A profile stored here for a
 # filament Spoolman knows is written onto that filament for this hotend; one
 # for a filament Spoolman does not know is refused. The field's format and
 # who wins when two printers write at once: flowloop.material.spoolman_field.
@@ -31,7 +32,14 @@ from typing import TYPE_CHECKING, Any, Dict, Optional, Set, Tuple
 
 from flowloop.errors import FlowloopError
 from flowloop.material import spoolman_field as sf
-from flowloop.material.active import ActiveProfile, follow_spool, spool_extruder
+from flowloop.material.active import (
+    ActiveProfile,
+    follow_spool,
+    keeping_working_point,
+    profile_for_filament,
+    spool_extruder,
+    spool_filament_id,
+)
 from flowloop.material.profile import Profile
 from flowloop.nesting import check_json_depth
 
@@ -178,7 +186,7 @@ class SpoolmanLink:
         except FlowloopError as e:
             self._problem(f"{e}; not used")
             return None
-        mine = self._latest_local(filament.get("id"))
+        mine = profile_for_filament(self.store.profiles, spool_filament_id(spool))
         if mine is not None and (shared is None or (mine != shared
                                                     and sf.newer(mine, shared))):
             if shared is not None:
@@ -202,19 +210,9 @@ class SpoolmanLink:
             await self.profiles.store_profile(shared, "spoolman")
         return self._active(shared.name, extruder)
 
-    def _latest_local(self, fid: Any) -> Optional[Profile]:
-        """The latest profile stored here for Spoolman filament fid."""
-        latest = None
-        for profile in self.store.profiles.values():
-            if sf.filament_id_of(profile) == fid and fid is not None \
-                    and (latest is None or sf.newer(profile, latest)):
-                latest = profile
-        return latest
-
     def _active(self, name: str, extruder: str) -> ActiveProfile:
-        current = self.store.active.get(extruder)
-        wp = current.working_point if current is not None else self.default_wp
-        return ActiveProfile(name=name, working_point=wp)
+        return keeping_working_point(name, self.store.active.get(extruder),
+                                     self.default_wp)
 
     # --- storing a profile ------------------------------------------------------
 

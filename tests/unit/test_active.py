@@ -32,10 +32,35 @@ def test_the_profile_naming_the_spools_filament_becomes_active():
     assert entry == A.ActiveProfile(name="petg", working_point=0.5)
 
 
-def test_of_several_profiles_for_one_filament_the_first_by_name_wins():
+def measured(name, filament_id, measured_at):
+    return profile_from_dict(make(name=name, identity={
+        "spoolman_filament_id": filament_id},
+        provenance={"method": "manual", "measured_at": measured_at}))
+
+
+def test_of_several_profiles_for_one_filament_the_latest_measured_wins():
+    # the rule of both paths of the link: with hotend: the local candidate
+    # for Spoolman's field, without it the profile activated
+    older = measured("alpha pla", 3, "2026-01-05T10:00:00+00:00")
+    later = measured("zeta pla", 3, "2026-03-01T10:00:00+00:00")
+    for order in ((older, later), (later, older)):
+        profiles = {p.name: p for p in order}
+        assert A.profile_for_filament(profiles, 3) is later
+        assert A.follow_spool(spool(3), profiles, None).name == "zeta pla"
+
+
+def test_of_profiles_measured_at_the_same_time_the_first_by_name_wins():
     backwards = dict(reversed(list(PROFILES.items())))
     assert A.follow_spool(spool(3), PROFILES, None).name == "alpha pla"
     assert A.follow_spool(spool(3), backwards, None).name == "alpha pla"
+
+
+def test_an_activation_keeps_the_extruders_working_point():
+    current = A.ActiveProfile(name="unlinked", working_point=0.8)
+    assert A.keeping_working_point("petg", current, 0.3) == \
+        A.ActiveProfile(name="petg", working_point=0.8)
+    assert A.keeping_working_point("petg", None, 0.3) == \
+        A.ActiveProfile(name="petg", working_point=0.3)
 
 
 def test_following_a_spool_keeps_the_extruders_working_point():
