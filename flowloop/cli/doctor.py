@@ -80,6 +80,7 @@ def gather(client: Client, klipper: Optional[Path] = None,
         version_info = (updates or {}).get("version_info") or {}
         update_status = version_info.get("flowloop")
         klipper_status = version_info.get("klipper")
+    webcams, _ = client.get("/server/webcams/list")
     config, _ = client.get("/server/config")
     sections = tuple((config or {}).get("config", {})) if config else None
     if klipper is None and local and printer_info:
@@ -104,6 +105,7 @@ def gather(client: Client, klipper: Optional[Path] = None,
         objects=objects or {}, update_status=update_status,
         klipper_update_status=klipper_status, moonraker_sections=sections,
         mcu_port_error=port_error, processor_run=processor_run,
+        webcams=None if webcams is None else tuple(webcams.get("webcams", [])),
         on_this_machine=local, **_local_trees(klipper, moonraker_dir, local))
 
 

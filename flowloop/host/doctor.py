@@ -16,6 +16,7 @@ from typing import Dict, List, Optional, Tuple
 from .. import __version__
 from ..sensor import ems22
 from . import firmware, install
+from .info import PAGE_PATH, PANEL_URL, PANEL_WEBCAM
 
 OK, FAIL, SKIP = "ok", "FAIL", "skip"
 
@@ -84,6 +85,8 @@ class Facts:
     # annotator on a tiny file as it runs it on an upload; None: not asked
     # (no processor registered) or a component too old to answer.
     processor_run: Optional[dict] = None
+    # GET /server/webcams/list's webcams; None: not asked or not answered.
+    webcams: Optional[Tuple[dict, ...]] = None
 
 
 # What Moonraker's update manager counts as source (git_deploy.py SRC_EXTS):
@@ -481,6 +484,39 @@ def check_klipper_updates(facts: Facts) -> Check:
         else "") + note)
 
 
+PANEL_FIX = (f"flowloop install adds [webcam {PANEL_WEBCAM}] to moonraker.conf"
+             f" (then restart Moonraker); or add a webcam of service iframe with"
+             f" the URL {PANEL_URL} in Mainsail's or Fluidd's webcam settings")
+
+
+def check_panel(facts: Facts) -> Check:
+    """The live page as a panel of Mainsail's and Fluidd's dashboards: a
+    webcam of service iframe at the page's path. An absolute URL works only
+    where its host and port are the printer's as the browser reaches it."""
+    if facts.webcams is None:
+        return Check("dashboard panel", SKIP, "not known: Moonraker did not list"
+                     " its webcams")
+    pages = [w for w in facts.webcams
+             if PAGE_PATH.rstrip("/") in str(w.get("stream_url", ""))]
+    if not pages:
+        return Check("dashboard panel", SKIP, "no webcam shows flowloop's live"
+                     " page in the UI's dashboard", PANEL_FIX)
+    cam = pages[0]
+    name, url = cam.get("name", "?"), str(cam.get("stream_url", ""))
+    if cam.get("service") != "iframe":
+        return Check("dashboard panel", FAIL, f"webcam '{name}' shows the live"
+                     f" page as service '{cam.get('service')}', which neither UI"
+                     f" renders as a page", "set its service to iframe")
+    if not cam.get("enabled", True):
+        return Check("dashboard panel", FAIL, f"webcam '{name}' is disabled",
+                     "enable it in the UI's webcam settings")
+    where = ("relative to the UI's origin" if url.startswith("/")
+             else "absolute: only a browser that reaches that host and port"
+                  " shows it")
+    return Check("dashboard panel", OK, f"webcam '{name}' (iframe) at {url},"
+                 f" {where}")
+
+
 def _modified_files(warnings: List[str]) -> List[str]:
     """The files Moonraker's "Repo is dirty" warning lists."""
     for warning in warnings:
@@ -499,7 +535,8 @@ def run_checks(facts: Facts) -> List[Check]:
              check_sections(facts), check_firmware(facts)]
             + check_sensors(facts)
             + [check_profiles(facts), check_gcode_processor(facts),
-               check_updates(facts), check_klipper_updates(facts)])
+               check_updates(facts), check_klipper_updates(facts),
+               check_panel(facts)])
 
 
 def exit_status(checks: List[Check]) -> int:

@@ -11,6 +11,12 @@ from ..errors import FlowloopError
 
 # Where the component serves the live page (flowloop.host.live_page).
 PAGE_PATH = "/server/flowloop/page/"
+# The live page laid out for a dashboard panel (Mainsail's and Fluidd's
+# webcam of service iframe). Relative: both UIs resolve it against the origin
+# they are served from, which behind the usual nginx passes /server/ to
+# Moonraker (docs/ui.md).
+PANEL_URL = PAGE_PATH + "?panel=1"
+PANEL_WEBCAM = "flowloop"
 
 
 def page_url(moonraker_url: str) -> str:

@@ -24,6 +24,7 @@ from typing import Callable, List, Optional, Sequence
 from .. import files
 from ..errors import FlowloopError
 from . import config_sections
+from .info import PANEL_URL, PANEL_WEBCAM
 
 PROJECT_URL = "https://github.com/flowloop/klipper-flowloop"
 SENSOR_C = "sensor_ems22.c"
@@ -633,6 +634,16 @@ def _git_origin(source: Path) -> Optional[str]:
 # A user's own [flowloop] in moonraker.conf (uncommented, at a line's start).
 FLOWLOOP_SECTION = re.compile(r"^\[flowloop\][ \t]*(?:[#;].*)?\r?$", re.MULTILINE)
 COMPONENT_BLOCK = "\n[flowloop]\n"
+# The live page as a panel of Mainsail's and Fluidd's dashboards: a webcam of
+# service iframe (read-only in both UIs: it comes from moonraker.conf).
+WEBCAM_SECTION = re.compile(rf"^\[webcam[ \t]+{PANEL_WEBCAM}\][ \t]*(?:[#;].*)?\r?$",
+                            re.MULTILINE)
+WEBCAM_BLOCK = (f"\n[webcam {PANEL_WEBCAM}]\n"
+                f"# flowloop's live page in the dashboard (docs/ui.md)\n"
+                f"service: iframe\n"
+                f"stream_url: {PANEL_URL}\n"
+                f"icon: mdiPrinter3dNozzle\n"
+                f"aspect_ratio: 4:3\n")
 # Backups sit beside the file; not named *.cfg or *.conf, so no [include *.cfg]
 # of klippy's or Moonraker's reads one.
 BACKUP_SUFFIX = ".flowloop-backup-"
@@ -672,18 +683,21 @@ def _keeping_crlf(edit: Callable[[str], str]) -> Callable[[str], str]:
 
 def plan_moonraker_conf(config_dir: Path, source: Path,
                         uninstall: bool = False) -> List[Change]:
-    """moonraker.conf: the component's own [flowloop] section and, for a git
-    checkout, [update_manager flowloop]; each a marked block that uninstall
-    takes out again. A section of the user's own is left alone."""
+    """moonraker.conf: the component's own [flowloop] section, the live page
+    as a dashboard panel ([webcam flowloop]) and, for a git checkout,
+    [update_manager flowloop]; each a marked block that uninstall takes out
+    again. A section of the user's own is left alone."""
     conf = Path(config_dir).expanduser() / "moonraker.conf"
     if not conf.is_file():
         raise InstallError(f"{conf}: no such file (use --config-dir)")
     changes: List[Change] = []
     text = read_text(conf).replace("\r\n", "\n")
     if uninstall:
-        _edit_with_backup(changes, conf, f"remove [flowloop] and [update_manager"
-                          f" flowloop] from {conf}", _keeping_crlf(lambda t: drop_block(
-                              drop_block(t, "update-manager"), "component")))
+        _edit_with_backup(changes, conf, f"remove [flowloop], [webcam "
+                          f"{PANEL_WEBCAM}] and [update_manager flowloop] from "
+                          f"{conf}", _keeping_crlf(lambda t: drop_block(drop_block(
+                              drop_block(t, "update-manager"), "webcam"),
+                              "component")))
         return changes
     edits: List[Callable[[str], str]] = []
     said: List[str] = []
@@ -694,6 +708,13 @@ def plan_moonraker_conf(config_dir: Path, source: Path,
     else:
         edits.append(lambda t: put_block(t, "component", COMPONENT_BLOCK))
         said.append("[flowloop]")
+    if WEBCAM_SECTION.search(drop_block(text, "webcam")):
+        changes.append(Change(conf, f"{conf} has a [webcam {PANEL_WEBCAM}] section "
+                              f"of its own: left as it is", note=True))
+        edits.append(lambda t: drop_block(t, "webcam"))
+    else:
+        edits.append(lambda t: put_block(t, "webcam", WEBCAM_BLOCK))
+        said.append(f"[webcam {PANEL_WEBCAM}]")
     if not is_checkout(source):
         # Installed from a wheel: pip updates it, not a git_repo updater.
         edits.append(lambda t: drop_block(t, "update-manager"))

@@ -1,17 +1,31 @@
 """A job's figures as Moonraker's job history keeps them: numbers with units
 that Mainsail and Fluidd show as they show their own (an auxiliary field
-each, provider `flowloop`). Every field holds a finite number from the job's
-first moment: a UI renders each value as a number, a string or null breaks
-it.
+each, provider `flowloop`). Every field holds a value both UIs render from
+the job's first moment: a finite number, or NOT_JUDGED where nothing was
+measured (no grip judged: no sensor, a job cancelled in its first second;
+a nozzle not judged yet). A string or null breaks Mainsail ("NaN", a
+TypeError); an empty list is what both render as their own "--" for no
+value (they take lists from Moonraker's spoolman field).
+
+A field summed or maximised in the history's totals is always a number:
+Moonraker rebuilds its totals at each job's end from the fields holding a
+number (History._update_aux_totals, BasicTracker.has_totals), so one job
+with a list would drop the field's running total. Its unknown is 0, which
+adds nothing to a sum or a maximum.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Union
 
 from .recorder import Recorder
+
+# "--" in Mainsail's job details and Fluidd's history columns, not a number
+# that reads as a measurement (100 % grip, a 0 % melt ratio)
+NOT_JUDGED: List[float] = []
+Figure = Union[float, List[float]]
 
 
 @dataclass(frozen=True)
@@ -22,31 +36,30 @@ class JobFigure:
     description: str
     units: str
     precision: int
-    unknown: float               # held until (or unless) it is measured
+    unknown: Figure              # held until (or unless) it is measured
     report_total: bool = False   # summed over jobs in the history's totals
     report_maximum: bool = False  # the highest over jobs in the totals
 
 
 UNDER_EXTRUDED = JobFigure("under_extruded", "Filament under-extruded", "mm",
                            2, 0.0, report_total=True)
-# no judged grip (no sensor, faulted throughout): full grip, nothing seen lost
-LOWEST_GRIP = JobFigure("lowest_grip", "Lowest grip", "%", 1, 100.0)
+LOWEST_GRIP = JobFigure("lowest_grip", "Lowest grip", "%", 1, NOT_JUDGED)
+# the limiter's time is known without a sensor: a job it never slowed is 0 s
 LIMITER_SLOWED = JobFigure("limiter_slowed", "Limiter slowed the print", "s",
                            1, 0.0, report_total=True)
 PEAK_FLOW = JobFigure("peak_flow", "Peak measured flow", "mm³/s", 2, 0.0,
                       report_maximum=True)
-# the nozzle not judged yet for the profile that prints: 0
-MELT_RATIO = JobFigure("melt_ratio", "Nozzle melt ratio", "%", 1, 0.0)
+MELT_RATIO = JobFigure("melt_ratio", "Nozzle melt ratio", "%", 1, NOT_JUDGED)
 FIGURES = (UNDER_EXTRUDED, LOWEST_GRIP, LIMITER_SLOWED, PEAK_FLOW, MELT_RATIO)
 
 
-def _number(value: Optional[float], figure: JobFigure) -> float:
+def _number(value: Optional[float], figure: JobFigure) -> Figure:
     if value is None or not math.isfinite(value):
         return figure.unknown
     return round(float(value), figure.precision)
 
 
-def recorded(rec: Recorder) -> Dict[str, float]:
+def recorded(rec: Recorder) -> Dict[str, Figure]:
     """The figures the flow report's recorder knows so far."""
     grip = rec.bins.extreme("grip", "min")
     return {
@@ -60,7 +73,7 @@ def recorded(rec: Recorder) -> Dict[str, float]:
     }
 
 
-def melt_ratio(ratios: Sequence[Optional[float]]) -> float:
+def melt_ratio(ratios: Sequence[Optional[float]]) -> Figure:
     """The newest judged melt ratio (capacity against the profile, oldest
     first, None where a print gave no estimate) in percent."""
     known = [r for r in ratios if r is not None and math.isfinite(r)]

@@ -10,10 +10,14 @@
 
 from __future__ import annotations
 
+import copy
 from typing import TYPE_CHECKING, Dict
 
-from flowloop.report.job_figures import FIGURES, JobFigure
+from flowloop.report.job_figures import FIGURES, Figure, JobFigure
 
+# Moonraker's own sensor and spoolman components register their history
+# fields with this class too: history.register_auxiliary_field is the API,
+# and neither Moonraker 0.11 nor its git checkout has another way in.
 from ...common import HistoryFieldData
 
 if TYPE_CHECKING:
@@ -25,7 +29,7 @@ PROVIDER = "flowloop"
 def _field(figure: JobFigure) -> HistoryFieldData:
     field = HistoryFieldData(
         figure.name, PROVIDER, figure.description, "basic", units=figure.units,
-        reset_callback=lambda: figure.unknown,
+        reset_callback=lambda: copy.copy(figure.unknown),
         report_total=figure.report_total, report_maximum=figure.report_maximum,
         precision=figure.precision)
     # a number before the first job too: the history's totals count a field
@@ -43,7 +47,7 @@ class JobHistory:
             for field in self.fields.values():
                 history.register_auxiliary_field(field)
 
-    def update(self, figures: Dict[str, float]) -> None:
+    def update(self, figures: Dict[str, Figure]) -> None:
         """The running job's figures (the history keeps them only while a
         job runs)."""
         for name, value in figures.items():

@@ -48,8 +48,40 @@ def test_a_healthy_printer_passes_every_check_but_the_missing_processor():
     assert {n: c.status for n, c in checks.items()} == {
         "klipper": OK, "links": OK, "moonraker": OK, "config": OK,
         "firmware": OK, "sensor sim": OK, "profiles": OK,
-        "gcode processor": SKIP, "updates": SKIP, "klipper updates": SKIP}
+        "gcode processor": SKIP, "updates": SKIP, "klipper updates": SKIP,
+        "dashboard panel": SKIP}
     assert doctor.exit_status(list(checks.values())) == 0
+
+
+PANEL = {"name": "flowloop", "service": "iframe", "enabled": True,
+         "stream_url": "/server/flowloop/page/?panel=1", "source": "config"}
+
+
+def test_the_dashboard_panel_install_adds_passes():
+    check = by_name(healthy(webcams=(PANEL,)))["dashboard panel"]
+    assert check.status == OK
+    assert check.detail == ("webcam 'flowloop' (iframe) at /server/flowloop/page/"
+                            "?panel=1, relative to the UI's origin")
+
+
+def test_no_panel_says_what_is_missing_and_how_to_add_it():
+    cam = {"name": "nozzle cam", "service": "mjpegstreamer",
+           "stream_url": "/webcam/?action=stream"}
+    check = by_name(healthy(webcams=(cam,)))["dashboard panel"]
+    assert check.status == SKIP and "[webcam flowloop]" in check.fix
+    assert "/server/flowloop/page/?panel=1" in check.fix
+
+
+def test_a_panel_the_ui_cannot_render_fails():
+    check = by_name(healthy(webcams=(dict(PANEL, service="mjpegstreamer"),)))[
+        "dashboard panel"]
+    assert check.status == FAIL and check.fix == "set its service to iframe"
+    check = by_name(healthy(webcams=(dict(PANEL, enabled=False),)))[
+        "dashboard panel"]
+    assert check.status == FAIL
+    absolute = dict(PANEL, stream_url="http://192.168.1.9:7125/server/flowloop/page/")
+    check = by_name(healthy(webcams=(absolute,)))["dashboard panel"]
+    assert check.status == OK and "absolute" in check.detail
 
 
 def test_every_failure_names_its_fix_and_fails_the_exit_status():

@@ -702,6 +702,9 @@ def test_install_adds_the_flowloop_section_with_a_backup_and_uninstall_takes_it_
     install.apply(install.plan_moonraker_conf(config_dir, PROJECT))
     text = conf.read_text()
     assert "\n[flowloop]\n" in text and "[update_manager flowloop]" in text
+    # the live page as a dashboard panel, at a URL relative to the UI's origin
+    assert "\n[webcam flowloop]\n" in text
+    assert "service: iframe\nstream_url: /server/flowloop/page/?panel=1\n" in text
     backups = list(config_dir.glob("moonraker.conf" + install.BACKUP_SUFFIX + "*"))
     assert [b.read_bytes() for b in backups] == [before]
     assert install.plan_moonraker_conf(config_dir, PROJECT) == []  # idempotent
@@ -719,6 +722,20 @@ def test_a_moonraker_conf_with_its_own_flowloop_section_is_left_alone(config_dir
     assert notes == [f"{conf} has a [flowloop] section of its own: left as it is"]
     install.apply(changes)
     assert conf.read_text().count("[flowloop]") == 1
+
+
+def test_a_webcam_flowloop_of_the_users_own_is_left_alone(config_dir):
+    conf = config_dir / "moonraker.conf"
+    mine = "[server]\nhost: 0.0.0.0\n\n[webcam flowloop]\nservice: iframe\n" \
+           "stream_url: http://printer.local/server/flowloop/page/\n"
+    conf.write_text(mine)
+    changes = install.plan_moonraker_conf(config_dir, PROJECT)
+    assert [c.what for c in changes if c.note] == [
+        f"{conf} has a [webcam flowloop] section of its own: left as it is"]
+    install.apply(changes)
+    assert conf.read_text().count("[webcam flowloop]") == 1
+    install.apply(install.plan_moonraker_conf(config_dir, PROJECT, uninstall=True))
+    assert conf.read_text() == mine
 
 
 def test_a_commented_flowloop_section_is_not_counted_as_present(config_dir):

@@ -1,5 +1,7 @@
 """A job's flowloop figures as Moonraker's history keeps them: a finite
-number with units for every field, from the job's first moment."""
+number with units for every field from the job's first moment, or the empty
+list both UIs show as "--" where nothing was judged and no total needs a
+number (never a string or null)."""
 
 from __future__ import annotations
 
@@ -17,18 +19,42 @@ def names():
     return {f.name for f in job_figures.FIGURES}
 
 
-def test_every_field_has_units_and_a_number_for_unknown():
+def shown(value):
+    """What both UIs can render: a finite number or an empty list."""
+    return value == [] or (isinstance(value, float) and math.isfinite(value))
+
+
+def test_every_field_has_units_and_a_renderable_unknown():
     assert {"under_extruded", "lowest_grip", "limiter_slowed", "peak_flow",
             "melt_ratio"} <= names()
     for figure in job_figures.FIGURES:
-        assert figure.units and math.isfinite(figure.unknown), figure
+        assert figure.units and shown(figure.unknown), figure
 
 
-def test_a_job_just_started_has_numbers_not_nulls():
+def test_a_job_just_started_has_no_grip_judged_yet():
+    # was 100 %: a grip no sensor ever measured
     figures = job_figures.recorded(Recorder())
-    assert figures == {"under_extruded": 0.0, "lowest_grip": 100.0,
+    assert figures == {"under_extruded": 0.0, "lowest_grip": [],
                        "limiter_slowed": 0.0, "peak_flow": 0.0}
-    assert all(isinstance(v, float) for v in figures.values())
+
+
+def test_a_field_in_the_totals_is_always_a_number():
+    # Moonraker rebuilds its totals from the fields holding a number: a list
+    # in one job would drop the field's running total
+    for figure in job_figures.FIGURES:
+        if figure.report_total or figure.report_maximum:
+            assert isinstance(figure.unknown, float), figure
+
+
+def test_a_job_without_a_working_sensor_judges_no_flow():
+    rec = Recorder(job=Job(filename="a.gcode"))
+    for i in range(8):
+        rec.sample(Sample(i / 4, commanded_flow_mm3_s=12.0, slowed_time_s=0.5 * i,
+                          cap_reason="max_flow", layer=1, sensor=False))
+    figures = job_figures.recorded(rec)
+    assert figures["lowest_grip"] == []
+    assert figures["under_extruded"] == figures["peak_flow"] == 0.0
+    assert figures["limiter_slowed"] == 3.5
 
 
 def test_the_figures_follow_the_recording():
@@ -47,5 +73,5 @@ def test_the_figures_follow_the_recording():
 
 def test_the_melt_ratio_is_the_newest_judged_in_percent():
     assert job_figures.melt_ratio([0.97, None, 0.912]) == 91.2
-    assert job_figures.melt_ratio([None, float("nan")]) == 0.0
-    assert job_figures.melt_ratio([]) == 0.0
+    assert job_figures.melt_ratio([None, float("nan")]) == []
+    assert job_figures.melt_ratio([]) == []

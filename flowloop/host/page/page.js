@@ -28,6 +28,10 @@
   // ?extruder= shows one tool; without it the page follows the tool that
   // prints (toolhead.extruder), as ACTIVATE_EXTRUDER and T0/T1 change it.
   const chosen = query.get("extruder");
+  // ?panel=1: laid out for a dashboard panel of Mainsail or Fluidd (page.css)
+  const panel = query.get("panel") === "1";
+  if (panel) document.documentElement.dataset.panel = "true";
+  const CHART_HEIGHT = panel ? 150 : 220;
   let extruder = chosen || "extruder";
   // Moonraker may sit behind a proxy under a prefix: everything is asked
   // relative to where the page was served from.
@@ -217,16 +221,32 @@
   let redrawTimer = null;
 
   function width(el) {
-    return Math.max(300, el.parentElement.clientWidth - 8);
+    return Math.max(panel ? 200 : 300, el.parentElement.clientWidth - 8);
   }
 
+  // Axes in the page's text colour: light or dark as the browser prefers
+  // (page.css), redrawn when that preference changes.
+  const dark = window.matchMedia("(prefers-color-scheme: dark)");
+  function themed(axes) {
+    const text = getComputedStyle(document.body).color;
+    const line = {stroke: "#8884", width: 1};
+    return (axes || []).map((a) => Object.assign({stroke: text, grid: line, ticks: line},
+      a, {grid: Object.assign({}, line, a.grid)}));
+  }
+
+  const chartOpts = {};
   function makeChart(id, opts, data) {
     const el = document.getElementById(id);
     if (charts[id]) charts[id].destroy();
-    charts[id] = new uPlot(Object.assign({width: width(el), height: 220}, opts), data, el);
+    chartOpts[id] = opts;
+    charts[id] = new uPlot(Object.assign({width: width(el), height: CHART_HEIGHT}, opts,
+      {axes: themed(opts.axes)}), data, el);
     showNow(charts[id]);
     return charts[id];
   }
+  dark.addEventListener("change", () => {
+    for (const [id, chart] of Object.entries(charts)) makeChart(id, chartOpts[id], chart.data);
+  });
 
   // Centred on the data, at least TEMP_MIN_SPAN_C wide.
   function tempRange(u, lo, hi) {
@@ -634,6 +654,8 @@
     const a = document.createElement("a");
     a.textContent = text;
     a.href = href;
+    // in a dashboard panel: a new tab, not the panel's small frame
+    if (panel) { a.target = "_blank"; a.rel = "noopener"; }
     return a;
   }
 
@@ -809,7 +831,7 @@
 
   window.addEventListener("resize", () => {
     for (const [id, chart] of Object.entries(charts)) {
-      chart.setSize({width: width(document.getElementById(id)), height: 220});
+      chart.setSize({width: width(document.getElementById(id)), height: CHART_HEIGHT});
     }
   });
 
