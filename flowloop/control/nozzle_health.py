@@ -623,6 +623,75 @@ def warning_text(verdict: Verdict, prints: Sequence[Dict[str, Any]]) -> str:
             f"{evidence}.")
 
 
+@dataclass(frozen=True)
+class HealthWarning:
+    """What a warning verdict tells the user: the console line and the
+    notification every print it holds, a Moonraker announcement (`announce`)
+    once, when it starts."""
+
+    title: str
+    text: str
+    url: str
+    announce: bool
+
+
+def was_warning(stored: Any) -> bool:
+    """A stored history whose last verdict warned."""
+    verdict = stored.get("verdict") if isinstance(stored, Mapping) else None
+    return isinstance(verdict, Mapping) and verdict.get("warn") is True
+
+
+def health_warning(hotend: str, profile: str, prints: Sequence[Dict[str, Any]],
+                   verdict: Verdict, warned_before: bool
+                   ) -> Optional[HealthWarning]:
+    """The warning a verdict gives (None: it does not warn); announced only
+    when the history's verdict before this print did not warn, so a warning
+    that goes on is announced once and one that comes back after clearing
+    is announced again."""
+    if not verdict.warn:
+        return None
+    return HealthWarning(
+        title=(f"flowloop: nozzle health, hotend {label(hotend)}, "
+               f"profile {label(profile)}"),
+        text=warning_text(verdict, prints), url=plot_path(hotend, profile),
+        announce=not warned_before)
+
+
+def history_record(hotend: str, profile: str, prints: Sequence[Dict[str, Any]],
+                   verdict: Verdict) -> Dict[str, Any]:
+    """One hotend's history for one profile as it is stored."""
+    return {"hotend": hotend, "profile": profile, "prints": list(prints),
+            "verdict": verdict.__dict__}
+
+
+def check_history(record: Any) -> Dict[str, Any]:
+    """A history as history_record gives it, checked whole before it is
+    stored; FlowloopError (one line) for anything else."""
+    if not isinstance(record, Mapping) or set(record) != {
+            "hotend", "profile", "prints", "verdict"}:
+        raise FlowloopError(f"not a nozzle health history: {_shown(record)}")
+    hotend = record["hotend"]
+    if not isinstance(hotend, str) or not hotend.strip():
+        raise FlowloopError(f"not a nozzle health history: hotend "
+                            f"{_shown(hotend)}")
+    check_name(record["profile"])
+    prints, _, problems = load_history(record)
+    if problems:
+        raise FlowloopError(f"not a nozzle health history: {problems[0]}")
+    if len(prints) > MAX_PRINTS_KEPT:
+        raise FlowloopError(f"not a nozzle health history: {len(prints)} "
+                            f"prints, at most {MAX_PRINTS_KEPT} are kept")
+    if any(p["profile"] != record["profile"] for p in prints):
+        raise FlowloopError("not a nozzle health history: a print of another "
+                            "profile")
+    verdict = record["verdict"]
+    if not isinstance(verdict, Mapping) or not isinstance(verdict.get("warn"),
+                                                          bool):
+        raise FlowloopError(f"not a nozzle health history: verdict "
+                            f"{_shown(verdict)}")
+    return dict(record)
+
+
 def plot_path(hotend: str, profile: str) -> str:
     """The health plot's address on Moonraker: absolute, so it resolves from
     a UI served by the same host (nginx proxies /server/ to Moonraker)."""

@@ -5,7 +5,9 @@
 # package like its own update_manager/). The thinking is in the flowloop
 # package; the parts here each have one job:
 #
-#   store.py          profiles and active profiles in Moonraker's database
+#   store.py          one store per kind of record in Moonraker's database
+#                     (profiles and active profiles, nozzle health), each
+#                     with its lock, validation and schema version
 #   profiles.py       store, delete, activate: write, tell klippy, notify
 #   klippy_sync.py    klippy's copy of each extruder's active profile
 #   spoolman_link.py  the active Spoolman spool chooses the active profile
@@ -41,7 +43,7 @@ from .processor import Processor
 from .profiles import Profiles
 from .reports import DEFAULT_REPORTS_TO_KEEP, Reports
 from .spoolman_link import SpoolmanLink
-from .store import ProfileStore
+from .store import NozzleHealthStore, ProfileStore, SchemaVersions
 
 if TYPE_CHECKING:
     from ...confighelper import ConfigHelper
@@ -68,7 +70,10 @@ class Flowloop:
                 spoolman_field.check_hotend(hotend)
             except FlowloopError as e:
                 raise config.error(f"Section [flowloop], option hotend: {e}") from None
-        self.store = ProfileStore(self.server.lookup_component("database"))
+        database = self.server.lookup_component("database")
+        versions = SchemaVersions(database)
+        self.store = ProfileStore(database, versions)
+        self.health_store = NozzleHealthStore(database, versions)
         self.klippy = KlippySync(self.server, self.store)
         self.profiles = Profiles(self.server, self.store, self.klippy)
         self.spoolman = None
@@ -84,10 +89,13 @@ class Flowloop:
         self.reports = Reports(self.server, config.getint(
             "number_of_reports_to_keep", DEFAULT_REPORTS_TO_KEEP, minval=1),
             self.job_history)
-        self.nozzle_health = NozzleHealth(self.server, self.store, hotend,
+        self.nozzle_health = NozzleHealth(self.server, self.store,
+                                          self.health_store, hotend,
                                           self.job_history)
 
     async def component_init(self) -> None:
+        # first: an older database's histories leave the profiles' namespace
+        await self.health_store.load(self.store)
         await self.store.load()
         if self.spoolman is not None:
             self.spoolman.check_spoolman()

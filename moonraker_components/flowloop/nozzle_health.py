@@ -4,22 +4,22 @@
 # [flowrate_limiter] has summed since the profile was activated is asked
 # (flowrate_limiter/nozzle_evidence); the difference is the job's. Its
 # estimate (the hotend's melt capacity against the profile) is kept in the
-# database per hotend (`hotend:` of [flowloop]) and profile, one record per
-# job, the newest MAX_PRINTS_KEPT; the verdict over them decides a warning,
-# which goes out as a Moonraker announcement linking the health plot
-# (Mainsail's and Fluidd's notification list shows it), a console line and
-# notify_flowloop_nozzle_health, names in them as nh.label shows them (one
-# line, no markup). A POST (a print from elsewhere) is checked whole before
-# anything is stored; a DELETE removes one profile's history. The melt ratio
-# last judged for the profile a job starts with goes to the job's history
-# entry (job_history.py). Everything
-# that decides is in flowloop.control.nozzle_health.
+# database per hotend (`hotend:` of [flowloop]) and profile (its own store,
+# store.NozzleHealthStore), one record per job, the newest MAX_PRINTS_KEPT;
+# the verdict over them decides a warning (nh.health_warning: which is said,
+# and whether it is announced), which goes out as a Moonraker announcement
+# linking the health plot (Mainsail's and Fluidd's notification list shows
+# it), a console line and notify_flowloop_nozzle_health, names in them as
+# nh.label shows them (one line, no markup). A POST (a print from elsewhere)
+# is checked whole before anything is stored; a DELETE removes one profile's
+# history. The melt ratio last judged for the profile a job starts with goes
+# to the job's history entry (job_history.py). Everything that decides is in
+# flowloop.control.nozzle_health.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import time
 from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
@@ -35,31 +35,24 @@ from . import args
 from .endpoints import register_endpoint
 from .errors import one_line, quoted
 from .job_history import JobHistory
-from .store import ProfileStore
+from .store import NozzleHealthStore, ProfileStore
 
 if TYPE_CHECKING:
     from ...server import Server
 
 KLIPPY_ENDPOINT = "flowrate_limiter/nozzle_evidence"
-PREFIX = "nozzle_health:"
 DEFAULT_HOTEND = "default"
 ANNOUNCEMENT_FEED = "flowloop"
 
 
-def history_key(hotend: str, profile: str) -> str:
-    return (f"{PREFIX}{hotend.encode('utf-8').hex()}:"
-            f"{profile.encode('utf-8').hex()}")
-
-
 class NozzleHealth:
     def __init__(self, server: Server, store: ProfileStore,
-                 hotend: Optional[str], job_history: JobHistory) -> None:
+                 health: NozzleHealthStore, hotend: Optional[str],
+                 job_history: JobHistory) -> None:
         self.server = server
         self.job_history = job_history
         self.store = store
-        self.db = store.db  # the flowloop namespace
-        # one read-change-write of a history at a time
-        self.write_lock = asyncio.Lock()
+        self.health = health
         self.hotend = hotend or DEFAULT_HOTEND
         self.klippy = server.lookup_component("klippy_connection")
         self.started: Optional[Dict[str, Any]] = None  # job id, evidence at start
@@ -127,8 +120,9 @@ class NozzleHealth:
             profile = found.get("profile") if isinstance(found, dict) else None
             if not isinstance(profile, str) or not profile:
                 continue
-            key = history_key(self.tool_hotend(extruder), profile)
-            _, estimates = self._loaded(key, await self.db.get(key, None))
+            hotend = self.tool_hotend(extruder)
+            _, estimates = self._loaded(hotend, profile,
+                                        await self.health.get(hotend, profile))
             self.job_history.update({job_figures.MELT_RATIO.name: job_figures.
                                      melt_ratio([e.ratio for e in estimates
                                                  if e.known])})
@@ -171,23 +165,24 @@ class NozzleHealth:
         if not found.profile:
             logging.info(f"flowloop: nozzle health of job {job_id}: {found.reason}")
             return {"entry": entry, "verdict": None}
-        key = history_key(hotend, found.profile)
-        async with self.write_lock:
-            stored = await self.db.get(key, None)
-            prints, _ = self._loaded(key, stored)
-            was_warning = isinstance(stored, dict) and isinstance(
-                stored.get("verdict"), dict) and stored["verdict"].get("warn") is True
+        judged: List[nh.Verdict] = []
+
+        def change(stored: Optional[Dict[str, Any]]) -> Dict[str, Any]:
+            prints, _ = self._loaded(hotend, found.profile, stored)
             prints = nh.with_print(prints, entry)
-            verdict = nh.judge([nh.PrintEstimate.from_dict(p) for p in prints])
-            stored = {"hotend": hotend, "profile": found.profile,
-                      "prints": prints, "verdict": verdict.__dict__}
-            await self.db.insert(key, stored)
-        if verdict.warn:
-            self._warn(stored, verdict, first=not was_warning)
+            judged.append(nh.judge([nh.PrintEstimate.from_dict(p)
+                                    for p in prints]))
+            return nh.history_record(hotend, found.profile, prints, judged[-1])
+        before, stored = await self.health.update(hotend, found.profile, change)
+        verdict = judged[-1]
+        warning = nh.health_warning(hotend, found.profile, stored["prints"],
+                                    verdict, nh.was_warning(before))
+        if warning is not None:
+            self._warn(stored, warning)
         return {"entry": entry, "verdict": verdict.__dict__}
 
     @staticmethod
-    def _loaded(key: str, stored: Any
+    def _loaded(hotend: str, profile: str, stored: Any
                 ) -> Tuple[List[Dict[str, Any]], List[nh.PrintEstimate]]:
         """The stored prints that read and their estimates; the rest skipped
         with one line in the log (dropped at the history's next write)."""
@@ -195,33 +190,26 @@ class NozzleHealth:
             return [], []
         prints, estimates, problems = nh.load_history(stored)
         if problems:
-            logging.info(f"flowloop: nozzle health {key}: {len(problems)} "
+            logging.info(f"flowloop: nozzle health of hotend {quoted(hotend)}, "
+                         f"profile {quoted(profile)}: {len(problems)} "
                          f"stored print(s) skipped: "
                          f"{one_line('; '.join(problems))[:500]}")
         return prints, estimates
 
-    def _warn(self, stored: Dict[str, Any], verdict: nh.Verdict,
-              first: bool) -> None:
-        title = (f"flowloop: nozzle health, hotend {nh.label(stored['hotend'])}, "
-                 f"profile {nh.label(stored['profile'])}")
-        text = nh.warning_text(verdict, stored["prints"])
-        url = nh.plot_path(stored["hotend"], stored["profile"])
+    def _warn(self, stored: Dict[str, Any], warning: nh.HealthWarning) -> None:
         self.server.send_event("flowloop:nozzle_health",
-                               {**stored, "title": title, "text": text,
-                                "url": url})
-        self.server.send_event("server:gcode_response", f"// {title}: {text}")
-        if first:  # once when it starts, not every print it goes on
+                               {**stored, "title": warning.title,
+                                "text": warning.text, "url": warning.url})
+        self.server.send_event("server:gcode_response",
+                               f"// {warning.title}: {warning.text}")
+        if warning.announce:
             announcements = self.server.lookup_component("announcements", None)
             if announcements is not None:
                 announcements.add_internal_announcement(
-                    title, text, url, "high", ANNOUNCEMENT_FEED)
+                    warning.title, warning.text, warning.url, "high",
+                    ANNOUNCEMENT_FEED)
 
     # --- endpoints -------------------------------------------------------------
-    async def histories(self) -> List[Dict[str, Any]]:
-        """Every hotend's (a toolchanger's tools each have theirs)."""
-        items = await self.db.items()
-        return [value for key, value in items if key.startswith(PREFIX)]
-
     async def _handle(self, web_request: WebRequest) -> Dict[str, Any]:
         req_type = web_request.get_request_type()
         if req_type == RequestType.POST:
@@ -235,7 +223,7 @@ class NozzleHealth:
                 raise args.refusal(e) from None
         if req_type == RequestType.DELETE:
             return await self._delete(*self._history_args(web_request))
-        return {"hotend": self.hotend, "histories": await self.histories()}
+        return {"hotend": self.hotend, "histories": await self.health.histories()}
 
     def _history_args(self, web_request: WebRequest) -> Tuple[str, str]:
         """(hotend, profile) of a request naming one history."""
@@ -246,13 +234,10 @@ class NozzleHealth:
         return hotend, name
 
     async def _delete(self, hotend: str, name: str) -> Dict[str, Any]:
-        key = history_key(hotend, name)
-        async with self.write_lock:
-            stored = await self.db.get(key, None)
-            if stored is None:
-                raise args.refusal(f"no nozzle health for profile {quoted(name)}"
-                                   f" on hotend {quoted(hotend)}", 404)
-            await self.db.delete(key)
+        stored = await self.health.remove(hotend, name)
+        if stored is None:
+            raise args.refusal(f"no nozzle health for profile {quoted(name)}"
+                               f" on hotend {quoted(hotend)}", 404)
         prints = stored.get("prints") if isinstance(stored, dict) else None
         logging.info(f"flowloop: nozzle health of hotend {quoted(hotend)}, "
                      f"profile {quoted(name)} deleted")
@@ -261,8 +246,8 @@ class NozzleHealth:
 
     async def _handle_plot(self, web_request: WebRequest) -> bytes:
         hotend, name = self._history_args(web_request)
-        stored = await self.db.get(history_key(hotend, name), None)
+        stored = await self.health.get(hotend, name)
         if stored is not None:
-            _, prints = self._loaded(history_key(hotend, name), stored)
+            _, prints = self._loaded(hotend, name, stored)
             return svg(prints, f"hotend {hotend}, profile {name}").encode()
         raise args.refusal(f"no nozzle health for profile {quoted(name)}", 404)

@@ -2,7 +2,7 @@
 arguments and bodies against the real Moonraker (no klippy): it never
 answers a 5xx (nor a JSON-RPC 500, nor Moonraker's -32602 "Invalid params",
 which is how a TypeError inside a handler reaches a websocket client), and a
-refusal changes nothing stored (flowloop's database namespace and the
+refusal changes nothing stored (flowloop's database namespaces and the
 report listing, read before and after). Hypothesis with a fixed seed and a
 bounded number of examples per endpoint: the module runs in well under a
 minute."""
@@ -205,11 +205,15 @@ def websocket(server):
 
 
 def snapshot(mr):
-    """What flowloop has stored: its database namespace and its reports."""
-    status, body = mr.request("GET", "/server/database/item?namespace=flowloop")
-    assert status == 200, body
+    """What flowloop has stored: its database namespaces and its reports."""
+    stored = []
+    for namespace in ("flowloop", "flowloop_nozzle_health"):
+        status, body = mr.request("GET",
+                                  f"/server/database/item?namespace={namespace}")
+        assert status == 200, body
+        stored.append(body["result"]["value"])
     reports = mr.request("GET", "/server/flowloop/reports")[1]["result"]["reports"]
-    return body["result"]["value"], reports
+    return stored, reports
 
 
 class Stored:

@@ -345,3 +345,51 @@ def test_the_warning_reads_without_stray_punctuation_and_links_its_plot():
     assert nh.warning_text(nh.Verdict(True, "trend", "falling", 5), []) == "falling."
     assert nh.plot_path("v6 0.4", "PLA & co") == (
         "/server/flowloop/nozzle_health/plot?profile=PLA+%26+co&hotend=v6+0.4")
+
+
+WARNS = nh.Verdict(True, "persistent", "melt capacity 90% of the profile", 5)
+CALM = nh.Verdict(False, "", "melt capacity 99% of the profile", 5)
+
+
+def test_a_warning_is_announced_when_it_starts_not_while_it_goes_on():
+    prints = [{"ratio": 0.9}]
+    started = nh.health_warning("v6", "PLA", prints, WARNS, warned_before=False)
+    going_on = nh.health_warning("v6", "PLA", prints, WARNS, warned_before=True)
+    assert started.announce and not going_on.announce
+    # both still said: the console line and the notification every print
+    assert started.text == going_on.text == nh.warning_text(WARNS, prints)
+    assert nh.health_warning("v6", "PLA", prints, CALM, warned_before=True) is None
+
+
+def test_a_warning_comes_back_announced_after_a_calm_verdict():
+    calm = nh.history_record("v6", "PLA", [], CALM)
+    warned = nh.history_record("v6", "PLA", [], WARNS)
+    assert not nh.was_warning(None) and not nh.was_warning(calm)
+    assert nh.was_warning(warned)
+    assert not nh.was_warning({"verdict": {"warn": "yes"}})
+    again = nh.health_warning("v6", "PLA", [], WARNS, nh.was_warning(calm))
+    assert again.announce
+
+
+def test_a_warning_names_its_hotend_and_profile_without_markup_and_links_its_plot():
+    warning = nh.health_warning("v6 0.4", "PLA <b>", [], WARNS, False)
+    assert warning.title == ('flowloop: nozzle health, hotend "v6 0.4", profile '
+                             '"PLA \\u003cb\\u003e"')
+    assert warning.url == nh.plot_path("v6 0.4", "PLA <b>")
+
+
+def test_a_history_is_stored_only_when_it_reads_whole():
+    good = nh.PrintEstimate("PLA", ratio=0.9, standard_error=0.01).to_dict()
+    record = nh.history_record("v6", "PLA", [{"job_id": "000001", **good}], WARNS)
+    assert nh.check_history(record) == record
+    for bad, says in [
+            ({**record, "prints": [{**good, "ratio": "x"}]}, "print 0"),
+            ({**record, "prints": [{**good, "profile": "PETG"}]}, "another profile"),
+            ({**record, "hotend": ""}, "hotend"),
+            ({**record, "profile": " pad"}, "whitespace"),
+            ({**record, "verdict": {"warn": None}}, "verdict"),
+            ({**record, "prints": [good] * (nh.MAX_PRINTS_KEPT + 1)}, "at most"),
+            ({**record, "extra": 1}, "not a nozzle health history"),
+            ([], "not a nozzle health history")]:
+        with pytest.raises(nh.FlowloopError, match=says):
+            nh.check_history(bad)
