@@ -62,7 +62,6 @@ class Autotemp:
         self.core = fl_autotemp.Autotemp(self.params, enabled=enabled)
         self.heater = self.toolhead = self.extruder = None
         self.next_transform = None
-        self.last_flush = None
         # the last M104/M109 target asked for this tool: its heater's at a
         # tool change (flowloop.control.tools.hand_back_target)
         self.user_target_c = None
@@ -88,7 +87,7 @@ class Autotemp:
         self.extruder = extruder = extruder_for(self.printer, self.section,
                                                 self.extruder_name)
         self.heater = extruder.get_heater()
-        self.core.heater_max_temp_c = self.heater.max_temp
+        self.core.set_heater(self.heater.min_temp, self.heater.max_temp)
         self.toolhead = self.printer.lookup_object('toolhead')
         # the read-ahead the annotations' LEAD allows for is this host's
         self.core.set_host(flowloop_host.host_facts(self.printer, self.toolhead,
@@ -134,23 +133,11 @@ class Autotemp:
 
     # --- targets, as the motion is generated ---------------------------------
     def _flush(self, flush_time, step_gen_time):
-        hold = fl_autotemp.GRID_S if self.last_flush is None \
-            else min(1., max(fl_autotemp.GRID_S, step_gen_time - self.last_flush))
-        self.last_flush = step_gen_time
-        if self.toolhead.get_extruder() is not self.extruder:
-            return   # an idle tool's heater is the user's
-        if self.core.source is not None \
-                and self.heater.get_status(None)['target'] == 0.:
-            # Turned off (M104 S0, TURN_OFF_HEATERS, a fault): autotemp never
-            # turns a heater on; it stands down until the next window.
-            self.core.stop()
-            return
-        target = self.core.target_at(step_gen_time, hold)
-        if target is None:
-            return
-        # never outside the heater's own limits
-        target = min(self.heater.max_temp, max(self.heater.min_temp, target))
-        if target != self.heater.get_status(None)['target']:
+        # the decision (hold, stand-down, limits) is the core's on_flush
+        target = self.core.on_flush(
+            step_gen_time, self.heater.get_status(None)['target'],
+            printing=self.toolhead.get_extruder() is self.extruder)
+        if target is not None:
             self.heater.set_temp(target)
 
     # --- tool changes ---------------------------------------------------------

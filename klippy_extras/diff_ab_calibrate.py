@@ -8,6 +8,7 @@
 # applied at runtime and staged for SAVE_CONFIG.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
+import functools
 import re
 
 from flowloop.calibrate import diff_ab
@@ -30,43 +31,34 @@ class DiffABCalibrate:
         self.name = config.get_name()
         self.kinematics = config.getsection('printer').get(
             'kinematics', '').strip()
+        # floats through one reader: Klipper's bounds, then nan/inf refused
+        getfloat = functools.partial(klipper_config.finite_float, config)
         d1, d2 = diff_ab.NOMINAL_DISTANCES_MM
-        self.d1 = config.getfloat('d1', d1, above=0.)
-        self.d2 = config.getfloat('d2', d2, above=self.d1)
-        max_scale_change_pct = config.getfloat(
+        self.d1 = getfloat('d1', d1, above=0.)
+        self.d2 = getfloat('d2', d2, above=self.d1)
+        max_scale_change_pct = getfloat(
             'max_scale_change', 100. * diff_ab.MAX_SCALE_CHANGE,
-            above=0., maxval=20.)
+            above=0., maxval=100. * diff_ab.MAX_SCALE_CHANGE_CEILING)
         self.max_scale_change = max_scale_change_pct / 100.
         default = diff_ab.ErrorBudget()
-        caliper_accuracy = config.getfloat(
+        caliper_accuracy = getfloat(
             'caliper_accuracy', default.caliper_accuracy_mm, minval=0.)
-        caliper_range = config.getfloat(
+        caliper_range = getfloat(
             'caliper_range', default.caliper_range_mm, above=0.)
-        reading_error = config.getfloat(
+        reading_error = getfloat(
             'reading_error', default.reading_error_mm, minval=0.)
         self.bed_heater_name = config.get('bed_heater', 'heater_bed')
-        self.tolerance = config.getfloat(
+        self.tolerance = getfloat(
             'equilibrium_tolerance', diff_ab.EQUILIBRIUM_TOLERANCE_PCT_PER_MIN,
             above=0.)
-        self.window = config.getfloat(
+        self.window = getfloat(
             'equilibrium_window', diff_ab.EQUILIBRIUM_WINDOW_S, above=1.)
-        self.timeout = config.getfloat(
+        self.timeout = getfloat(
             'equilibrium_timeout', diff_ab.EQUILIBRIUM_TIMEOUT_S, above=0.)
-        self.band = config.getfloat(
+        self.band = getfloat(
             'equilibrium_band', diff_ab.EQUILIBRIUM_BAND_C, above=0.)
-        self.report_interval = config.getfloat('report_interval', 10.,
-                                               above=0.)
+        self.report_interval = getfloat('report_interval', 10., above=0.)
         try:
-            klipper_config.check_finite(self.name, {
-                'd1': self.d1, 'd2': self.d2,
-                'max_scale_change': max_scale_change_pct,
-                'caliper_accuracy': caliper_accuracy,
-                'caliper_range': caliper_range, 'reading_error': reading_error,
-                'equilibrium_tolerance': self.tolerance,
-                'equilibrium_window': self.window,
-                'equilibrium_timeout': self.timeout,
-                'equilibrium_band': self.band,
-                'report_interval': self.report_interval})
             self.budget = diff_ab.ErrorBudget(
                 caliper_accuracy_mm=caliper_accuracy,
                 caliper_range_mm=caliper_range, reading_error_mm=reading_error)

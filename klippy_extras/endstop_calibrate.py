@@ -8,6 +8,7 @@
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import collections
+import functools
 import logging
 
 from flowloop.calibrate import delta
@@ -52,19 +53,15 @@ class EndstopCalibrate:
             raise config.error(klipper_config.option_message(
                 'printer', 'kinematics', f"[{self.name}] is for linear delta"
                 f" printers (kinematics: delta), not {kinematics}"))
-        self.radius = config.getfloat('radius', above=0.)
+        # floats through one reader: Klipper's bounds, then nan/inf refused
+        getfloat = functools.partial(klipper_config.finite_float, config)
+        self.radius = getfloat('radius', above=0.)
         self.samples = config.getint('samples', 1, minval=1,
                                      maxval=delta.MAX_SAMPLES)
-        self.tolerance = config.getfloat('tolerance', delta.DEFAULT_TOLERANCE_MM,
-                                         above=0.)
-        self.geometry_warning = config.getfloat(
+        self.tolerance = getfloat('tolerance', delta.DEFAULT_TOLERANCE_MM,
+                                  above=0.)
+        self.geometry_warning = getfloat(
             'geometry_warning', delta.DEFAULT_GEOMETRY_WARNING_MM, above=0.)
-        try:
-            klipper_config.check_finite(self.name, {
-                'radius': self.radius, 'tolerance': self.tolerance,
-                'geometry_warning': self.geometry_warning})
-        except FlowloopError as e:
-            raise config.error(str(e)) from None
         self.opposite_points = config.getboolean('opposite_points', True)
         has_points = config.get('points', None) is not None
         self.probe_helper = probe.ProbePointsHelper(

@@ -18,7 +18,7 @@
 # This file may be distributed under the terms of the GNU GPLv3 license.
 from flowloop.control import caps as fl_caps
 from flowloop.control import limiter as fl_limiter
-from flowloop.control.hotend import NozzleEstimate
+from flowloop.control.hotend import nozzle_estimate_for
 from flowloop.errors import FlowloopError
 from flowloop.host.klipper_config import (
     extruder_for,
@@ -99,13 +99,10 @@ class FlowrateLimiter:
         self.sensor = self._find_sensor()
         if self.sensor is not None:
             self.sensor.subscribe_grip_windows(self._handle_window)
-        if self.mcu.is_fileoutput() and not self.mcu.estimated_print_time(
-                self.reactor.monotonic()):
-            # Batch mode: no temperature reading arrives; the thermal model
-            # follows the heater's target instead. (Paced to the clock by
-            # devtools/realtime_klippy.py, the simulated sensor's twin gives
-            # the heater its reading.)
-            self.nozzle = NozzleEstimate()
+        # batch mode: the thermal model follows the heater's target
+        self.nozzle = nozzle_estimate_for(
+            self.mcu.is_fileoutput(),
+            self.mcu.estimated_print_time(self.reactor.monotonic()))
         active = self.host.get_active_profile(self.extruder_name)
         if active is not None:
             self.limiter.set_profile(*active)

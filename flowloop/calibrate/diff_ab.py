@@ -34,6 +34,9 @@ CONVERGENCE_LIMIT = 2.5e-4
 # Beyond this the readings are more likely wrong (swapped A/B, misread
 # distance) than the belts that far off; FORCE/--force overrides.
 MAX_SCALE_CHANGE = 0.02
+# The most max_scale_change may be set to: a guard that lets a 20 % change
+# through guards nothing (FORCE/--force is there for that).
+MAX_SCALE_CHANGE_CEILING = 0.20
 # A reading further than this from the median of its set is reported.
 SLIP_THRESHOLD_MM = 0.05
 # Median of n normal readings: its standard deviation is about
@@ -307,6 +310,12 @@ def check_rotation_distance(value, name: str) -> float:
     return rd
 
 
+def check_max_scale_change(max_scale_change: float) -> float:
+    """The refusal threshold: above 0, at most MAX_SCALE_CHANGE_CEILING."""
+    return check_result(max_scale_change, "max_scale_change", above=0.0,
+                        maximum=MAX_SCALE_CHANGE_CEILING)
+
+
 def calibrate(kinematics: str,
               rotation_distance_a: float, rotation_distance_b: float,
               readings_a: Sequence[ReadingSet], readings_b: Sequence[ReadingSet],
@@ -318,6 +327,7 @@ def calibrate(kinematics: str,
     Nothing is applied here; a caller applies both axes or neither.
     """
     kin = check_kinematics(kinematics)
+    check_max_scale_change(max_scale_change)
     rds = {"a": check_rotation_distance(rotation_distance_a, "rotation_distance A"),
            "b": check_rotation_distance(rotation_distance_b, "rotation_distance B")}
     results = {}

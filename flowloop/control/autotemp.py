@@ -60,17 +60,21 @@ class TempLimits(NamedTuple):
     max_temp_c: float
 
     @classmethod
-    def of(cls, profile: Profile, heater_max_temp_c: Optional[float] = None
-           ) -> TempLimits:
-        """The profile's bounds, never above the heater's max_temp."""
+    def of(cls, profile: Profile, heater_max_temp_c: Optional[float] = None,
+           heater_min_temp_c: Optional[float] = None) -> TempLimits:
+        """The profile's bounds, within the heater's min_temp..max_temp."""
         b = profile.bounds
         top = b.max_temp_c if heater_max_temp_c is None \
             else min(b.max_temp_c, heater_max_temp_c)
-        if top <= b.min_temp_c:
+        bottom = b.min_temp_c if heater_min_temp_c is None \
+            else max(b.min_temp_c, heater_min_temp_c)
+        if top <= bottom:
+            lower = (f"the heater's min_temp {bottom:g} degC"
+                     if bottom > b.min_temp_c
+                     else f"the profile's min_temp_c {bottom:g} degC")
             raise FlowloopError(
-                f"the heater's max_temp {top:g} degC is not above the profile's"
-                f" min_temp_c {b.min_temp_c:g} degC")
-        return cls(b.min_temp_c, top)
+                f"the heater's max_temp {top:g} degC is not above {lower}")
+        return cls(bottom, top)
 
     def clamp(self, temp_c: float) -> float:
         return min(self.max_temp_c, max(self.min_temp_c, temp_c))
@@ -145,6 +149,12 @@ class TemperaturePlan:
         self._forget(now_s - KEEP_S)
         self._replan(now_s)
         return window
+
+    def set_windows(self, windows: List[FlowWindow], now_s: float) -> None:
+        """Plan these windows instead of the ones announced (another plan's,
+        when the profile or working point changes; none, to stop)."""
+        self.windows = sorted(windows, key=lambda w: w.start_s)
+        self._replan(now_s)
 
     def _forget(self, before_s: float) -> None:
         self.windows = [w for w in self.windows
@@ -246,11 +256,12 @@ class TemperaturePlan:
 def plan_for(profile: Profile, working_point: float,
              heater_max_temp_c: Optional[float] = None,
              params: HotendParams = DEFAULT_PARAMS,
-             margin_s: float = DEFAULT_MARGIN_S) -> TemperaturePlan:
+             margin_s: float = DEFAULT_MARGIN_S,
+             heater_min_temp_c: Optional[float] = None) -> TemperaturePlan:
     """The plan for a profile at a working point (the one melt line)."""
-    return TemperaturePlan(profile_line(profile, working_point),
-                           TempLimits.of(profile, heater_max_temp_c), params,
-                           margin_s)
+    limits = TempLimits.of(profile, heater_max_temp_c, heater_min_temp_c)
+    return TemperaturePlan(profile_line(profile, working_point), limits,
+                           params, margin_s)
 
 
 # ---------------------------------------------------------------------------
@@ -262,6 +273,18 @@ LOOKAHEAD_WINDOW_S = 1.0
 # This long after the last window known, the print is over: the source is
 # forgotten and the slicer's M104 obeyed again.
 DONE_AFTER_S = 5.0
+# A target set at a flush holds until the next one: the plan looks that far
+# ahead, as far as the last gap between flushes, at least GRID_S and at most
+# MAX_HOLD_S (a longer gap, a pause, says nothing about the next one).
+MAX_HOLD_S = 1.0
+
+
+def hold_s(previous_flush_s: Optional[float], flush_s: float) -> float:
+    """How long a target set at the flush at flush_s holds (the first
+    flush: one GRID_S)."""
+    if previous_flush_s is None:
+        return GRID_S
+    return min(MAX_HOLD_S, max(GRID_S, flush_s - previous_flush_s))
 
 
 class Autotemp:
@@ -274,6 +297,8 @@ class Autotemp:
                  enabled: bool = True, margin_s: float = DEFAULT_MARGIN_S):
         self.params = params
         self.heater_max_temp_c = heater_max_temp_c
+        self.heater_min_temp_c: Optional[float] = None
+        self.last_flush_s: Optional[float] = None
         self.margin_s = margin_s
         self.enabled = enabled
         self.profile: Optional[Profile] = None
@@ -312,6 +337,11 @@ class Autotemp:
         self.wp_override = working_point
         self._rebuild(now_s)
 
+    def set_heater(self, min_temp_c: float, max_temp_c: float) -> None:
+        """The heater's own min_temp..max_temp: no target leaves them."""
+        self.heater_min_temp_c, self.heater_max_temp_c = min_temp_c, max_temp_c
+        self._rebuild(0.0)
+
     def set_host(self, host: dict) -> None:
         """The host facts (Klipper or Kalico, how far ahead it reads G-code,
         the heater's control) the plan runs on, reported in the status."""
@@ -331,13 +361,12 @@ class Autotemp:
             try:
                 self.plan = plan_for(self.profile, self.working_point,
                                      self.heater_max_temp_c, self.params,
-                                     self.margin_s)
+                                     self.margin_s, self.heater_min_temp_c)
                 self.why = ""
             except FlowloopError as e:
                 self.why = str(e)
         if self.plan is not None and windows:
-            self.plan.windows = list(windows)
-            self.plan._replan(now_s)
+            self.plan.set_windows(windows, now_s)
         self.status = self._status()
 
     # --- windows ------------------------------------------------------------
@@ -373,8 +402,7 @@ class Autotemp:
         self.source, self._gathered = None, None
         self.target_c = self.planned_flow_mm3_s = None
         if self.plan is not None:
-            self.plan.windows = []
-            self.plan._replan(0.0)
+            self.plan.set_windows([], 0.0)
         self.status = self._status()
 
     # --- targets ------------------------------------------------------------
@@ -394,6 +422,25 @@ class Autotemp:
             self.target_c, self.planned_flow_mm3_s = target, flow
             self.status = self._status()
         return target
+
+    def on_flush(self, flush_s: float, heater_target_c: float,
+                 printing: bool = True) -> Optional[float]:
+        """At each flush of generated motion (flush_s: the print time steps
+        are generated to; heater_target_c: the heater's target now): the
+        target to set, or None to leave the heater as it is. A tool that
+        does not print keeps its user's target; a heater turned off (M104
+        S0, TURN_OFF_HEATERS, a fault) while a source was planning makes
+        autotemp stand down until the next window: it never turns a heater
+        on."""
+        hold = hold_s(self.last_flush_s, flush_s)
+        self.last_flush_s = flush_s
+        if not printing:
+            return None
+        if self.source is not None and heater_target_c == 0.0:
+            self.stop()
+            return None
+        target = self.target_at(flush_s, hold)
+        return None if target == heater_target_c else target
 
     def overrides_m104(self) -> bool:
         """While it plans a print, the slicer's M104 is not obeyed."""

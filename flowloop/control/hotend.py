@@ -202,3 +202,15 @@ class NozzleEstimate:
         if pending_s <= 0.0:
             return model.temp_c
         return model.advance(model.time_s + pending_s, melted / pending_s)
+
+
+def nozzle_estimate_for(writes_to_file: bool, estimated_print_time_s: float
+                        ) -> Optional[NozzleEstimate]:
+    """The estimate to read the nozzle from where no temperature reading
+    arrives: klippy in batch mode (its output is a file and its MCU clock
+    never starts). None: the heater's own reading is used (a printer; a
+    klippy paced to the clock, whose simulated twin gives the heater its
+    readings)."""
+    if writes_to_file and not estimated_print_time_s:
+        return NozzleEstimate()
+    return None

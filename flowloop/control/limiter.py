@@ -34,7 +34,13 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional
 
 from ..errors import FlowloopError
-from ..material.profile import Line, Profile, min_grip_of, profile_line
+from ..material.profile import (
+    DEFAULT_WORKING_POINT,
+    Line,
+    Profile,
+    min_grip_of,
+    profile_line,
+)
 from ..window import Window
 from . import caps as fl_caps
 from .grip_model import (
@@ -103,7 +109,7 @@ class FlowLimiter:
         self.host = host  # the klippy it runs in (status 'host'), if known
         self.enabled = True
         self.profile: Optional[Profile] = None
-        self.working_point = 0.5
+        self.working_point = DEFAULT_WORKING_POINT
         self.model: Optional[GripModel] = None
         # what the windows say of the hotend against the active profile
         # (flowloop.control.nozzle_health), summed since it was activated
@@ -160,7 +166,7 @@ class FlowLimiter:
         self._update()
 
     def set_profile(self, profile: Optional[Profile],
-                    working_point: float = 0.5) -> None:
+                    working_point: float = DEFAULT_WORKING_POINT) -> None:
         """A newly active profile (None: none) seeds the temperature cap and
         a fresh grip model."""
         self.profile = profile

@@ -226,6 +226,18 @@ def check_finite(section: str, values: Dict[str, Optional[float]]) -> None:
                                                f"must be a finite number, not {value}"))
 
 
+def finite_float(config, option: str, *default, **bounds) -> Optional[float]:
+    """A float option of a flowloop section: Klipper's getfloat (default and
+    bounds as it takes them: minval=, maxval=, above=, below=), then nan and
+    inf refused as check_finite words it, as a config error."""
+    value = config.getfloat(option, *default, **bounds)
+    try:
+        check_finite(config.get_name(), {option: value})
+    except FlowloopError as e:
+        raise config.error(str(e)) from None
+    return value
+
+
 # --- what flowloop's sections look up in klippy ------------------------------
 # (printer is klippy's Printer, handed in: this module imports no Klipper)
 

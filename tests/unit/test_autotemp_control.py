@@ -5,7 +5,15 @@ from __future__ import annotations
 
 import pytest
 
-from flowloop.control.autotemp import DONE_AFTER_S, LOOKAHEAD_WINDOW_S, Autotemp
+from flowloop.control.autotemp import (
+    DONE_AFTER_S,
+    GRID_S,
+    LOOKAHEAD_WINDOW_S,
+    MAX_HOLD_S,
+    Autotemp,
+    TemperaturePlan,
+    hold_s,
+)
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import profile_from_dict, temp_for_flow
 from tests.samples import make
@@ -98,3 +106,73 @@ def test_the_heater_max_temp_caps_targets():
     a.announce(0.0, 100.0, 15.0, 5.0)
     assert a.target_at(16.0) == PROFILE.bounds.min_temp_c + 10
     assert a.status["capped_windows"] == 1
+
+
+# --- at each flush: what [autotemp] sets on the heater -------------------------
+
+def test_a_target_holds_until_the_next_flush_within_a_grid_step_and_a_second():
+    assert hold_s(None, 7.0) == GRID_S               # the first flush
+    assert hold_s(7.0, 7.35) == pytest.approx(0.35)  # the gap since the last
+    assert hold_s(7.0, 7.01) == GRID_S               # never below a grid step
+    assert hold_s(7.0, 60.0) == MAX_HOLD_S           # a pause says nothing
+
+
+def test_a_flush_looks_ahead_over_the_gap_since_the_last_one():
+    # a rise 0.6 s after a flush: seen over a 1 s hold, not over one grid step
+    a, b = active(), active()
+    for ctl in (a, b):
+        ctl.announce(0.0, 1.0, 0.0, 30.0)
+        ctl.announce(0.0, 14.0, 10.6 + ctl.params.dead_time_s, 5.0)
+    a.on_flush(9.0, 200.0)
+    b.on_flush(9.9, 200.0)
+    assert a.on_flush(10.0, 200.0) > b.on_flush(10.0, 200.0)
+
+
+def test_a_heater_turned_off_while_it_plans_makes_it_stand_down():
+    a = active()
+    a.announce(0.0, 12.0, 1.0, 5.0)
+    target = a.on_flush(1.0, 200.0)
+    assert target is not None and a.overrides_m104()
+    assert a.on_flush(1.1, 0.0) is None              # never turns a heater on
+    assert a.status["source"] is None and not a.overrides_m104()
+    assert a.on_flush(1.2, 0.0) is None
+
+
+def test_a_tool_that_does_not_print_keeps_its_users_target():
+    a = active()
+    a.announce(0.0, 12.0, 1.0, 5.0)
+    assert a.on_flush(1.0, 180.0, printing=False) is None
+    assert a.last_flush_s == 1.0                     # the hold still follows
+
+
+def test_a_target_the_heater_already_has_is_not_set_again():
+    a = active()
+    a.announce(0.0, 12.0, 1.0, 5.0)
+    target = a.on_flush(2.0, 0.5)
+    assert target is not None
+    assert a.on_flush(2.1, target) is None
+
+
+def test_no_target_leaves_the_heaters_own_limits():
+    a = active()
+    a.set_heater(PROFILE.bounds.min_temp_c + 5, PROFILE.bounds.min_temp_c + 20)
+    a.announce(0.0, 0.1, 1.0, 5.0)                   # needs the profile's min
+    assert a.on_flush(2.0, 1.0) == PROFILE.bounds.min_temp_c + 5
+    a.announce(2.0, 100.0, 1.0, 5.0)                 # beyond the heater
+    assert a.on_flush(4.0, 1.0) == PROFILE.bounds.min_temp_c + 20
+    assert a.status["min_temp"] == PROFILE.bounds.min_temp_c + 5
+    b = active()
+    b.set_heater(255.0, 250.0)   # nothing left between them: off, saying why
+    assert b.plan is None and "heater's min_temp 255" in b.status["why"]
+
+
+def test_a_new_working_point_keeps_the_windows_announced():
+    a = active()
+    a.announce(0.0, 12.0, 15.0, 5.0)
+    windows = list(a.plan.windows)
+    a.set_working_point(1.0, 0.0)
+    assert a.plan.windows == windows
+    plan = a.plan
+    assert isinstance(plan, TemperaturePlan)
+    plan.set_windows([], 0.0)
+    assert plan.windows == [] and plan.nozzle_c(16.0) == plan.limits.min_temp_c

@@ -165,6 +165,16 @@ def test_other_kinematics_are_refused(kinematics):
         diff_ab.calibrate(kinematics, 40, 40, good, good)
 
 
+@pytest.mark.parametrize("limit", [0.0, -0.01, 0.21, 1.0, float("nan")])
+def test_a_refusal_threshold_beyond_the_ceiling_is_refused(limit):
+    # [diff_ab_calibrate] max_scale_change reads its maxval from the ceiling
+    good = sets((10, 150), (10.0, 150.0))
+    with pytest.raises(FlowloopError, match="max_scale_change"):
+        diff_ab.calibrate("corexy", 40, 40, good, good, max_scale_change=limit)
+    assert diff_ab.calibrate("corexy", 40, 40, good, good,
+                             max_scale_change=diff_ab.MAX_SCALE_CHANGE_CEILING)
+
+
 @pytest.mark.parametrize("rd", [0, -40, float("nan"), float("inf"), "x"])
 def test_non_positive_rotation_distance_is_refused(rd):
     good = sets((10, 150), (10.0, 150.0))

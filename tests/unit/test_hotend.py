@@ -16,6 +16,7 @@ from flowloop.control.hotend import (
     HotendModel,
     HotendParams,
     NozzleEstimate,
+    nozzle_estimate_for,
 )
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import Line
@@ -187,3 +188,11 @@ def test_a_scaled_twin_melts_that_share_of_its_line():
     weak = scaled_line(line, 0.7)
     for temp in (180.0, 220.0, 300.0):
         assert weak.flow_mm3_s(temp) == pytest.approx(0.7 * line.flow_mm3_s(temp))
+
+
+def test_only_a_batch_mode_klippy_reads_the_nozzle_from_the_model():
+    # batch mode: output to a file, the MCU clock never started
+    assert isinstance(nozzle_estimate_for(True, 0.0), NozzleEstimate)
+    assert nozzle_estimate_for(True, 12.5) is None     # paced to the clock
+    assert nozzle_estimate_for(False, 0.0) is None     # a printer, connecting
+    assert nozzle_estimate_for(False, 12.5) is None

@@ -222,6 +222,41 @@ def test_config_errors_name_section_and_option_in_one_format():
                                 f" finite number, not {bad}")
 
 
+class _ConfigError(Exception):
+    pass
+
+
+class _Section:
+    """What finite_float uses of klippy's ConfigWrapper (its getfloat reads
+    'nan' and 'inf' as Python does and lets them through its bounds)."""
+
+    error = _ConfigError
+
+    def __init__(self, options):
+        self.options = options
+
+    def get_name(self):
+        return "diff_ab_calibrate"
+
+    def getfloat(self, option, default=None, above=None, maxval=None):
+        value = float(self.options.get(option, default))
+        if above is not None and value <= above:
+            raise _ConfigError(f"{option} must be above {above}")
+        return value
+
+
+@pytest.mark.parametrize("text", ["nan", "inf", "-inf"])
+def test_a_float_option_refuses_nan_and_inf_as_a_config_error(text):
+    with pytest.raises(_ConfigError) as e:
+        klipper_config.finite_float(_Section({"d2": text}), "d2", 150.0)
+    assert str(e.value) == ("Section [diff_ab_calibrate], option d2: must be a"
+                            f" finite number, not {float(text)}")
+    assert klipper_config.finite_float(_Section({}), "d2", 150.0, above=10.0) \
+        == 150.0
+    with pytest.raises(_ConfigError, match="above"):   # Klipper's own bounds
+        klipper_config.finite_float(_Section({"d2": "5"}), "d2", above=10.0)
+
+
 class _Printer:
     """What the lookup helpers use of klippy's Printer."""
 

@@ -8,7 +8,11 @@ import pytest
 from flowloop.control.caps import move_shape
 from flowloop.control.limiter import FlowLimiter, LimiterSettings
 from flowloop.errors import FlowloopError
-from flowloop.material.profile import profile_from_dict, profile_line
+from flowloop.material.profile import (
+    DEFAULT_WORKING_POINT,
+    profile_from_dict,
+    profile_line,
+)
 from flowloop.window import FAULT, JUDGED, TOO_LITTLE_MOTION, Window
 from tests.samples import make
 
@@ -235,3 +239,15 @@ def test_a_move_under_every_cap_keeps_its_speed_and_counts_nothing():
     assert lim.limit(FAST, 199.0) == 199.0
     assert lim.limit(FAST, 201.0) < 201.0
     assert lim.status()["slowed_moves"] == 1
+
+
+def test_the_working_point_without_an_activation_is_the_one_default(monkeypatch):
+    # one source for the number: the limiter reads the profile module's
+    import inspect
+
+    import flowloop.control.limiter as L
+    default = inspect.signature(L.FlowLimiter.set_profile).parameters[
+        "working_point"].default
+    assert default is DEFAULT_WORKING_POINT
+    monkeypatch.setattr(L, "DEFAULT_WORKING_POINT", 0.25)
+    assert L.FlowLimiter().working_point == 0.25
