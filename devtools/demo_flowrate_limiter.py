@@ -21,7 +21,7 @@ from devtools.klippy_api import KlippyApi
 from flowloop.control import rule_plot
 from flowloop.gcode.annotate import AnnotateSettings, quantise_flow
 from flowloop.gcode.bake import plan_announcements
-from flowloop.gcode.planner import limits_from_config
+from flowloop.gcode.reference_planner import limits_from_config
 from flowloop.host.klipper_config import read_config
 
 GCODE = stack.PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"

@@ -16,7 +16,7 @@ from ..gcode.annotate import (
     AnnotateSettings,
     annotate_file,
 )
-from ..gcode.planner import PrinterLimits, limits_from_config
+from ..gcode.reference_planner import PrinterLimits, limits_from_config
 from .flags import with_flags
 from .paths import refuse_overwriting
 

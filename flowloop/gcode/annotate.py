@@ -1,7 +1,7 @@
 """Autotemp annotations: the flow the next seconds will demand, written into
 the G-code early enough for a hotend to heat before the flow arrives.
 
-The flow planner (planner.py) turns the file into print time, and its flow
+The flow planner (bulk_planner.py) turns the file into print time, and its flow
 into the flow the hotend has to melt (melt.py: the mean over MELT_TIME_S,
 not the spike of a move a few milliseconds long). That time is cut into
 windows of `window_s`; each window's peak of it is announced by one command
@@ -40,9 +40,9 @@ import numpy as np
 
 from .. import files
 from ..errors import FlowloopError
-from .fastplan import Segments, plan_batches
+from .bulk_planner import Segments, plan_batches
 from .melt import MELT_TIME_S, Cells, Lines, melt_events
-from .planner import Barrier, Event, PrinterLimits
+from .reference_planner import Barrier, Event, PrinterLimits
 
 # v2: FLOW is the flow to melt (flowloop.gcode.melt: the mean over
 # MELT_TIME_S), no longer the peak of any move; v1 files read as before.
@@ -180,7 +180,7 @@ class _Candidates:
         return self.times[at], self.offsets[at]
 
 
-class _Annotator:
+class Annotator:
     """Windows from planner events, each placed at a line of the file."""
 
     def __init__(self, settings: AnnotateSettings, src: BinaryIO, out: BinaryIO,
@@ -393,7 +393,7 @@ class _Annotator:
         duration = np.ceil((duration_s + lead_s - lead) * 100 - 1e-6) / 100
         numbers = zip(flow.tolist(), lead.tolist(), duration.tolist())
         self.windows += len(start)
-        if type(self).emit is _Annotator.emit:
+        if type(self).emit is Annotator.emit:
             # emit's work for them all (command_line's text, as bytes)
             line = (f"{COMMAND} FLOW=%.1f LEAD=%.2f DURATION=%.2f".encode()
                     + self.newline)
@@ -562,7 +562,7 @@ class _Annotator:
                 self.last_byte = self.block[stop - 1:stop]
 
 
-def feed(annotator: _Annotator, events: Iterable[Union[Event, Segments]]) -> None:
+def feed(annotator: Annotator, events: Iterable[Union[Event, Segments]]) -> None:
     """The planner's events into an annotator, as the flow to melt
     (flowloop.gcode.melt), then its last windows closed."""
     for event in melt_events(events):
@@ -583,7 +583,7 @@ def annotate_stream(events: Iterable[Union[Event, Segments]], src: BinaryIO,
 
     src is read from its start as the events reach further into it.
     """
-    a = _Annotator(settings, src, out, newline)
+    a = Annotator(settings, src, out, newline)
     a.drop_byte_order_mark()
     out.write(marker_line(settings).encode() + newline)
     feed(a, events)
@@ -612,7 +612,7 @@ def read_summary(tail: bytes) -> Optional[Summary]:
                    float(match["time"]))
 
 
-def _newline_of(path: Path) -> bytes:
+def newline_of(path: Path) -> bytes:
     with open(path, "rb") as f:
         first = f.readline(1 << 16)
     return b"\r\n" if first.endswith(b"\r\n") else b"\n"
@@ -635,12 +635,12 @@ def annotate_file(src: Path, dst: Optional[Path] = None,
         raise FlowloopError(f"{src}: cannot read: {e.strerror}") from None
     if is_annotated(head):
         if dst.resolve() != src.resolve():
-            _replace_atomically(dst, lambda out: _copy(src, out), src)
+            files.replace_atomically(dst, lambda out: _copy(src, out), src)
         with open(src, "rb") as f:
             f.seek(max(0, f.seek(0, os.SEEK_END) - 4096))
             known = read_summary(f.read())
         return replace(known, annotated=False) if known else Summary(False, 0.0, 0, 0.0)
-    newline = _newline_of(src)
+    newline = newline_of(src)
     summary = None
 
     def write(out: BinaryIO) -> None:
@@ -651,7 +651,7 @@ def annotate_file(src: Path, dst: Optional[Path] = None,
                                           settings, newline)
             except FlowloopError as e:
                 raise FlowloopError(f"{src}: {e}") from None
-    _replace_atomically(dst, write, src)
+    files.replace_atomically(dst, write, src)
     assert summary is not None
     return summary
 
@@ -661,5 +661,3 @@ def _copy(src: Path, out: BinaryIO) -> None:
         shutil.copyfileobj(f, out, 1 << 20)
 
 
-def _replace_atomically(dst: Path, write, mode_from: Path) -> None:
-    files.replace_atomically(dst, write, mode_from)

@@ -42,6 +42,7 @@ from typing import BinaryIO, List, Optional, Tuple
 
 import numpy as np
 
+from .. import files
 from ..control.autotemp import DEFAULT_PARAMS, GRID_S, Autotemp
 from ..control.hotend import HotendModel, HotendParams
 from ..errors import FlowloopError
@@ -52,17 +53,16 @@ from .annotate import (
     HEADER_BYTES,
     READAHEAD_S,
     AnnotateSettings,
-    _Annotator,
-    _newline_of,
-    _replace_atomically,
+    Annotator,
     feed,
     is_annotated,
+    newline_of,
     quantise_flow,
 )
-from .fastplan import Segments, plan_batches
+from .bulk_planner import Segments, plan_batches
 from .heater import HeaterRange, bake_note, cap_line
 from .melt import Cells
-from .planner import PrinterLimits
+from .reference_planner import PrinterLimits
 from .start import LineFix, StartFix, StartHeat, find_start_heat, heat_at, start_fix
 
 BAKE_STEP_S = 0.5
@@ -100,7 +100,7 @@ class BakeResult:
     brought_within: int = 0  # the file's own M104/M109 outside the heater's range
 
 
-class _Recorder(_Annotator):
+class _Recorder(Annotator):
     """The annotator, keeping its commands (offset, print time, line)."""
 
     def __init__(self, settings: AnnotateSettings, newline: bytes):
@@ -269,7 +269,7 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
     if is_annotated(head):
         raise FlowloopError(f"{src}: annotated or baked already; bake the"
                             " slicer's file")
-    newline = _newline_of(src)
+    newline = newline_of(src)
     rec = plan_announcements(src, limits, settings, newline)
     heater_max_temp_c = None if heater is None else heater.max_temp_c
     controller = Autotemp(params, heater_max_temp_c)
@@ -295,7 +295,7 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
         overridden, brought_within = _write(src, out, placements, newline,
                                             profile, working_point, params, fix,
                                             heater)
-    _replace_atomically(dst, write, src)
+    files.replace_atomically(dst, write, src)
     cap_c = controller.plan.limits.max_temp_c
     result = BakeResult(
         commands=len(placements), overridden=overridden,

@@ -32,8 +32,8 @@ from typing import Iterable, Iterator, List, NamedTuple, Union
 
 import numpy as np
 
-from .fastplan import Segments
-from .planner import Barrier, Segment
+from .bulk_planner import Segments
+from .reference_planner import Barrier, Segment
 
 MELT_TIME_S = 0.5
 CELL_S = 0.01

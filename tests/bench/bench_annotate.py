@@ -21,7 +21,7 @@ and `; stop printing object ...`), the case preprocess_cancellation exists for
 (it then reads every extruding move of an object for its outline; on a real
 PrusaSlicer 2.5 file of three labelled objects, 24 MB, it took as long per MB
 as on this one). Start-up alone is the same two commands on the 22 kB excerpt; "without
-start-up" subtracts it. "planner alone" is flowloop.gcode.fastplan in this
+start-up" subtracts it. "planner alone" is flowloop.gcode.bulk_planner in this
 process, without the annotation, against the same whole-process figure.
 
 Both run with their bytecode cached, as installed packages do (pip compiles
@@ -47,7 +47,7 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
-from flowloop.gcode.fastplan import Segments, plan_batches
+from flowloop.gcode.bulk_planner import Segments, plan_batches
 from tests.bench.size import pick
 
 PROJECT = Path(__file__).resolve().parents[2]

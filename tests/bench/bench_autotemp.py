@@ -3,7 +3,7 @@ temperature, reactive (ddPrint-style: the target follows the flow as it
 arrives, no lead) and flowloop (the plan [autotemp] and --bake run).
 
 Each file is planned as Klipper runs it, by the reference planner
-(flowloop.gcode.planner, line by line: Klipper's trapezoids), and its demand
+(flowloop.gcode.reference_planner, line by line: Klipper's trapezoids), and its demand
 is taken here, not from the annotator: the mean flow over MELT_TIME_S
 (flowloop.gcode.melt; docs/autotemp.md says why that time) centred on every
 DEMAND_STEP_S of print time, integrated from the trapezoids on that step,
@@ -66,11 +66,11 @@ import pytest
 
 from flowloop.control.autotemp import GRID_S, Autotemp
 from flowloop.control.hotend import HotendModel, HotendParams
-from flowloop.gcode import planner
+from flowloop.gcode import reference_planner
 from flowloop.gcode.annotate import AnnotateSettings
 from flowloop.gcode.bake import plan_announcements, replay
 from flowloop.gcode.melt import MELT_TIME_S
-from flowloop.gcode.planner import PrinterLimits
+from flowloop.gcode.reference_planner import PrinterLimits
 from flowloop.material.ddprint import import_file
 from flowloop.material.profile import Profile
 from tests.bench.size import pick
@@ -112,8 +112,8 @@ def melt_demand(path: Path, limits: PrinterLimits) -> List[float]:
     reference planner's moves (not the annotator's cells): the flow of each
     trapezoid sampled every DEMAND_STEP_S, summed into volume."""
     with open(path, "rb") as f:
-        segs = [e for e in planner.plan_file(f, limits)
-                if isinstance(e, planner.Segment)]
+        segs = [e for e in reference_planner.plan_file(f, limits)
+                if isinstance(e, reference_planner.Segment)]
     start = np.array([s.start_s for s in segs])
     duration = np.array([s.duration_s for s in segs])
     accel = np.array([s.accel_s for s in segs])

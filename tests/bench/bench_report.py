@@ -3,7 +3,7 @@
 The print is the 25 MB file of the annotate bench (bench_annotate.large_file:
 the shared data's parts.gcode four times over when FLOWLOOP_BENCH_GCODE has
 it, else the shipped excerpt's layers again and again), planned by
-flowloop.gcode.fastplan for its commanded flow over time and its layers. The
+flowloop.gcode.bulk_planner for its commanded flow over time and its layers. The
 recorder is fed what the Moonraker component feeds it: one Sample every
 SAMPLE_PERIOD_S of print time (the commanded flow, a measured flow at a grip
 with the sensor's noise and a slip now and then, temperatures, the layer).
@@ -23,7 +23,7 @@ import tracemalloc
 
 import numpy as np
 
-from flowloop.gcode.fastplan import Segments, plan_batches
+from flowloop.gcode.bulk_planner import Segments, plan_batches
 from flowloop.report import dump, render
 from flowloop.report.recorder import SAMPLE_PERIOD_S, Job, Recorder, Sample
 from tests.bench.bench_annotate import large_file

@@ -12,9 +12,9 @@ import pytest
 from devtools import stack
 from devtools.demo_autotemp import PROFILE, annotated, print_with_autotemp
 from flowloop.control.autotemp import TemperaturePlan, TempLimits
-from flowloop.gcode.fastplan import plan_batches
+from flowloop.gcode.bulk_planner import plan_batches
 from flowloop.gcode.melt import CELL_S, MELT_TIME_S, Cells, melt_events
-from flowloop.gcode.planner import Segment, limits_from_config, plan_file
+from flowloop.gcode.reference_planner import Segment, limits_from_config, plan_file
 from flowloop.host.klipper_config import read_config
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.klippy.flowrate_limiter_steps import stepper_steps

@@ -24,9 +24,9 @@ from flowloop.gcode.annotate import (
     annotate_stream,
     is_annotated,
 )
-from flowloop.gcode.fastplan import plan_batches
+from flowloop.gcode.bulk_planner import plan_batches
 from flowloop.gcode.melt import CELL_S, MELT_TIME_S
-from flowloop.gcode.planner import Barrier, Segment, plan_file
+from flowloop.gcode.reference_planner import Barrier, Segment, plan_file
 
 pytestmark = pytest.mark.unit
 

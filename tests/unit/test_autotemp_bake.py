@@ -15,7 +15,7 @@ from flowloop.control.autotemp import GRID_S, Autotemp
 from flowloop.errors import FlowloopError
 from flowloop.gcode.annotate import annotate_file, is_annotated
 from flowloop.gcode.bake import bake_file
-from flowloop.gcode.planner import PrinterLimits, plan_file
+from flowloop.gcode.reference_planner import PrinterLimits, plan_file
 from flowloop.material.profile import profile_from_dict
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"

@@ -76,3 +76,25 @@ def test_the_shared_leaves_import_no_domain():
                  if m.startswith("flowloop.")
                  and not m.startswith(("flowloop.errors", "flowloop.numbers"))]
     assert offenders == []
+
+
+def test_no_core_module_imports_another_modules_private_names():
+    # A seam between two modules is public: the bulk planner reaches the
+    # reference planner through Move, Planner's queue_move/flush_queue and
+    # HANDLED_COMMANDS, not through _Move or Planner._handlers.
+    offenders = [f"{p.relative_to(CORE)} imports {m}" for p in domain_files()
+                 for m in imported_modules(p)
+                 if m.startswith("flowloop.") and any(
+                     part.startswith("_") and not part.startswith("__")
+                     for part in m.split(".")[1:])]
+    assert offenders == []
+
+
+def test_the_two_planners_say_which_is_the_reference():
+    gcode = CORE / "gcode"
+    assert sorted(p.name for p in gcode.glob("*planner*.py")) == [
+        "bulk_planner.py", "reference_planner.py"]
+    mods = set(imported_modules(gcode / "bulk_planner.py"))
+    assert "flowloop.gcode.reference_planner.Planner" in mods
+    assert not any(m.startswith("flowloop.gcode.bulk_planner")
+                   for m in imported_modules(gcode / "reference_planner.py"))

@@ -17,7 +17,7 @@ from flowloop.control.autotemp import GRID_S, Autotemp
 from flowloop.errors import FlowloopError
 from flowloop.gcode.annotate import AnnotateSettings, annotate_file
 from flowloop.gcode.bake import plan_announcements, replay
-from flowloop.gcode.planner import PrinterLimits
+from flowloop.gcode.reference_planner import PrinterLimits
 from flowloop.host import live_page
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.samples import make

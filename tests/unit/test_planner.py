@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flowloop.errors import FlowloopError
-from flowloop.gcode import fastplan
-from flowloop.gcode.planner import (
+from flowloop.gcode import bulk_planner
+from flowloop.gcode.reference_planner import (
     Barrier,
     Planner,
     PrinterLimits,
@@ -391,7 +391,7 @@ def test_invariants_of_any_plan(move_list):
 
 
 
-@pytest.mark.parametrize("plan", [plan_file, fastplan.plan_file])
+@pytest.mark.parametrize("plan", [plan_file, bulk_planner.plan_file])
 def test_a_byte_order_mark_before_the_first_line_is_planned_past(plan):
     text = b"G28\nM83\nG1 X10 E1 F600\nG1 X20 E1\n"
     plain = list(plan(io.BytesIO(text)))

@@ -1,4 +1,4 @@
-"""The bulk planner (fastplan) against the reference planner, which
+"""The bulk planner (bulk_planner) against the reference planner, which
 test_planner_klipper checks against Klipper's own toolhead code: the same
 events, bit for bit, from any file and at any chunk size."""
 
@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flowloop.errors import FlowloopError
-from flowloop.gcode import fastplan, planner
-from flowloop.gcode.planner import PrinterLimits
+from flowloop.gcode import bulk_planner, reference_planner
+from flowloop.gcode.reference_planner import PrinterLimits
 
 pytestmark = pytest.mark.unit
 
@@ -24,11 +24,11 @@ LIMITS = PrinterLimits(max_velocity=300, max_accel=3000, retract_length=1.0,
 
 
 def reference(data: bytes, limits: PrinterLimits = LIMITS):
-    return list(planner.plan_file(io.BytesIO(data), limits))
+    return list(reference_planner.plan_file(io.BytesIO(data), limits))
 
 
 def fast(data: bytes, limits: PrinterLimits = LIMITS, chunk_bytes=1 << 20):
-    return list(fastplan.plan_file(io.BytesIO(data), limits, chunk_bytes))
+    return list(bulk_planner.plan_file(io.BytesIO(data), limits, chunk_bytes))
 
 
 def assert_same(data: bytes, limits: PrinterLimits = LIMITS, chunk_bytes=1 << 20):
@@ -114,7 +114,7 @@ def test_min_plus_is_the_sequential_recurrence():
         for ai, di in zip(a.tolist(), add.tolist()):
             x = min(ai, x + di)
             out.append(x)
-        assert fastplan.min_plus(a, add, x0).tolist() == out
+        assert bulk_planner.min_plus(a, add, x0).tolist() == out
 
 
 number = st.floats(min_value=-120, max_value=120, allow_nan=False).map(

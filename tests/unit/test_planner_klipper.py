@@ -5,7 +5,7 @@ Klipper's `Move`, `LookAheadQueue` (klippy/toolhead.py) and the extruder's
 the Klipper checkout (KLIPPER_PATH, read only; their host imports stubbed) and
 driven the way `ToolHead.move` drives them. Every move must get the same
 accel, cruise and decel times from both, from the reference planner and
-from the bulk one (fastplan). Skipped without a checkout.
+from the bulk one (bulk_planner). Skipped without a checkout.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from devtools import stack
-from flowloop.gcode import fastplan
-from flowloop.gcode.planner import PrinterLimits, Segment, plan_text
+from flowloop.gcode import bulk_planner
+from flowloop.gcode.reference_planner import PrinterLimits, Segment, plan_text
 
 pytestmark = pytest.mark.unit
 
@@ -115,7 +115,7 @@ def klipper_moves(klipper, limits: PrinterLimits, moves):
 def planner_moves(limits: PrinterLimits, moves, in_bulk: bool = False):
     text = "\n".join(["G90", "M82"] + [f"G1 X{x!r} Y{y!r} E{e!r} F{speed * 60!r}"
                                        for x, y, e, speed in moves])
-    events = fastplan.plan_file(io.BytesIO(text.encode()), limits) if in_bulk \
+    events = bulk_planner.plan_file(io.BytesIO(text.encode()), limits) if in_bulk \
         else plan_text(text, limits)
     return [(s.accel_s, s.duration_s - s.accel_s - s.decel_s, s.decel_s, s.speed_mm_s)
             for s in events if isinstance(s, Segment)]
@@ -123,7 +123,7 @@ def planner_moves(limits: PrinterLimits, moves, in_bulk: bool = False):
 
 def assert_same_plan(klipper, limits, moves):
     theirs = klipper_moves(klipper, limits, moves)
-    for in_bulk in (False, True):       # the reference and fastplan
+    for in_bulk in (False, True):       # the reference and the bulk planner
         ours = planner_moves(limits, moves, in_bulk)
         assert len(ours) == len(theirs)
         for i, (a, b) in enumerate(zip(ours, theirs)):

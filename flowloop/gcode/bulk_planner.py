@@ -1,8 +1,11 @@
-"""The flow planner in numpy: the same moves as planner.Planner, in bulk.
+"""The flow planner flowloop runs: the reference's timeline, in bulk numpy.
 
-planner.Planner is the reference (checked against Klipper's own toolhead
-code, one line at a time); this module gives the same segments about twenty
-times faster, for the annotator that runs on every upload:
+flowloop.gcode.reference_planner is the reference (checked against
+Klipper's own toolhead code, one line at a time); this module is what
+`flowloop annotate`, the bake and Moonraker's processor run: the same
+events bit for bit, about twenty times faster. It uses the reference only
+through its public surface (Planner's queue_move/flush_queue seams, Move,
+HANDLED_COMMANDS and the timeline's types):
 
 - the file is read in chunks of whole lines; the lines slicers write most
   (`G0`/`G1` with X Y Z E F words, `G92` with X Y Z E, `G10`/`G11`,
@@ -29,15 +32,16 @@ from typing import BinaryIO, Iterator, List, NamedTuple, Optional, Union
 
 import numpy as np
 
-from .planner import (
+from .reference_planner import (
     BARRIER_COMMANDS,
+    HANDLED_COMMANDS,
     MAX_ABS_VALUE,
     Barrier,
     Event,
+    Move,
     Planner,
     PrinterLimits,
     Segment,
-    _Move,
 )
 
 # half a MB: a chunk's arrays stay within a core's L2 cache (2 MB here);
@@ -49,7 +53,7 @@ _WORD_BYTES = 24
 # M-commands the reference planner acts on or waits for: such lines go to
 # it, any other plain M<digits> line is ignored, as it ignores them.
 _M_HANDLED = frozenset(name.encode() for name in
-                       (*Planner._handlers, *BARRIER_COMMANDS)
+                       (*HANDLED_COMMANDS, *BARRIER_COMMANDS)
                        if name.startswith("M"))
 _OTHER, _SKIP, _MOVE, _G92, _G10, _G11 = 0, 1, 2, 3, 4, 5
 _AXES = b"XYZEF"
@@ -59,7 +63,7 @@ for _i, _c in enumerate(_AXES):
 
 
 class Segments(NamedTuple):
-    """Consecutive planner.Segment records as arrays, field by field."""
+    """Consecutive reference_planner.Segment records as arrays, field by field."""
     start_s: np.ndarray
     duration_s: np.ndarray
     flow_mm3_s: np.ndarray
@@ -150,7 +154,7 @@ _MOVE_ATTRS = {"ax": None, "ay": None, "az": None, "ae": None,
                "offset": "offset"}
 
 
-def _queue_of_moves(moves: List[_Move]) -> _Queue:
+def _queue_of_moves(moves: List[Move]) -> _Queue:
     cols = {}
     for name, attr in _MOVE_ATTRS.items():
         if attr is None:
@@ -180,19 +184,19 @@ class _StatePlanner(Planner):
     """The reference planner holding the state; its moves and flushes go to
     the bulk lookahead."""
 
-    def __init__(self, limits: PrinterLimits, owner: FastPlanner):
+    def __init__(self, limits: PrinterLimits, owner: BulkPlanner):
         super().__init__(limits)
         self.owner = owner
 
-    def _queue(self, m: _Move) -> None:
+    def queue_move(self, m: Move) -> None:
         self.owner.scalar_moves.append(m)
 
-    def _flush(self) -> None:
+    def flush_queue(self) -> None:
         self.owner.flush(lazy=False)
 
 
-class FastPlanner:
-    """planner.Planner's timeline from whole chunks of lines."""
+class BulkPlanner:
+    """reference_planner.Planner's timeline from whole chunks of lines."""
 
     def __init__(self, limits: Optional[PrinterLimits] = None):
         limits = limits if limits is not None else PrinterLimits()
@@ -200,7 +204,7 @@ class FastPlanner:
         self.state = _StatePlanner(limits, self)
         self.out: List[Batch] = []
         self.parts: List[_Queue] = []           # new moves, not yet joined
-        self.scalar_moves: List[_Move] = []
+        self.scalar_moves: List[Move] = []
         self.queue: Optional[_Queue] = None     # joined, not yet flushed
         self.lines = 0                          # lines read so far
         self._size = 0                          # of the chunk planned
@@ -866,7 +870,7 @@ def _ascii_plain(buf: np.ndarray) -> np.ndarray:
 def plan_batches(f: BinaryIO, limits: Optional[PrinterLimits] = None,
                  chunk_bytes: int = CHUNK_BYTES) -> Iterator[Batch]:
     """Segments (as arrays) and barriers of a G-code file opened in binary."""
-    planner = FastPlanner(limits)
+    planner = BulkPlanner(limits)
     offset, rest = 0, b""
     # A file that can seek is read from each chunk's first line on, a little
     # past chunk_bytes: the lines are planned where they were read (no
@@ -906,7 +910,7 @@ def plan_batches(f: BinaryIO, limits: Optional[PrinterLimits] = None,
 
 def plan_file(f: BinaryIO, limits: Optional[PrinterLimits] = None,
               chunk_bytes: int = CHUNK_BYTES) -> Iterator[Event]:
-    """planner.plan_file's events, planned in bulk."""
+    """reference_planner.plan_file's events, planned in bulk."""
     for batch in plan_batches(f, limits, chunk_bytes):
         if isinstance(batch, Barrier):
             yield batch

@@ -1,4 +1,14 @@
-"""The flow planner: G-code in, the plastic flow it demands over print time out.
+"""The reference flow planner: G-code in, the plastic flow it demands over
+print time out, one line at a time in plain Python.
+
+This is the reference: checked against Klipper's own toolhead code
+(tests/unit/test_planner_klipper.py) and readable line for line beside it.
+What flowloop runs on a file (`flowloop annotate`, the bake, Moonraker's
+processor) is flowloop.gcode.bulk_planner, which must give the same events
+bit for bit (tests/unit/test_planner_fast.py) and uses this module through
+its public surface only: the types of the timeline (`PrinterLimits`,
+`Segment`, `Barrier`, `Event`), `Move`, `Planner` with its two seams
+(`queue_move`, `flush_queue`) and `HANDLED_COMMANDS`.
 
 The timeline is the one Klipper executes (klippy/toolhead.py, 2026-08):
 moves are trapezoids limited by max_velocity and max_accel (max_z_* on Z),
@@ -204,8 +214,9 @@ class Barrier(NamedTuple):
 Event = Union[Segment, Barrier]
 
 
-class _Move:
-    """klippy/toolhead.py Move, with what the flow needs."""
+class Move:
+    """klippy/toolhead.py Move, with what the flow needs (the bulk planner
+    reads its fields into arrays)."""
     __slots__ = (
         "start_pos", "end_pos", "axes_d", "axes_r", "move_d", "is_kinematic_move",
         "accel", "junction_deviation", "min_move_t", "max_start_v2",
@@ -222,7 +233,7 @@ class _Move:
         self.delta_v2 = 2.0 * self.move_d * self.accel
         self.mcr_delta_v2 = min(self.mcr_delta_v2, self.delta_v2)
 
-    def calc_junction(self, prev_move: _Move, instant_corner_v: float) -> None:
+    def calc_junction(self, prev_move: Move, instant_corner_v: float) -> None:
         if not self.is_kinematic_move or not prev_move.is_kinematic_move:
             return
         # The extruder as Klipper's extra axis (kinematics/extruder.py).
@@ -280,10 +291,10 @@ class _LookAhead:
     """klippy/toolhead.py LookAheadQueue, line for line."""
 
     def __init__(self) -> None:
-        self.queue: List[_Move] = []
+        self.queue: List[Move] = []
         self.junction_flush = BUFFER_TIME_HIGH
 
-    def flush(self, lazy: bool = False) -> List[_Move]:
+    def flush(self, lazy: bool = False) -> List[Move]:
         self.junction_flush = LOOKAHEAD_FLUSH_TIME
         update_flush_count = lazy
         queue = self.queue
@@ -330,7 +341,7 @@ class _LookAhead:
         del queue[:flush_count]
         return res
 
-    def add_move(self, move: _Move, instant_corner_v: float) -> bool:
+    def add_move(self, move: Move, instant_corner_v: float) -> bool:
         self.queue.append(move)
         if len(self.queue) == 1:
             return False
@@ -477,11 +488,11 @@ class Planner:
         if handler is not None:
             handler(self, args)
         if cmd in BARRIER_COMMANDS:
-            self._flush()
+            self.flush_queue()
             self._out.append(Barrier(self.print_time, end, cmd))
 
     def finish(self) -> List[Event]:
-        self._flush()
+        self.flush_queue()
         out, self._out = self._out, []
         return out
 
@@ -577,7 +588,7 @@ class Planner:
 
     def _g28(self, args) -> None:
         # Homed axes end at their endstops; the file does not say where: 0.
-        self._flush()
+        self.flush_queue()
         axes = [i for i, a in enumerate("XYZ") if a in args]
         for i in axes or (0, 1, 2):
             self.commanded_pos[i] = self.last_position[i] = 0.0
@@ -622,12 +633,12 @@ class Planner:
         delay = self._floats(args, "P").get("P", 0.0)
         if delay < 0.0:
             raise self._error("P must be >= 0")
-        self._flush()
+        self.flush_queue()
         self.print_time += delay / 1000.0
 
     def _m400(self, args) -> None:
         # The queue drains, and the next move starts BUFFER_TIME_START later.
-        self._flush()
+        self.flush_queue()
         self.print_time += BUFFER_TIME_START
 
     def _move(self, newpos: List[float], speed: float) -> None:
@@ -637,7 +648,7 @@ class Planner:
         dz = newpos[2] - start[2]
         de = newpos[3] - start[3]
         move_d = math.sqrt(dx * dx + dy * dy + dz * dz)
-        m = _Move()
+        m = Move()
         m.accel = self.max_accel
         m.junction_deviation = self.junction_deviation
         if move_d < 0.000000001:
@@ -695,18 +706,21 @@ class Planner:
             self.commanded_pos = list(newpos)
         else:
             self.commanded_pos = [start[0], start[1], start[2], newpos[3]]
-        self._queue(m)
+        self.queue_move(m)
 
-    def _queue(self, m: _Move) -> None:
-        """A new move into the lookahead (fastplan queues it in its own)."""
+    # The two seams a bulk planner overrides (bulk_planner queues the moves
+    # in its own array lookahead and flushes that one).
+    def queue_move(self, m: Move) -> None:
+        """A new move into the lookahead."""
         if self.lookahead.add_move(m, self.instant_corner_v):
             self._emit(self.lookahead.flush(lazy=True))
 
-    def _flush(self) -> None:
+    def flush_queue(self) -> None:
+        """Flush the whole lookahead (a G4, M400 or barrier)."""
         self._emit(self.lookahead.flush())
         self.lookahead.junction_flush = BUFFER_TIME_HIGH
 
-    def _emit(self, moves: List[_Move]) -> None:
+    def _emit(self, moves: List[Move]) -> None:
         out = self._out
         t = self.print_time
         for m in moves:
@@ -847,6 +861,10 @@ class Planner:
         "SET_VELOCITY_LIMIT": _set_velocity_limit,
         "SET_RETRACTION": _set_retraction,
     }
+
+
+# Every command the reference acts on (the rest move nothing and are ignored)
+HANDLED_COMMANDS = frozenset(Planner._handlers)
 
 
 def plan_file(f: BinaryIO, limits: PrinterLimits = PrinterLimits()) -> Iterator[Event]:
