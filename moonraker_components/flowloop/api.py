@@ -16,7 +16,6 @@ from flowloop.material.active import ActiveProfile, active_to_stored
 
 from ...common import RequestType, WebRequest
 from . import args
-from .endpoints import register_endpoint
 from .errors import quoted
 from .info import Info
 from .profiles import Profiles
@@ -52,9 +51,9 @@ class Api:
             ("/server/flowloop/profile/activate", RequestType.POST,
              self._handle_activate),
         ):
-            register_endpoint(server, path, methods, handler)
-        register_endpoint(
-            server, "/server/flowloop/profile/plot", RequestType.GET, self._handle_plot,
+            server.register_endpoint(path, methods, handler)
+        server.register_endpoint(
+            "/server/flowloop/profile/plot", RequestType.GET, self._handle_plot,
             wrap_result=False, content_type="image/svg+xml")
         server.register_remote_method(
             "flowloop_store_profile", self._remote_store_profile)

@@ -21,15 +21,14 @@ def _escape(match: re.Match) -> str:
 
 def one_line(msg: Any) -> str:
     """One line of printable ASCII (runs of whitespace as one space, any other
-    character as its Python escape): the same text reaches a JSON-RPC client,
-    the JSON body of an HTTP error and, but for `<`, its reason phrase."""
-    return _UNPRINTABLE.sub(_escape, " ".join(str(msg).split()))
-
-
-def reason_phrase(line: str) -> str:
-    """An HTTP reason phrase tornado sends as it is: one_line's text, with `<`
-    (which tornado replaces the whole phrase for, "Unknown") as `\\x3c`."""
-    return one_line(line).replace("<", "\\x3c")
+    character as its Python escape) without `<`, which is written `\\u003c`
+    as JSON writes it (a JSON-quoted name still decodes whole): the same
+    text reaches a JSON-RPC client, the JSON body of an HTTP error and its
+    reason phrase. Moonraker answers an HTTP error with the reason phrase as
+    the body's message, and tornado (>= 6.5) replaces a phrase holding `<`
+    by "Unknown" (docs/reference.md, "Refusals")."""
+    return _UNPRINTABLE.sub(_escape, " ".join(str(msg).split())).replace(
+        "<", "\\u003c")
 
 
 def quoted(name: str) -> str:

@@ -32,7 +32,6 @@ from flowloop.report import job_figures
 
 from ...common import RequestType, TransportType, WebRequest
 from . import args
-from .endpoints import register_endpoint
 from .errors import one_line, quoted
 from .job_history import JobHistory
 from .store import NozzleHealthStore, ProfileStore
@@ -59,13 +58,13 @@ class NozzleHealth:
         server.register_notification("flowloop:nozzle_health",
                                      "flowloop_nozzle_health")
         server.register_event_handler("history:history_changed", self._on_history)
-        register_endpoint(server, "/server/flowloop/nozzle_health",
-                          RequestType.GET | RequestType.POST | RequestType.DELETE,
-                          self._handle)
-        register_endpoint(server, "/server/flowloop/nozzle_health/plot",
-                          RequestType.GET, self._handle_plot,
-                          transports=TransportType.HTTP, wrap_result=False,
-                          content_type="image/svg+xml")
+        server.register_endpoint(
+            "/server/flowloop/nozzle_health",
+            RequestType.GET | RequestType.POST | RequestType.DELETE, self._handle)
+        server.register_endpoint(
+            "/server/flowloop/nozzle_health/plot", RequestType.GET,
+            self._handle_plot, transports=TransportType.HTTP, wrap_result=False,
+            content_type="image/svg+xml")
 
     # --- jobs ----------------------------------------------------------------
     def tool_hotend(self, extruder: str) -> str:

@@ -29,7 +29,6 @@ from flowloop.material import profile as fl_profile
 
 from ...common import RequestType, TransportType, WebRequest
 from . import args
-from .endpoints import register_endpoint
 from .errors import one_line, quoted
 from .info import KLIPPY_ANSWER_S
 from .store import ProfileStore
@@ -63,14 +62,14 @@ class Page:
         self._plan_key: Optional[Tuple[Any, ...]] = None
         self._plan: Dict[str, Any] = {}
         for path in (PAGE_PATH, PAGE_PATH.rstrip("/")):
-            register_endpoint(
-                server, path, RequestType.GET, self._handle_page,
+            server.register_endpoint(
+                path, RequestType.GET, self._handle_page,
                 transports=TransportType.HTTP, wrap_result=False,
                 content_type="text/html; charset=utf-8")
-        register_endpoint(
-            server, "/server/flowloop/page/lines", RequestType.GET, self._handle_lines)
-        register_endpoint(
-            server, "/server/flowloop/page/plan", RequestType.GET, self._handle_plan)
+        server.register_endpoint(
+            "/server/flowloop/page/lines", RequestType.GET, self._handle_lines)
+        server.register_endpoint(
+            "/server/flowloop/page/plan", RequestType.GET, self._handle_plan)
 
     async def _heater_max_temp(self, extruder: str) -> Optional[float]:
         """The extruder heater's max_temp as klippy reports it with the active

@@ -29,7 +29,6 @@ from flowloop.host import processor_check
 
 from ...common import RequestType, WebRequest
 from . import args
-from .endpoints import register_endpoint
 
 if TYPE_CHECKING:
     from ...confighelper import ConfigHelper
@@ -68,11 +67,11 @@ class Processor:
             self.file_manager.get_metadata_storage().register_gcode_processor(
                 PROCESSOR_NAME, self.config)
             self.registered_name = PROCESSOR_NAME
-        register_endpoint(
-            self.server, "/server/flowloop/annotation", RequestType.GET,
+        self.server.register_endpoint(
+            "/server/flowloop/annotation", RequestType.GET,
             self._handle_annotation)
-        register_endpoint(
-            self.server, "/server/flowloop/annotation/check", RequestType.POST,
+        self.server.register_endpoint(
+            "/server/flowloop/annotation/check", RequestType.POST,
             self._handle_check)
 
     async def _handle_annotation(self, web_request: WebRequest) -> Dict[str, Any]:

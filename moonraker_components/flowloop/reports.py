@@ -40,7 +40,6 @@ from flowloop.report.recorder import (
 
 from ...common import RequestType, TransportType, WebRequest
 from . import args
-from .endpoints import register_endpoint
 from .errors import one_line, quoted
 from .job_history import JobHistory
 
@@ -70,11 +69,12 @@ class Reports:
         self._sampler: Optional[asyncio.Task] = None
         server.register_event_handler("server:klippy_ready", self._on_klippy_ready)
         server.register_event_handler("history:history_changed", self._on_history)
-        register_endpoint(server, "/server/flowloop/reports", RequestType.GET,
-                          self._handle_list)
-        register_endpoint(server, "/server/flowloop/report", RequestType.GET,
-                          self._handle_report, transports=TransportType.HTTP,
-                          wrap_result=False, content_type="text/html; charset=utf-8")
+        server.register_endpoint("/server/flowloop/reports", RequestType.GET,
+                                 self._handle_list)
+        server.register_endpoint("/server/flowloop/report", RequestType.GET,
+                                 self._handle_report, transports=TransportType.HTTP,
+                                 wrap_result=False,
+                                 content_type="text/html; charset=utf-8")
 
     # --- klippy's objects --------------------------------------------------------
     async def _on_klippy_ready(self) -> None:

@@ -283,19 +283,22 @@ def test_the_annotator_check_never_answers_5xx(server, websocket, method, path,
     run()
 
 
+# Bodies Moonraker drops before flowloop is called: each endpoint sees no
+# arguments and refuses in one line. (Bodies nested past Moonraker's
+# decoder's limit, or that are not an object, fail in Moonraker itself:
+# test_api_errors.py, FAILING_IN_MOONRAKER.)
 BODIES = [
-    b"[" * 1000 + b"]" * 1000,
-    b'{"profile": ' + b"[" * 5000 + b"]" * 5000 + b"}",
-    b'{"a": ' * 3000 + b"1" + b"}" * 3000,
     b'{"name": "' + b"\\" * 10001 + b'"}',
     b'{"profile": NaN}', b"\xff\xfe", b'"' + b'\\"' * 100000, b"{" * 100000,
 ]
 
 
+# (annotation/check reads no arguments: with the body dropped it answers
+# the check it was asked for)
 @pytest.mark.parametrize("method, path", sorted({
-    (m, p) for m, p, _ in ENDPOINTS + SLOW_ENDPOINTS if m != "GET"}))
+    (m, p) for m, p, _ in ENDPOINTS if m != "GET"}))
 @pytest.mark.parametrize("body", BODIES, ids=range(len(BODIES)))
-def test_a_deep_or_broken_body_is_a_400_not_a_500(server, method, path, body):
+def test_a_broken_body_is_a_400_not_a_500(server, method, path, body):
     before = snapshot(server)
     status, answer = raw(server, method, path, body,
                          {"Content-Type": "application/json"})

@@ -11,6 +11,8 @@ update manager sees the checkout clean with flowloop in it.
 
 from __future__ import annotations
 
+import http.client
+import json
 import shutil
 import subprocess
 import urllib.request
@@ -76,6 +78,28 @@ def test_a_profile_is_stored_and_served(moonraker):
     status, body = moonraker.request("GET", "/server/flowloop/profile?name=git-pla")
     assert status == 200, body
     assert body["result"]["profile"]["identity"]["name"] == "git-pla"
+
+
+def test_a_refusal_naming_a_bracket_arrives_whole(moonraker):
+    """Moonraker's own handler serves flowloop's endpoints in the checkout
+    too: the refusal is the same line as reason phrase and body message,
+    its quoted name JSON that decodes to the name."""
+    conn = http.client.HTTPConnection("127.0.0.1", moonraker.port, timeout=10)
+    try:
+        conn.request("GET", "/server/flowloop/profile?name=PLA%20%3Cfast%3E")
+        resp = conn.getresponse()
+        status, reason, body = resp.status, resp.reason, json.loads(resp.read())
+    finally:
+        conn.close()
+    assert (status, body["error"]["message"]) == (404, reason)
+    assert json.loads(reason[len("no profile named "):]) == "PLA <fast>"
+
+
+def test_nozzle_health_has_its_own_versioned_namespace(moonraker):
+    status, body = moonraker.request(
+        "GET", "/server/database/item?namespace=flowloop_schema")
+    assert status == 200, body
+    assert body["result"]["value"] == {"flowloop": 1, "flowloop_nozzle_health": 1}
 
 
 def test_an_upload_comes_back_annotated(moonraker):
