@@ -18,7 +18,7 @@ from pathlib import Path
 
 from tornado import httpclient, web, websocket
 
-API = re.compile(r"^/(printer|api|access|machine|server)/")
+API = re.compile(r"^/(?:printer|api|access|machine|server)/")
 HOP_BY_HOP = {"connection", "keep-alive", "transfer-encoding", "content-length",
               "content-encoding", "upgrade", "host"}
 

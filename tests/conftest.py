@@ -20,7 +20,7 @@ sys.path.insert(0, str(PROJECT))
 from devtools import pytest_schedule, stack  # noqa: E402
 from devtools.klippy_test import KlippyTestFailure, run_file  # noqa: E402
 
-TIERS = ("unit", "c", "klippy", "moonraker", "bench", "fil")
+TIERS = ("unit", "c", "klippy", "moonraker", "ui", "bench", "fil")
 
 
 # Tiers that only run alone under `make test`'s scheduler: they run paced to
@@ -28,7 +28,7 @@ TIERS = ("unit", "c", "klippy", "moonraker", "bench", "fil")
 ALONE_TIERS = ("fil",)
 # The order groups are handed to workers in when the last run's durations
 # are not in pytest's cache (a fresh clone): the slowest tiers first.
-TIER_ORDER = ("moonraker", "klippy", "fil", "", "c", "unit", "bench")
+TIER_ORDER = ("moonraker", "ui", "klippy", "fil", "", "c", "unit", "bench")
 
 
 def pytest_itemcollected(item):
@@ -73,7 +73,7 @@ def _alone(item, tier: str) -> bool:
 # Tiers whose tests start hosts: tests that share a module-scoped fixture (a
 # stack started once) run on one worker. unit and c tests, and tests that
 # share nothing, are spread one by one.
-GROUPED_TIERS = ("klippy", "moonraker", "fil", "bench", "")
+GROUPED_TIERS = ("klippy", "moonraker", "ui", "fil", "bench", "")
 SHARED_SCOPES = ("class", "module", "package")
 
 

@@ -20,7 +20,7 @@ def collected(*args):
     return [line for line in proc.stdout.splitlines() if "::" in line]
 
 
-@pytest.mark.parametrize("tier", ["bench", "c", "klippy"])
+@pytest.mark.parametrize("tier", ["bench", "c", "klippy", "ui"])
 def test_a_tier_marker_selects_that_folder_and_nothing_else(tier):
     # another tier's file beside it: -m must leave that one out
     ids = collected("-m", tier, f"tests/{tier}", "tests/unit/test_numbers.py")
