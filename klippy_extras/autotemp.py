@@ -38,6 +38,8 @@ class Autotemp:
         self.section = config.get_name()
         self.extruder_name = (flowloop_host.named_tool(config, 'autotemp')
                               or config.get('extruder', 'extruder'))
+        self.control_option = flowloop_host.heater_control_option(
+            config, self.extruder_name)
         self.override_m104 = config.getboolean('override_m104', True)
         enabled = config.getboolean('enable', True)
         values = {'time_constant': ('time_constant_s', config.getfloat(
@@ -90,8 +92,8 @@ class Autotemp:
         self.core.set_heater(self.heater.min_temp, self.heater.max_temp)
         self.toolhead = self.printer.lookup_object('toolhead')
         # the read-ahead the annotations' LEAD allows for is this host's
-        self.core.set_host(flowloop_host.host_facts(self.printer, self.toolhead,
-                                                    self.heater))
+        self.core.set_host(flowloop_host.host_facts(self.printer, self.heater,
+                                                    self.control_option))
         if self.first:
             # The extruder registers M104 after the extras load: take it over
             # here, as gcode_macro's rename_existing does; one section for

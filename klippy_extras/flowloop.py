@@ -8,7 +8,6 @@
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import logging
-import sys
 
 import flowloop
 from flowloop.control.tools import PerTool
@@ -220,30 +219,20 @@ def _read(gcmd, reader, name, default, bounds):
             from None
 
 
-def host_facts(printer, toolhead, heater):
-    """What this klippy offers that flowloop's timing and heating depend on,
-    read once at connect (held by the caller): Klipper or Kalico, the motion
-    it queues ahead (a cap decided now acts that much later), and the
-    heater's control (Kalico's controls name themselves; Klipper's by class)."""
-    # Kalico's klippy is a package (klippy.printer); Klipper runs klippy.py
-    name = ('Kalico' if type(printer).__module__.startswith('klippy.')
-            else 'Klipper')
-    module = sys.modules.get(type(toolhead).__module__)
-    buffer_time = getattr(module, 'BUFFER_TIME_HIGH', None)
-    control = (heater.get_control() if hasattr(heater, 'get_control')
-               else getattr(heater, 'control', None))
-    if hasattr(control, 'get_type'):
-        control_type = control.get_type()
-    else:
-        control_type = KLIPPER_CONTROLS.get(type(control).__name__,
-                                            type(control).__name__)
-    return {'name': name,
-            'buffer_time_s': None if buffer_time is None else float(buffer_time),
-            'heater_control': control_type}
+def heater_control_option(config, extruder_name):
+    """The heater control the extruder's section names (`control: pid`),
+    read at config time as the user wrote it; None if it names none."""
+    return config.getsection(extruder_name).get('control', None)
 
 
-# Klipper's heater control classes by the names its `control:` option uses
-KLIPPER_CONTROLS = {'ControlPID': 'pid', 'ControlBangBang': 'watermark'}
+def host_facts(printer, heater, control_option):
+    """What this klippy offers that flowloop's timing and heating depend on
+    (flowloop.host.klipper_config.host_facts), read once at connect: Kalico
+    always loads its [danger_options] object and names its heater's control
+    itself; on Klipper the control is the one the config names."""
+    kalico = printer.lookup_object('danger_options', None) is not None
+    control = heater.get_control().get_type() if kalico else control_option
+    return klipper_config.host_facts(kalico, control)
 
 
 def _has_command(mcu, msgformat):

@@ -43,6 +43,8 @@ class FlowrateLimiter:
         self.section = config.get_name()
         self.extruder_name = (flowloop_host.named_tool(config, 'flowrate_limiter')
                               or config.get('extruder', 'extruder'))
+        self.control_option = flowloop_host.heater_control_option(
+            config, self.extruder_name)
         self.sensor_name = config.get('sensor', None)
         # option -> LimiterSettings field; the limits live in flowloop.control
         values = {'max_flow': config.getfloat('max_flow', None),
@@ -94,8 +96,8 @@ class FlowrateLimiter:
         self.filament_area = extruder.filament_area
         self.limiter = fl_limiter.FlowLimiter(
             self.settings, self.filament_area,
-            host=flowloop_host.host_facts(self.printer, self.toolhead,
-                                          self.heater))
+            host=flowloop_host.host_facts(self.printer, self.heater,
+                                          self.control_option))
         self.sensor = self._find_sensor()
         if self.sensor is not None:
             self.sensor.subscribe_grip_windows(self._handle_window)

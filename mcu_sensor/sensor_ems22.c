@@ -58,8 +58,9 @@ command_config_ems22(uint32_t *args)
     struct ems22 *e = oid_alloc(args[0], command_config_ems22, sizeof(*e));
     e->timer.func = ems22_event;
     e->oid = args[0];
-    // No cs pin check here: the host requires cs_pin (flash is scarce)
     e->spi = spidev_oid_lookup(args[1]);
+    if (!spidev_have_cs_pin(e->spi))
+        shutdown("ems22 requires cs pin");
     e->max_read_ticks = args[2];
     e->bit_offset = args[3];
 }
@@ -83,7 +84,8 @@ ems22_add(struct ems22 *e, const uint8_t *rec, uint_fast8_t len)
     while (len--)
         *d++ = *rec++;
     e->next_index++;
-    // Send when full, or when the oldest record would be too old by next poll
+    // Send once the message holds max_bytes (the host sizes max_bytes so
+    // that a message's first record never waits long: query_ems22)
     if (sb->data_count >= e->max_bytes) {
         sensor_bulk_report(sb, e->oid);
         // sensor_bulk_report empties sb too, but without this line

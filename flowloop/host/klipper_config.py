@@ -238,6 +238,22 @@ def finite_float(config, option: str, *default, **bounds) -> Optional[float]:
     return value
 
 
+# --- the klippy a section runs in --------------------------------------------
+
+# How far ahead each host's toolhead reads G-code (its toolhead.py
+# BUFFER_TIME_HIGH): a cap or a target decided now acts about that much later
+HOST_BUFFER_TIME_S = {"Klipper": 1.0, "Kalico": 2.0}
+
+
+def host_facts(kalico: bool, heater_control: Optional[str]) -> dict:
+    """What flowloop's timing and heating depend on, for the status 'host':
+    the host's name, its read-ahead and the heater's control (`pid`,
+    `watermark`, Kalico's `mpc`...)."""
+    name = "Kalico" if kalico else "Klipper"
+    return {"name": name, "buffer_time_s": HOST_BUFFER_TIME_S[name],
+            "heater_control": heater_control}
+
+
 # --- what flowloop's sections look up in klippy ------------------------------
 # (printer is klippy's Printer, handed in: this module imports no Klipper)
 

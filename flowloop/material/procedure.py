@@ -391,6 +391,15 @@ class Status:
         return dataclasses.replace(self, message=message)
 
     def as_dict(self) -> dict:
+        """The status as klippy hands it out: built once per Status (every
+        change makes a new one), so a poll returns the same dict."""
+        built = self.__dict__.get('_dict')
+        if built is None:
+            built = self._build_dict()
+            object.__setattr__(self, '_dict', built)
+        return built
+
+    def _build_dict(self) -> dict:
         return {
             'state': self.state.value, 'name': self.name, 'level': self.level,
             'flow': self.flow, 'levels': self.levels, 'message': self.message,

@@ -80,6 +80,7 @@ class FlowSensor:
         self.motion = ExtruderMotion(self)
         self.window_callbacks = []
         self.dump_samples = None
+        self.status = self.status_parts = None   # get_status's, when built
         self.extruder = self.toolhead = self.heater = None
         self.source = source_class(config, self)
         self.batch_bulk = bulk_sensor.BatchBulkHelper(
@@ -189,7 +190,14 @@ class FlowSensor:
 
     # --- status and dump endpoint ---------------------------------------------
     def get_status(self, eventtime=None):
-        return dict(self.pipeline.status(), simulation=self.source.simulation)
+        # Built when the pipeline's status (held until new data) or the
+        # source's simulation facts change, not per poll (as heaters.py)
+        parts = (self.pipeline.status(), self.source.simulation)
+        if self.status_parts is None or any(
+                a is not b for a, b in zip(parts, self.status_parts)):
+            self.status_parts = parts
+            self.status = dict(parts[0], simulation=parts[1])
+        return self.status
 
     def _dump_start(self):
         self.dump_samples = []
@@ -255,8 +263,7 @@ class FlowSensor:
         pos[3] += length
         toolhead.move(pos, speed)
         # G-code's idea of where the extruder is follows the move: else the
-        # next G1 E starts from before it (found on the simulated MCU: after
-        # a calibration, M83 G1 E10 fed nothing)
+        # next G1 E starts from before it and feeds nothing
         self.printer.lookup_object("gcode_move").reset_last_position()
         end = toolhead.get_last_move_time()
         toolhead.wait_moves()

@@ -41,13 +41,20 @@ class Run:
         self.old_target = heater.get_status(self.reactor.monotonic())['target']
         self.old_control = self.control = None
         self.pwm = None     # while held at a fixed power
+        self.status_key = self.last_status = None   # status(), when built
         self.heartbeat_timer = self.reactor.register_timer(
             self._heartbeat, self.reactor.NOW)
 
     def status(self):
-        """The run's status: the procedure's progress, the heater's control."""
-        return self._status.with_progress(self.procedure.progress).with_heater(
-            self.control_name(), self.pwm)
+        """The run's status: the procedure's progress, the heater's control;
+        a new one only when one of them changed."""
+        key = (self._status, self.procedure.progress, self.control_name(),
+               self.pwm)
+        if key != self.status_key:
+            self.status_key = key
+            self.last_status = self._status.with_progress(
+                key[1]).with_heater(key[2], key[3])
+        return self.last_status
 
     # --- heater --------------------------------------------------------------
     def _heartbeat(self, eventtime):

@@ -3,6 +3,8 @@
 // script on stdin so that test_ems22_frame.py can decode what it sends with
 // flowloop.ems22 and compare it with what really happened:
 //
+//   n                               the SPI bus config_ems22 gets has no cs
+//                                   pin (before c)
 //   c MAX_READ_TICKS BIT_OFFSET     config_ems22 (first)
 //   q CLOCK REST_TICKS TIME_SHIFT MAX_BYTES
 //                                   query_ems22 (REST_TICKS 0 stops)
@@ -22,6 +24,7 @@ static uint32_t spi_ticks;
 static struct timer *armed;
 static union { struct ems22 e; uint8_t bytes[64]; } oid0;
 static int allocated;
+static int have_cs_pin = 1;
 
 void *
 oid_alloc(uint8_t oid, void *type, uint16_t size)
@@ -68,7 +71,7 @@ sched_check_wake(struct task_wake *w)
 }
 
 struct spidev_s *spidev_oid_lookup(uint8_t oid) { (void)oid; return NULL; }
-int spidev_have_cs_pin(struct spidev_s *spi) { (void)spi; return 1; }
+int spidev_have_cs_pin(struct spidev_s *spi) { (void)spi; return have_cs_pin; }
 
 void
 spidev_transfer(struct spidev_s *spi, uint8_t receive_data
@@ -108,7 +111,9 @@ main(void)
     char op;
     while (scanf(" %c", &op) == 1) {
         unsigned long a, b, c, d;
-        if (op == 'c' && scanf("%lu %lu", &a, &b) == 2) {
+        if (op == 'n') {
+            have_cs_pin = 0;
+        } else if (op == 'c' && scanf("%lu %lu", &a, &b) == 2) {
             uint32_t args[4] = { 0, 0, a, b };
             command_config_ems22(args);
         } else if (op == 'q'

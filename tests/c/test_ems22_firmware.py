@@ -32,14 +32,24 @@ PER = ems22.records_per_message(REST, TICKS_PER_US * 1e6)
 def firmware(compile_c):
     exe = compile_c("ems22_firmware_test.c", HERE / "klipper_stubs")
 
-    def run(script, max_read_ticks=MAX_READ, bit_offset=OFFSET):
-        script = f"c {max_read_ticks} {bit_offset}\n" + script
-        out = subprocess.run([str(exe)], input=script, capture_output=True,
-                             text=True)
+    def run(script, max_read_ticks=MAX_READ, bit_offset=OFFSET, config=None):
+        if config is None:
+            config = f"c {max_read_ticks} {bit_offset}\n"
+        out = subprocess.run([str(exe)], input=config + script,
+                             capture_output=True, text=True)
         assert out.returncode == 0, out.stdout
         return [(int(seq), bytes.fromhex(data)) for _, seq, data in
                 (line.split() for line in out.stdout.splitlines())]
+    run.exe = exe
     return run
+
+
+def test_a_bus_without_a_cs_pin_is_refused_at_config(firmware):
+    # as Klipper's sensor_angle.c: the chip latches its frame on CS rising
+    out = subprocess.run([str(firmware.exe)], input=f"n\nc {MAX_READ} {OFFSET}\n",
+                         capture_output=True, text=True)
+    assert (out.returncode, out.stdout) == (2, "shutdown ems22 requires cs pin\n")
+    assert firmware("") == []   # with one, config_ems22 passes
 
 
 def _query(rest=REST):

@@ -306,3 +306,12 @@ def test_one_flow_sensor_lookup_by_name_else_by_extruder():
     assert klipper_config.find_flow_sensor(printer, "extruder", "a") is a
     assert klipper_config.find_flow_sensor(printer, "extruder", "c") is None
     assert klipper_config.find_flow_sensor(printer, "extruder2") is None
+
+
+def test_the_host_facts_name_the_host_its_read_ahead_and_the_control():
+    # read-ahead: each host's toolhead.py BUFFER_TIME_HIGH (the klippy tier
+    # checks the table against the host's source)
+    assert klipper_config.host_facts(False, "pid") == {
+        "name": "Klipper", "buffer_time_s": 1.0, "heater_control": "pid"}
+    assert klipper_config.host_facts(True, "mpc") == {
+        "name": "Kalico", "buffer_time_s": 2.0, "heater_control": "mpc"}

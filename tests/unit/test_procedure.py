@@ -610,3 +610,13 @@ def test_the_status_moves_through_its_states():
                                   None, "watching")
     assert [s.value for s in S] == ["idle", "running", "watching", "measured",
                                     "stored", "aborted"]
+
+
+def test_a_status_is_built_into_a_dict_once():
+    # klippy's status poll hands out the same dict until the status changes
+    status = proc.Status().running("pla")
+    assert status.as_dict() is status.as_dict()
+    changed = status.aborted("cancelled")
+    assert changed.as_dict() is not status.as_dict()
+    assert changed.as_dict()["state"] != status.as_dict()["state"]
+    assert changed == dataclasses.replace(changed)   # the cache is no field
