@@ -126,7 +126,7 @@ def run_bake(args, settings: AnnotateSettings, limits: PrinterLimits,
     # imported here: plain annotation needs neither profiles nor plots
     from ..cli.profile import load
     from ..gcode.bake import bake_file, timeline_svg
-    from ..gcode.heater import heater_range
+    from ..host.klipper_config import heater_range
     from ..material.active import working_point_arg
     from ..material.profile import DEFAULT_WORKING_POINT
     if args.output is None:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ..calibrate import diff_ab, pylons
 from ..errors import FlowloopError
-from ..gcode.heater import check_part_temp
+from ..host.klipper_config import check_part_temp
 from .flags import with_flags
 
 # --a3/--b3/--d3 ... for rows of more pylons

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import FlowloopError
 from ..gcode import measure_part
-from ..gcode.heater import check_part_temp
+from ..host.klipper_config import check_part_temp
 from .flags import with_flags
 
 # flag -> PartOptions field, help

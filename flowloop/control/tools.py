@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Dict, Generic, List, Optional, TypeVar
 
 from ..errors import FlowloopError, option_message
-from ..gcode.heater import HeaterRange
+from .heater_range import HeaterRange
 
 Member = TypeVar("Member")
 

@@ -20,7 +20,7 @@ sampled as a printer would (every GRID_S). Instead of the announcements,
   planned nozzle temperature there, kept if it is hotter, or an M109 added
   (after a start macro, whose temperature the file does not show); no baked
   M104 goes before that wait, which would override it;
-- with the printer's heater range known (flowloop.gcode.heater: [extruder]
+- with the printer's heater range known (flowloop.control.heater_range: [extruder]
   min_temp/max_temp from --printer-cfg), every target is a whole degree
   within it: the plan is capped at max_temp (below the profile's maximum
   where that is lower), and the file's own M104/M109 and the start macro's

@@ -22,6 +22,7 @@ import os
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Set, Tuple, Union
 
+from ..control.heater_range import HeaterRange
 from ..errors import FlowloopError, option_message  # noqa: F401 (re-exported)
 
 AUTOSAVE_HEADER = (
@@ -205,6 +206,42 @@ def parse_config(text: str, path: Union[str, Path] = "printer.cfg") -> KlipperCo
 def read_config(path: Union[str, Path]) -> KlipperConfig:
     path = Path(path)
     return parse_config(_read_text(path), path)
+
+
+# --- the hotend heater's range, as klippy requires it -------------------------
+
+
+def heater_range(config: KlipperConfig, source: str, section: str = "extruder"
+                 ) -> Optional[HeaterRange]:
+    """The range from a printer.cfg; None without the section. Both options
+    are required (klippy does not start without them): one missing is
+    refused, as klippy refuses it."""
+    if not config.has_section(section):
+        return None
+    min_c = config.getfloat(section, "min_temp")
+    max_c = config.getfloat(section, "max_temp", above=min_c)
+    return HeaterRange(min_c, max_c, f"{source} [{section}]")
+
+
+def printer_heater(printer_cfg: Union[str, Path]) -> Optional[HeaterRange]:
+    """The [extruder] range of a printer.cfg file, read as klippy reads it
+    ([include]s, CRLF); None without [extruder]."""
+    return heater_range(read_config(printer_cfg), str(printer_cfg))
+
+
+def check_part_temp(printer_cfg: Optional[Union[str, Path]], temp_c: float,
+                    name: str) -> Optional[str]:
+    """A test part's temperature (option `name`) checked against the
+    printer.cfg's [extruder] range (refused outside it); a note for the user
+    when it could not be checked, else None."""
+    if printer_cfg is None:
+        return None
+    heater = printer_heater(printer_cfg)
+    if heater is None:
+        return (f"{printer_cfg} has no [extruder]: {name} not checked against"
+                f" its min_temp/max_temp")
+    heater.check(temp_c, name)
+    return None
 
 
 # --- config errors, as flowloop's klippy sections report them -----------------

@@ -12,9 +12,10 @@ from pathlib import Path
 import pytest
 
 from flowloop.cli import main
+from flowloop.control.heater_range import HeaterRange
 from flowloop.errors import FlowloopError
-from flowloop.gcode.heater import HeaterRange, cap_line, heater_range
-from flowloop.host.klipper_config import parse_config
+from flowloop.gcode.heater import cap_line
+from flowloop.host.klipper_config import heater_range, parse_config
 
 pytestmark = pytest.mark.unit
 

@@ -98,3 +98,36 @@ def test_the_two_planners_say_which_is_the_reference():
     assert "flowloop.gcode.reference_planner.Planner" in mods
     assert not any(m.startswith("flowloop.gcode.bulk_planner")
                    for m in imported_modules(gcode / "reference_planner.py"))
+
+
+# The domains from the top floor down: a module imports its own domain and
+# those below it, never one above (farm-studio look: no arrow back up). The
+# domains of one floor import none of each other.
+FLOORS = [("cli",), ("calibrate",), ("host",), ("sensor", "gcode"), ("control",),
+          ("report",), ("material",)]
+
+
+def floor_of(domain: str) -> int:
+    return next(i for i, floor in enumerate(FLOORS) if domain in floor)
+
+
+def test_the_domains_import_only_downward():
+    offenders = []
+    for path in CORE.rglob("*.py"):
+        parts = path.relative_to(CORE).parts
+        if len(parts) < 2:
+            continue
+        for m in imported_modules(path):
+            target = m.split(".")
+            if (target[0] != "flowloop" or len(target) < 2
+                    or target[1] == parts[0]
+                    or not any(target[1] in floor for floor in FLOORS)):
+                continue
+            if floor_of(target[1]) <= floor_of(parts[0]):
+                offenders.append(f"{path.relative_to(CORE)} imports {m}")
+    assert offenders == []
+
+
+def test_every_domain_folder_has_its_floor():
+    folders = {p.name for p in CORE.iterdir() if (p / "__init__.py").is_file()}
+    assert folders == {d for floor in FLOORS for d in floor}

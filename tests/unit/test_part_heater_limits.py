@@ -12,9 +12,9 @@ import json
 import pytest
 
 from flowloop.cli import main
+from flowloop.control.heater_range import HeaterRange
 from flowloop.control.tools import check_heater_target
 from flowloop.errors import FlowloopError
-from flowloop.gcode.heater import HeaterRange
 from flowloop.material import procedure as proc
 from tests.unit.test_bake_heater_limits import (
     BLOCK,
