@@ -115,6 +115,7 @@ def main(argv=None) -> int:
                              f"next run (default: ${DATA_ENV}, else a temporary one "
                              f"removed at the end)")
     args = parser.parse_args(argv)
+    stack.cache_bytecode()   # klippy and Moonraker start faster
     data_dir = args.data_dir.expanduser().resolve() if args.data_dir else None
     if data_dir is not None:
         data_dir.mkdir(parents=True, exist_ok=True)

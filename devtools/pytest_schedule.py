@@ -21,10 +21,13 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import tempfile
 import uuid
 from pathlib import Path
 from typing import Callable, Dict, Optional
+
+import pytest
 
 try:
     from xdist.scheduler.loadscope import LoadScopeScheduling
@@ -43,6 +46,32 @@ def _groups_path(testrunuid: str) -> Path:
 
 
 DURATIONS_KEY = "flowloop/test-durations"
+# CPU seconds (the test's process and every child it reaped) per test, kept
+# beside the wall times: what the README's "Where the time goes" reads.
+CPU_KEY = "flowloop/test-cpu"
+
+
+def _cpu_seconds() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+class CpuMeter:
+    """In whichever process runs the tests (a worker or a serial run): the
+    CPU used since the last report, attached to each report as the user
+    property ``cpu`` (a daemon a module fixture starts is counted when the
+    fixture's teardown reaps it)."""
+
+    def __init__(self) -> None:
+        self.last = _cpu_seconds()
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_makereport(self, item, call):
+        outcome = yield
+        now = _cpu_seconds()
+        outcome.get_result().user_properties.append(("cpu", now - self.last))
+        self.last = now
 
 
 def order(config, items, group_of: Callable[[object], Optional[str]],
@@ -70,20 +99,27 @@ class DurationRecorder:
 
     def __init__(self) -> None:
         self.took: Dict[str, float] = {}
+        self.cpu: Dict[str, float] = {}
 
     def pytest_runtest_logreport(self, report) -> None:
         self.took[report.nodeid] = self.took.get(report.nodeid, 0.0) + report.duration
+        for name, value in report.user_properties:
+            if name == "cpu":
+                self.cpu[report.nodeid] = self.cpu.get(report.nodeid, 0.0) + value
 
     def pytest_sessionfinish(self, session) -> None:
         cache = getattr(session.config, "cache", None)
         if cache is None or not self.took:
             return
         cache.set(DURATIONS_KEY, {**cache.get(DURATIONS_KEY, {}), **self.took})
+        if self.cpu:
+            cache.set(CPU_KEY, {**cache.get(CPU_KEY, {}), **self.cpu})
 
 
 def configure(config) -> None:
     """In the controller, before the workers start: fix the run id both
     sides name the groups file after, and time the tests for order()."""
+    config.pluginmanager.register(CpuMeter(), "flowloop-cpu")
     if getattr(config, "workerinput", None) is not None:
         return
     if config.getoption("testrunuid", default=None) is None:

@@ -76,6 +76,25 @@ def cache_dir() -> Path:
     return path
 
 
+def cache_bytecode() -> Path:
+    """Let this process and every Python the tests start keep compiled
+    bytecode, in the cache instead of beside the sources.
+
+    With PYTHONDONTWRITEBYTECODE set (as on CI's machines) every klippy,
+    Moonraker and test worker compiled each module it imported on every
+    start, and pytest rewrote every test module's asserts again in each
+    worker: about a third of a batch-mode klippy test's CPU. A
+    PYTHONPYCACHEPREFIX tree writes nothing into a source tree, so the
+    user's Klipper, Kalico and Moonraker checkouts stay as they were (and a
+    Python without the variable would have written __pycache__ there)."""
+    prefix = cache_dir() / "pycache"
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+    os.environ["PYTHONPYCACHEPREFIX"] = str(prefix)
+    sys.dont_write_bytecode = False
+    sys.pycache_prefix = str(prefix)
+    return prefix
+
+
 def missing_klipper_reason(host: str = "klipper") -> Optional[str]:
     path = klipper_path(host)
     variable = HOST_PATH_VARIABLES[host]

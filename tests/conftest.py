@@ -20,6 +20,10 @@ sys.path.insert(0, str(PROJECT))
 from devtools import pytest_schedule, stack  # noqa: E402
 from devtools.klippy_test import KlippyTestFailure, run_file  # noqa: E402
 
+# before any test module is imported or a worker starts: every Python of the
+# run keeps its bytecode (in the cache, not beside the sources)
+stack.cache_bytecode()
+
 TIERS = ("unit", "c", "klippy", "moonraker", "ui", "bench", "fil")
 
 

@@ -63,12 +63,22 @@ PROFILES = {name: profile(name) for name in ("known", MARKUP, "herz-pla-red_80")
 ACTIVE = active_to_stored({
     "extruder": ActiveProfile(name="known", working_point=0.3),
     "extruder1": ActiveProfile(name=MARKUP, working_point=0.5)})
-HISTORIES = [legacy_history("v6-0.4", "known", [1.0, 0.98, 0.9, 0.88, 0.87]),
-             legacy_history("v6-0.4 extruder1", MARKUP, [1.0, 0.99]),
-             legacy_history("v6-0.4", "herz-pla-red_80", [0.97])]
-OLD_LAYOUT = {**{schema.profile_key(n): p for n, p in PROFILES.items()},
-              "active": ACTIVE,
-              **{legacy_key(h["hotend"], h["profile"]): h for h in HISTORIES}}
+
+
+# built on first use, not at import: simulating the prints takes seconds of
+# CPU, which every worker of `make test` would spend collecting the module
+@functools.cache
+def histories():
+    return [legacy_history("v6-0.4", "known", [1.0, 0.98, 0.9, 0.88, 0.87]),
+            legacy_history("v6-0.4 extruder1", MARKUP, [1.0, 0.99]),
+            legacy_history("v6-0.4", "herz-pla-red_80", [0.97])]
+
+
+@functools.cache
+def old_layout():
+    return {**{schema.profile_key(n): p for n, p in PROFILES.items()},
+            "active": ACTIVE,
+            **{legacy_key(h["hotend"], h["profile"]): h for h in histories()}}
 
 
 def namespace(mr, name):
@@ -88,11 +98,11 @@ def migrated(moonraker_venv, tmp_path_factory):
         old.wait_ready()
         assert "flowloop" not in old.request("GET", "/server/info")[1][
             "result"]["components"]
-        for key, value in OLD_LAYOUT.items():
+        for key, value in old_layout().items():
             status, body = old.request("POST", "/server/database/item", {
                 "namespace": "flowloop", "key": key, "value": value})
             assert status == 200, body
-        assert namespace(old, "flowloop") == OLD_LAYOUT
+        assert namespace(old, "flowloop") == old_layout()
     finally:
         old.stop()
     install.apply(install.plan_moonraker(site, stack.PROJECT))
@@ -109,7 +119,7 @@ def migrated(moonraker_venv, tmp_path_factory):
 def test_profiles_and_activations_are_served_as_they_were_stored(migrated):
     mr, _, _ = migrated
     assert namespace(mr, "flowloop") == {
-        key: value for key, value in OLD_LAYOUT.items()
+        key: value for key, value in old_layout().items()
         if not key.startswith("nozzle_health:")}
     for name, stored in PROFILES.items():
         status, body = mr.request("GET", "/server/flowloop/profile?name="
@@ -124,10 +134,10 @@ def test_profiles_and_activations_are_served_as_they_were_stored(migrated):
 def test_every_history_moves_to_its_own_namespace_whole(migrated):
     mr, _, _ = migrated
     assert namespace(mr, schema.NOZZLE_HEALTH_NAMESPACE) == {
-        schema.nozzle_health_key(h["hotend"], h["profile"]): h for h in HISTORIES}
+        schema.nozzle_health_key(h["hotend"], h["profile"]): h for h in histories()}
     status, body = mr.request("GET", "/server/flowloop/nozzle_health")
     assert status == 200, body
-    assert sorted(body["result"]["histories"], key=str) == sorted(HISTORIES, key=str)
+    assert sorted(body["result"]["histories"], key=str) == sorted(histories(), key=str)
     assert namespace(mr, schema.SCHEMA_NAMESPACE) == {
         schema.PROFILES_NAMESPACE: schema.PROFILES_VERSION,
         schema.NOZZLE_HEALTH_NAMESPACE: schema.NOZZLE_HEALTH_VERSION}
@@ -143,10 +153,10 @@ def test_a_migrated_history_goes_on_with_the_next_print(migrated):
     assert body["result"]["verdict"]["warn"] is True
     [history] = [h for h in mr.request("GET", "/server/flowloop/nozzle_health")[1][
         "result"]["histories"] if h["profile"] == "known"]
-    assert history["prints"][:-1] == HISTORIES[0]["prints"]
+    assert history["prints"][:-1] == histories()[0]["prints"]
     assert history["prints"][-1]["job_id"] == "0000AA"
     # it warned before the migration: going on, it is not announced again
-    assert HISTORIES[0]["verdict"]["warn"] is True
+    assert histories()[0]["verdict"]["warn"] is True
     entries = mr.request("GET", "/server/announcements/list")[1]["result"]["entries"]
     assert [e for e in entries if e["feed"] == "flowloop"] == []
 

@@ -62,6 +62,13 @@ def test_alone_too(n):
 """
 
 
+# what the inner runs see: no plugin or setting of this run's environment,
+# only where it keeps bytecode (devtools.stack.cache_bytecode)
+BARE_ENV = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(PROJECT)}
+if sys.pycache_prefix:
+    BARE_ENV["PYTHONPYCACHEPREFIX"] = sys.pycache_prefix
+
+
 def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=False):
     (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers = group\n")
     (tmp_path / "conftest.py").write_text(CONFTEST)
@@ -74,7 +81,7 @@ def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=Fa
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
          "-n", str(workers), "test_suite.py"],
         cwd=tmp_path, capture_output=True, text=True, timeout=120,
-        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(PROJECT), "RUNS": str(runs)})
+        env={**BARE_ENV, "RUNS": str(runs)})
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return [json.loads(line) for line in runs.read_text().splitlines()]
 
@@ -142,12 +149,12 @@ def test_the_next_run_starts_with_what_took_longest_in_the_last(tmp_path):
         proc = subprocess.run(
             [sys.executable, "-m", "pytest", "-q", "--collect-only", "test_order.py"],
             cwd=tmp_path, capture_output=True, text=True, timeout=60,
-            env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(PROJECT)})
+            env=BARE_ENV)
         return [line.split("::")[1] for line in proc.stdout.splitlines()
                 if "::" in line]
     # never timed: the file's order
     assert collected() == ["test_quick", "test_slow", "test_also_quick"]
     subprocess.run([sys.executable, "-m", "pytest", "-q", "test_order.py"],
                    cwd=tmp_path, check=True, capture_output=True, timeout=60,
-                   env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(PROJECT)})
+                   env=BARE_ENV)
     assert collected()[0] == "test_slow"
