@@ -219,3 +219,98 @@ class AloneLastScheduling(LoadScopeScheduling):
             for other in self.nodes:
                 self._reschedule(other)
         return crashed
+
+
+class AloneBesideScheduling(AloneLastScheduling):
+    """xdist's loadscope over the published groups, the ``alone:`` groups
+    on one worker (the runner) from the start, one test at a time, while
+    the other workers run the rest beside it at SCHED_IDLE (see
+    Priority): Linux gives an idle-class process only the CPU no normal
+    one wants, and places a waking normal process on a CPU that runs only
+    idle-class ones as if it were free. So a paced test keeps the clock it
+    would have alone, and the machine's second core is not left idle for
+    the minutes the paced tiers take (they wait on the clock, not the CPU).
+
+    The runner takes the next alone group whenever it asks for work, and
+    the rest once none is left; the others never get an alone group. Where
+    idle classes are not to be had, AloneLastScheduling's order holds.
+    """
+
+    def _alone_next(self) -> bool:   # the base class's "only alone left"
+        return False
+
+    def _next_scope(self, node) -> Optional[str]:
+        if self.runner is None or self.runner not in self.assigned_work:
+            self.runner = node
+        alone = node is self.runner
+        fallback = None
+        for scope in self.workqueue:
+            if is_alone(scope) == alone:
+                return scope
+            if fallback is None and not is_alone(scope):
+                fallback = scope
+        return fallback   # the runner, out of alone groups: the rest
+
+    def _assign_work_unit(self, node) -> None:
+        scope = self._next_scope(node)
+        if scope is None:
+            return
+        self.workqueue.move_to_end(scope, last=False)
+        super(AloneLastScheduling, self)._assign_work_unit(node)
+
+    def _reschedule(self, node) -> None:
+        if node.shutting_down:
+            return
+        if self.workqueue and self._next_scope(node) is None:
+            # only alone groups are left, and this is not their runner: it
+            # finishes what it holds (it keeps its last test until told)
+            node.shutdown()
+            return
+        super(AloneLastScheduling, self)._reschedule(node)
+
+    def mark_test_complete(self, node, item_index: int, duration: float = 0) -> None:
+        super(AloneLastScheduling, self).mark_test_complete(node, item_index, duration)
+
+    def remove_node(self, node):
+        crashed = super(AloneLastScheduling, self).remove_node(node)
+        if node is self.runner:
+            self.runner = None
+            for other in self.nodes:
+                self._reschedule(other)
+        return crashed
+
+
+def idle_class_available() -> bool:
+    return hasattr(os, "SCHED_IDLE") and hasattr(os, "sched_setscheduler")
+
+
+def scheduler_class():
+    return AloneBesideScheduling if idle_class_available() else AloneLastScheduling
+
+
+class Priority:
+    """In each worker of a parallel run: an alone test runs at the normal
+    policy, every other test (and what it starts: children inherit the
+    policy) at SCHED_IDLE, so that nothing beside a paced test takes CPU
+    from it (AloneBesideScheduling)."""
+
+    def __init__(self, is_alone_item: Callable[[object], bool]) -> None:
+        self.is_alone_item = is_alone_item
+
+    @pytest.hookimpl(tryfirst=True)
+    def pytest_runtest_setup(self, item) -> None:
+        policy = os.SCHED_OTHER if self.is_alone_item(item) else os.SCHED_IDLE
+        if os.sched_getscheduler(0) != policy:
+            try:
+                os.sched_setscheduler(0, policy, os.sched_param(0))
+            except OSError:   # leaving the idle class needs the right to
+                pass
+
+
+def prioritise(config, is_alone_item: Callable[[object], bool]) -> None:
+    """In a worker of a run with more than one: register Priority."""
+    workerinput = getattr(config, "workerinput", None)
+    if (workerinput is not None and workerinput.get("workercount", 1) > 1
+            and idle_class_available()):
+        config.pluginmanager.register(Priority(is_alone_item), "flowloop-priority")
+

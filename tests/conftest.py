@@ -61,6 +61,7 @@ def pytest_collection_modifyitems(config, items):  # sorts by fixture params)
 
 def pytest_configure(config):
     pytest_schedule.configure(config)
+    pytest_schedule.prioritise(config, lambda item: _alone(item, _tier(item.path)))
 
 
 def _tier(path) -> str:
@@ -129,7 +130,7 @@ def _shared_fixtures(item) -> list:
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
-    return pytest_schedule.AloneLastScheduling(config, log)
+    return pytest_schedule.scheduler_class()(config, log)
 
 
 def pytest_report_header(config):

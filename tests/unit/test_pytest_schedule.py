@@ -5,12 +5,15 @@ with no other test beside them, the rest in parallel, and nothing hangs."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 
 import pytest
+
+from devtools import pytest_schedule
 
 pytest.importorskip("xdist")
 
@@ -21,12 +24,17 @@ import json, os, time
 import pytest
 from devtools import pytest_schedule
 
+SCHEDULER = getattr(pytest_schedule, os.environ["SCHEDULER"])
+
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
-    return pytest_schedule.AloneLastScheduling(config, log)
+    return SCHEDULER(config, log)
 
 def pytest_configure(config):
     pytest_schedule.configure(config)
+    if SCHEDULER is pytest_schedule.AloneBesideScheduling:
+        pytest_schedule.prioritise(
+            config, lambda item: item.name.startswith("test_alone"))
 
 def pytest_collection_modifyitems(config, items):
     def group(item):
@@ -39,7 +47,9 @@ def record(request):
     start = time.monotonic()
     yield
     with open(os.environ["RUNS"], "a") as out:
-        out.write(json.dumps([request.node.name, start, time.monotonic()]) + "\\n")
+        out.write(json.dumps([request.node.name, start, time.monotonic(),
+                              os.environ.get("PYTEST_XDIST_WORKER"),
+                              os.sched_getscheduler(0)]) + "\\n")
 """
 
 SUITE = """
@@ -69,7 +79,11 @@ if sys.pycache_prefix:
     BARE_ENV["PYTHONPYCACHEPREFIX"] = sys.pycache_prefix
 
 
-def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=False):
+LAST, BESIDE = "AloneLastScheduling", "AloneBesideScheduling"
+
+
+def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=False,
+              scheduler=LAST):
     (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers = group\n")
     (tmp_path / "conftest.py").write_text(CONFTEST)
     # ungrouped, each test its own unit (the klippy .test files), or one group
@@ -81,7 +95,7 @@ def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=Fa
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
          "-n", str(workers), "test_suite.py"],
         cwd=tmp_path, capture_output=True, text=True, timeout=120,
-        env={**BARE_ENV, "RUNS": str(runs)})
+        env={**BARE_ENV, "RUNS": str(runs), "SCHEDULER": scheduler})
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return [json.loads(line) for line in runs.read_text().splitlines()]
 
@@ -106,15 +120,38 @@ def test_alone_groups_run_after_the_rest_with_nothing_beside_them(
     assert min(a[1] for a in alone) >= max(n[2] for n in normal)
 
 
-def test_a_run_of_alone_tests_only_runs_them_one_at_a_time(tmp_path):
-    runs = run_suite(tmp_path, normal=0, alone=3, workers=3)
+@pytest.mark.skipif(not pytest_schedule.idle_class_available(),
+                    reason="no SCHED_IDLE on this system")
+def test_alone_groups_run_on_one_worker_with_the_rest_beside_them_idle(tmp_path):
+    runs = run_suite(tmp_path, normal=9, alone=2, workers=3, per_test_group=True,
+                     scheduler=BESIDE)
+    alone = [r for r in runs if r[0].startswith("test_alone")]
+    normal = [r for r in runs if r[0].startswith("test_normal")]
+    assert len(alone) == 4 and len(normal) == 9
+    # one runner, one alone test at a time, at the normal policy
+    assert len({a[3] for a in alone}) == 1
+    assert not any(overlaps(a, b) for a in alone for b in alone if a is not b)
+    assert {a[4] for a in alone} == {os.SCHED_OTHER}
+    # the rest ran beside them (not after), every one at the idle policy
+    beside = [n for n in normal if any(overlaps(n, a) for a in alone)]
+    assert beside, runs
+    assert {n[4] for n in normal} == {os.SCHED_IDLE}
+    # the runner started with the alone groups
+    first = min(r for r in runs if r[3] == alone[0][3])
+    assert first[0].startswith("test_alone")
+
+
+@pytest.mark.parametrize("scheduler", [LAST, BESIDE])
+def test_a_run_of_alone_tests_only_runs_them_one_at_a_time(tmp_path, scheduler):
+    runs = run_suite(tmp_path, normal=0, alone=3, workers=3, scheduler=scheduler)
     assert len(runs) == 6
     assert not any(overlaps(a, b) for a in runs for b in runs if a is not b)
 
 
-def test_without_alone_tests_the_run_ends(tmp_path):
+@pytest.mark.parametrize("scheduler", [LAST, BESIDE])
+def test_without_alone_tests_the_run_ends(tmp_path, scheduler):
     assert len(run_suite(tmp_path, normal=5, alone=0, workers=2,
-                         per_test_group=True)) == 5
+                         per_test_group=True, scheduler=scheduler)) == 5
 
 
 ORDERED = """
