@@ -8,8 +8,11 @@ workers than the machine has cores. Two rules keep that honest:
   whole on one worker, so a stack a module starts once serves all of its
   tests there, as in a serial run.
 - A group named ``alone:...`` (tests that measure time or run paced to the
-  wall clock) waits until every other test has finished, and then runs with
-  no other test beside it.
+  wall clock) runs on one worker, one test at a time, from the start; every
+  other test runs beside it at SCHED_IDLE, so it never takes CPU a paced
+  test wants (AloneBesideScheduling). Without an idle class the alone groups
+  wait until every other test has finished and then run with nothing beside
+  them (AloneLastScheduling).
 
 The groups travel from the workers (which collect) to the scheduler (which
 does not) in a file named after xdist's test run id, not as the ``@group``
