@@ -375,3 +375,24 @@ def html(rec: Recorder) -> str:
         "</body></html>",
     ]
     return "\n".join(parts) + "\n"
+
+
+def not_kept_html(job_id: str, filename: Optional[str], keep: int) -> str:
+    """The page a report link opens for a job of Moonraker's history whose
+    report flowloop does not keep: pruned by number_of_reports_to_keep, or
+    never written (printed before flowloop was installed)."""
+    title = f"No report kept for job {job_id}"
+    of = f" ({filename})" if filename else ""
+    return "\n".join([
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8"/>',
+        '<meta name="color-scheme" content="light dark"/>',
+        f"<title>{escape(title)}</title><style>{STYLE}</style></head><body>",
+        f"<h1>{escape(title)}</h1>",
+        f'<p id="not-kept">flowloop keeps the flow reports of the newest {keep} '
+        f"jobs (number_of_reports_to_keep in moonraker.conf's [flowloop]): the "
+        f"report of job {escape(job_id + of)} is no longer kept, or the job "
+        "printed before flowloop was installed. Its figures stay in the job's "
+        "history.</p>",
+        "</body></html>",
+    ]) + "\n"

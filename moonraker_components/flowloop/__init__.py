@@ -85,7 +85,7 @@ class Flowloop:
                          self.processor.registered_name)
         self.api = Api(self.server, self.store, self.profiles, self.info, default_wp)
         self.page = Page(self.server, self.store)
-        self.job_history = JobHistory(self.server)
+        self.job_history = JobHistory(config)
         self.reports = Reports(self.server, config.getint(
             "number_of_reports_to_keep", DEFAULT_REPORTS_TO_KEEP, minval=1),
             self.job_history)

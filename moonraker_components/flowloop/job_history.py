@@ -1,10 +1,16 @@
 # flowloop component: a job's flowloop figures in Moonraker's job history.
 #
 # One auxiliary field per figure of flowloop.report.job_figures (provider
-# flowloop), registered through the history's public API as Moonraker's own
-# [sensor] history fields are: a number with its units from the job's first
-# moment (each field's reset gives its "unknown" value when a job is added),
-# updated while the job runs; the history stores them when the job ends.
+# "sensor flowloop"), registered through the history's public API as
+# Moonraker's own [sensor] history fields are: a number with its units from
+# the job's first moment (each field's reset gives its "unknown" value when a
+# job is added), updated while the job runs; the history stores them when
+# the job ends. The summed figures are also read as options of a
+# [sensor flowloop] section, defaulting to their declaration, so Moonraker's
+# parsed configuration (/server/config) holds them as that section would:
+# what Mainsail takes a history column's and a total's name and units from
+# (job_figures.mainsail_history_fields). No such section is written to
+# moonraker.conf (Moonraker's sensor component would refuse its type).
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
@@ -13,7 +19,13 @@ from __future__ import annotations
 import copy
 from typing import TYPE_CHECKING, Dict
 
-from flowloop.report.job_figures import FIGURES, Figure, JobFigure
+from flowloop.report.job_figures import (
+    FIGURES,
+    PROVIDER,
+    Figure,
+    JobFigure,
+    mainsail_history_fields,
+)
 
 # Moonraker's own sensor and spoolman components register their history
 # fields with this class too: history.register_auxiliary_field is the API,
@@ -21,9 +33,7 @@ from flowloop.report.job_figures import FIGURES, Figure, JobFigure
 from ...common import HistoryFieldData
 
 if TYPE_CHECKING:
-    from ...server import Server
-
-PROVIDER = "flowloop"
+    from ...confighelper import ConfigHelper
 
 
 def _field(figure: JobFigure) -> HistoryFieldData:
@@ -39,10 +49,13 @@ def _field(figure: JobFigure) -> HistoryFieldData:
 
 
 class JobHistory:
-    def __init__(self, server: Server) -> None:
+    def __init__(self, config: ConfigHelper) -> None:
         self.fields: Dict[str, HistoryFieldData] = {
             figure.name: _field(figure) for figure in FIGURES}
-        history = server.lookup_component("history", None)
+        section = config.getsection(PROVIDER)
+        for option, declaration in mainsail_history_fields().items():
+            section.getdict(option, declaration)
+        history = config.get_server().lookup_component("history", None)
         if history is not None:
             for field in self.fields.values():
                 history.register_auxiliary_field(field)

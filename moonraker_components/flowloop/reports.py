@@ -209,5 +209,14 @@ class Reports:
         try:
             return await self.eventloop.run_in_thread(path.read_bytes)
         except FileNotFoundError:
+            pass
+        # a job the history holds: a page that says so where its report would
+        # be (Moonraker writes every refusal as JSON and gives a component no
+        # request headers, so a browser cannot be told from a client); an id
+        # that names no job: a refusal
+        history = self.server.lookup_component("history", None)
+        job = None if history is None else await history.get_job(job_id)
+        if job is None:
             raise args.refusal(f"no flow report for job {quoted(job_id)}",
                                404) from None
+        return render.not_kept_html(job_id, job.get("filename"), self.keep).encode()

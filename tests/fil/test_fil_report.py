@@ -16,6 +16,7 @@ import pytest
 
 from devtools import stack
 from devtools.demo_flowrate_limiter import WEAK_PROFILE
+from flowloop.report import job_figures
 from tests.fil.conftest import fil_printer
 
 SECTIONS = """
@@ -155,7 +156,7 @@ def test_a_job_printed_through_moonraker_gets_a_flow_report(mr):
     status, body = mr.request("GET", f"/server/history/job?uid={job['job_id']}")
     assert status == 200, body
     figures = {f["name"]: f for f in body["result"]["job"]["auxiliary_data"]
-               if f["provider"] == "flowloop"}
+               if f["provider"] == job_figures.PROVIDER}
     assert set(figures) == {"under_extruded", "lowest_grip", "limiter_slowed",
                             "peak_flow", "melt_ratio"}, figures
     for field in figures.values():

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from flowloop.report import dump, render
+from flowloop.report import dump, job_figures, render
 from flowloop.report.recorder import Job, Recorder, Sample
 
 PRINTER_STACK = {"with_klippy": False,
@@ -69,12 +69,22 @@ def test_the_jobs_figures_are_numeric_history_fields_with_totals(printer):
     status, body = get(printer, "/server/history/totals")
     assert status == 200, body
     totals = {t["field"]: t for t in body["result"]["auxiliary_totals"]
-              if t["provider"] == "flowloop"}
+              if t["provider"] == job_figures.PROVIDER}
+    # summed figures only: Mainsail shows a total's sum, never a maximum
     assert totals == {
-        "under_extruded": {"provider": "flowloop", "field": "under_extruded",
+        "under_extruded": {"provider": "sensor flowloop", "field": "under_extruded",
                            "maximum": None, "total": 0},
-        "limiter_slowed": {"provider": "flowloop", "field": "limiter_slowed",
+        "limiter_slowed": {"provider": "sensor flowloop", "field": "limiter_slowed",
                            "maximum": None, "total": 0},
-        "peak_flow": {"provider": "flowloop", "field": "peak_flow",
-                      "maximum": 0, "total": None},
     }, totals
+    # named in the parsed configuration as a [sensor flowloop] section's
+    # history fields: where Mainsail takes their names and units from
+    status, body = get(printer, "/server/config")
+    assert status == 200, body
+    assert body["result"]["config"]["sensor flowloop"] == \
+        job_figures.mainsail_history_fields()
+    # and no such section in moonraker.conf (Moonraker's sensor component
+    # would warn of an unknown sensor type)
+    assert "sensor flowloop" not in body["result"]["orig"]
+    status, body = get(printer, "/server/info")
+    assert not [w for w in body["result"]["warnings"] if "sensor" in w], body

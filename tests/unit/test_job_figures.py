@@ -75,3 +75,26 @@ def test_the_melt_ratio_is_the_newest_judged_in_percent():
     assert job_figures.melt_ratio([0.97, None, 0.912]) == 91.2
     assert job_figures.melt_ratio([None, float("nan")]) == []
     assert job_figures.melt_ratio([]) == []
+
+
+def test_no_figure_has_a_maximum_mainsail_would_show_as_a_total():
+    # Mainsail shows a total's sum only: the peak flow's maximum read
+    # "peak_flow 0 undefined" in its statistics (a sum of peaks means nothing)
+    assert not any(f.report_maximum for f in job_figures.FIGURES)
+
+
+def test_mainsail_is_given_the_summed_figures_names_and_units():
+    # as a [sensor flowloop] section's history_field_* options: Mainsail's
+    # columns and statistics take their name and units from there, matched by
+    # provider (they read "under_extruded 0 undefined")
+    assert job_figures.PROVIDER == "sensor flowloop"
+    assert job_figures.mainsail_history_fields() == {
+        "history_field_under_extruded": {"desc": "Filament under-extruded",
+                                         "units": "mm", "parameter": "under_extruded"},
+        "history_field_limiter_slowed": {"desc": "Limiter slowed the print",
+                                         "units": "s", "parameter": "limiter_slowed"},
+    }
+    # only what a sum over the selected jobs means something for
+    summed = {f.name for f in job_figures.FIGURES if f.report_total}
+    assert {k[len("history_field_"):] for k in
+            job_figures.mainsail_history_fields()} == summed

@@ -557,3 +557,11 @@ def test_a_job_id_is_moonrakers_and_never_case_folded():
     for bad in ("\ufb00\ufb00\ufb00", "0000\ufb00", "2A", "00002A\n", "../x", 42):
         with pytest.raises(FlowloopError, match="not a job of Moonraker's history"):
             dump.check_job_id(bad)
+
+
+def test_a_job_whose_report_is_not_kept_gets_a_page_that_says_so():
+    # its link (from an old tab, a console line) opened raw JSON in a browser
+    root = parse(render.not_kept_html("000001", "a<b>.gcode", 3))
+    text = "".join(root.itertext())
+    assert "No report kept for job 000001" in text
+    assert "(a<b>.gcode)" in text and "newest 3 jobs" in text
