@@ -17,6 +17,7 @@ from .. import __version__
 from ..sensor import ems22
 from . import firmware, install
 from .info import PAGE_PATH, PANEL_URL, PANEL_WEBCAM
+from .klipper_config import SIMULATION_SECTION
 
 OK, FAIL, SKIP = "ok", "FAIL", "skip"
 
@@ -336,8 +337,8 @@ def check_sensors(facts: Facts) -> List[Check]:
                                 f" {counts})", "check the sensor's wiring, cs_pin"
                                 " and spi_mode (docs/flow_sensor.md); QUERY_FLOW_SENSOR"
                                 " shows when it clears"))
-        elif not status.get("samples") and _settings(facts).get(name, {}).get(
-                "sensor_type") == "simulated":
+        elif not status.get("samples") and (
+                f"{SIMULATION_SECTION} {name.split()[-1]}" in _settings(facts)):
             checks.append(Check(label, SKIP, "simulated: it samples as klippy"
                                 " generates extruder steps, none yet"))
         elif not status.get("samples"):
@@ -372,7 +373,7 @@ def check_profiles(facts: Facts) -> Check:
 def extruders_needing_profile(facts: Facts) -> List[str]:
     extruders = set()
     for section, options in _settings(facts).items():
-        if section.split()[0] in ("flow_sensor", "autotemp"):
+        if section.split()[0] in ("flow_sensor", SIMULATION_SECTION, "autotemp"):
             extruders.add(str(options.get("extruder", "extruder")))
     return sorted(extruders)
 

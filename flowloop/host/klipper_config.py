@@ -322,8 +322,23 @@ def section_extruder(section: str, default: str = "extruder") -> str:
     return parts[1].strip() if len(parts) == 2 else default
 
 
+# The simulated sensor of demos and tests: a section of its own, which a real
+# printer never has, known to every other section and client as the flow
+# sensor [flow_sensor NAME] (docs/flow_sensor.md)
+SIMULATION_SECTION = "flow_sensor_simulation"
+
+
+def simulated_sensor_moved(section: str) -> str:
+    """Why [flow_sensor NAME] with sensor_type: simulated is refused."""
+    name = section.split()[-1]
+    return (f"'simulated' is not a sensor type: the simulated sensor is its own"
+            f" section, [{SIMULATION_SECTION} {name}] (the same options without"
+            f" sensor_type; docs/flow_sensor.md)")
+
+
 def flow_sensors(printer) -> list:
-    """The object of every [flow_sensor NAME] section, in klippy's order."""
+    """The object of every [flow_sensor NAME] section, in klippy's order (a
+    [flow_sensor_simulation NAME] is one by that name too)."""
     return [obj for name, obj in printer.lookup_objects('flow_sensor')
             if name.startswith('flow_sensor ')]
 

@@ -1,16 +1,24 @@
 # [flow_sensor NAME]: an EMS22 encoder riding on the filament after the
-# feeder (or its simulated twin), grip from sensor vs commanded filament,
-# and the two calibrations it enables.
+# feeder, grip from sensor vs commanded filament, and the two calibrations
+# it enables.
 #
-# The pipeline (decoding, grip windows, faults, the status policy) and the
-# simulated sensor live in flowloop (pure Python: flowloop.sensor.pipeline);
-# this module reads config, talks to the MCU and the toolhead, and reports.
-# Each sensor_type is one source object (SOURCES at the end): both feed
-# sensor_bulk_data payloads to the same pipeline, on the reactor, in batches.
+# The pipeline (decoding, grip windows, faults, the status policy) lives in
+# flowloop (pure Python: flowloop.sensor.pipeline); this module reads config,
+# talks to the MCU and the toolhead, and reports. The samples come from a
+# source object (SOURCES at the end) as sensor_bulk_data payloads, handed to
+# the pipeline on the reactor, in batches. The simulated sensor of demos and
+# tests is a section of its own, [flow_sensor_simulation NAME], which builds
+# this same FlowSensor on its twin source: a printer without that section
+# never imports it.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import logging
 
+# The shared module first: it turns a requirement of the core missing from
+# klippy's Python into a config error
+from .. import flowloop as flowloop_host
+
+# isort: split
 from flowloop.calibrate import flow_sensor as sensor_cal
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
@@ -18,7 +26,7 @@ from flowloop.sensor import ems22
 from flowloop.sensor import grip as flow_grip
 from flowloop.sensor import pipeline as fl_pipeline
 
-# A package (this file, source.py and twin.py): klippy/extras/flow_sensor/ on
+# A package (this file and source.py): klippy/extras/flow_sensor/ on
 # Klipper, klippy/plugins/flow_sensor/ on Kalico
 if (__package__ or '').startswith('klippy.'):
     # Kalico: klippy.plugins.flow_sensor, klippy's modules two up
@@ -28,9 +36,7 @@ else:   # Klipper: klippy/extras/flow_sensor/, extras one up
     import chelper
 
     from .. import bulk_sensor
-from .. import flowloop as flowloop_host
 from .source import Ems22Source
-from .twin import SimulatedSource
 
 BATCH_INTERVAL = 0.100
 DUMP_INTERVAL = 0.100
@@ -40,13 +46,15 @@ DIRECTIONS = {'forward': 1., 'reverse': -1.}
 
 
 class FlowSensor:
-    def __init__(self, config):
+    """The sensor's pipeline and commands, fed by source_class(config, self):
+    an Ems22Source here, the twin for [flow_sensor_simulation NAME]."""
+
+    def __init__(self, config, source_class):
         self.printer = printer = config.get_printer()
         printer.load_object(config, 'flowloop')
         self.reactor = printer.get_reactor()
         self.section = config.get_name()
         self.name = self.section.split()[-1]
-        source_class = config.getchoice('sensor_type', SOURCES)
         self.spi_mode = config.getint('spi_mode', ems22.DEFAULT_SPI_MODE,
                                       minval=0, maxval=3)
         low, high = ems22.SAMPLE_PERIOD_RANGE_S
@@ -94,25 +102,25 @@ class FlowSensor:
         self._register_commands(config)
 
     def _register_commands(self, config):
+        for cmd, func, desc in [
+                ('QUERY_FLOW_SENSOR', self.cmd_QUERY_FLOW_SENSOR,
+                 self.cmd_QUERY_FLOW_SENSOR_help),
+                ('CALIBRATE_FLOW_SENSOR', self.cmd_CALIBRATE_FLOW_SENSOR,
+                 self.cmd_CALIBRATE_FLOW_SENSOR_help),
+                ('CALIBRATE_EXTRUDER_ROTATION_DISTANCE',
+                 self.cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE,
+                 self.cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE_help)]:
+            self.register_command(cmd, func, desc, config)
+
+    def register_command(self, cmd, func, desc, config):
+        """A command of this sensor, SENSOR=name (its source's too)."""
         gcode = self.printer.lookup_object('gcode')
-        commands = [('QUERY_FLOW_SENSOR', self.cmd_QUERY_FLOW_SENSOR,
-                     self.cmd_QUERY_FLOW_SENSOR_help),
-                    ('CALIBRATE_FLOW_SENSOR', self.cmd_CALIBRATE_FLOW_SENSOR,
-                     self.cmd_CALIBRATE_FLOW_SENSOR_help),
-                    ('CALIBRATE_EXTRUDER_ROTATION_DISTANCE',
-                     self.cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE,
-                     self.cmd_CALIBRATE_EXTRUDER_ROTATION_DISTANCE_help)]
-        if isinstance(self.source, SimulatedSource):
-            commands.append(('SET_FLOW_SENSOR_SIMULATION',
-                             self.cmd_SET_FLOW_SENSOR_SIMULATION,
-                             self.cmd_SET_FLOW_SENSOR_SIMULATION_help))
-        for cmd, func, desc in commands:
-            gcode.register_mux_command(cmd, 'SENSOR', self.name, func, desc=desc)
-            try:
-                # The first sensor also answers commands without SENSOR=
-                gcode.register_mux_command(cmd, 'SENSOR', None, func, desc=desc)
-            except config.error:
-                pass
+        gcode.register_mux_command(cmd, 'SENSOR', self.name, func, desc=desc)
+        try:
+            # The first sensor also answers commands without SENSOR=
+            gcode.register_mux_command(cmd, 'SENSOR', None, func, desc=desc)
+        except config.error:
+            pass
 
     # --- setup ---------------------------------------------------------------
     def _handle_connect(self):
@@ -149,10 +157,10 @@ class FlowSensor:
 
     def hotend_reading(self, eventtime):
         """(temperature degC, heater power 0..1) of the hotend the sensor's
-        windows are stamped with: the heater's, or the twin's hotend."""
+        windows are stamped with, as its source reads them."""
         return self.source.temp_c(eventtime), self.source.power(eventtime)
 
-    # --- sample path (both sources, on the reactor) --------------------------
+    # --- sample path (from the source, on the reactor) ------------------------
     def process(self, messages):
         """Feed (sequence, payload) pairs from the source to the pipeline
         and hand on what it made."""
@@ -358,16 +366,6 @@ class FlowSensor:
             f" {old_cal:.5f} -> {change.calibration:.5f} (in use now)"]
             + report))
 
-    cmd_SET_FLOW_SENSOR_SIMULATION_help = "Make the simulated sensor misbehave"
-
-    def cmd_SET_FLOW_SENSOR_SIMULATION(self, gcmd):
-        fault = gcmd.get('FAULT', 'none').lower()
-        try:
-            self.source.set_fault(None if fault == 'none' else fault)
-        except FlowloopError as e:
-            raise gcmd.error(str(e)) from None
-        gcmd.respond_info(f"flow_sensor {self.name}: simulated fault {fault}")
-
     def _reversed_message(self, error):
         other = 'reverse' if self.direction_sign > 0 else 'forward'
         return (f"flow_sensor {self.name}: {error}; set direction: {other}"
@@ -414,9 +412,13 @@ class ExtruderMotion(fl_pipeline.Motion):
         return sensor.source.temp_c(sensor.reactor.monotonic())
 
 
-SOURCES = {'ems22': Ems22Source, 'simulated': SimulatedSource}
+SOURCES = {'ems22': Ems22Source}
 number = flowloop_host.gcode_number
 
 
 def load_config_prefix(config):
-    return FlowSensor(config)
+    if config.get('sensor_type', None) == 'simulated':
+        raise klipper_config.option_error(
+            config, 'sensor_type', klipper_config.simulated_sensor_moved(
+                config.get_name()))
+    return FlowSensor(config, config.getchoice('sensor_type', SOURCES))

@@ -247,7 +247,7 @@ def test_reaction_time_to_a_step_drop_in_grip(klipper_build, klippy_venv, bench,
     workdir = stack.short_tempdir("fl-react-")
     config = workdir / "printer.cfg"
     config.write_text(f"[include {HERE / 'flowrate_limiter_reaction.cfg'}]\n"
-                      f"[flow_sensor sim]\ngrip_window: {grip_window_mm}\n")
+                      f"[flow_sensor_simulation sim]\ngrip_window: {grip_window_mm}\n")
     klippy = stack.Klippy(klipper_build, klippy_venv, config, workdir,
                           {"mcu": "atmega2560"}, realtime=True)
     try:

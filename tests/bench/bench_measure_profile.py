@@ -43,7 +43,7 @@ STEP_LINE = re.compile(r"level (\d+)/\d+ \([^)]*\): flow ([\d.]+) mm\^3/s"
                        r" for ([\d.]+) s: grip")
 CONFIG = f"""[include {stack.PROJECT / 'tests/klippy/measure_profile.cfg'}]
 
-[flow_sensor sim]
+[flow_sensor_simulation sim]
 noise_counts: 3
 seed: {{seed}}
 

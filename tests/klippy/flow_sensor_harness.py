@@ -1,9 +1,10 @@
 """klippy as the flow_sensor tests need it: run in place of klippy.py (cwd:
 the Klipper tree) for the runs test_flow_sensor.py makes with `Harnessed`.
 
-- Every [flow_sensor] gets a subscriber that logs each grip window it
-  delivers through subscribe_grip_windows ("GRIP_WINDOW {json}"), as another
-  flowloop section would receive it, with the thread it arrived on.
+- Every flow sensor ([flow_sensor], [flow_sensor_simulation]) gets a
+  subscriber that logs each grip window it delivers through
+  subscribe_grip_windows ("GRIP_WINDOW {json}"), as another flowloop section
+  would receive it, with the thread it arrived on.
 - Every ems22 sensor gets FLOW_SENSOR_FEED SENSOR= SEQUENCE= DATA=(hex)
   [SYNC=1]: the payload goes to the callback the sensor registered with the
   MCU's serial reader for sensor_bulk_data (what the serial thread calls),
@@ -14,6 +15,8 @@ the Klipper tree) for the runs test_flow_sensor.py makes with `Harnessed`.
 - With FLOW_SENSOR_PROFILE=1 in the environment, the CPU time spent in each
   sensor's process() (decode, timing, commanded positions, grip) is summed
   and printed at exit: "PROCESS_CPU name seconds samples calls".
+- When klippy is ready the log says which modules named *twin it imported
+  ("TWIN_MODULES ..." or "TWIN_MODULES none").
 """
 
 import atexit
@@ -33,12 +36,15 @@ if os.path.isfile(os.path.join(os.getcwd(), "klippy", "plugins", "__init__.py"))
     sys.path.insert(0, os.getcwd())
     import klippy.extras.bulk_sensor as bulk_sensor  # noqa: E402
     import klippy.plugins.flow_sensor as flow_sensor  # noqa: E402
+    import klippy.plugins.flow_sensor_simulation as simulation  # noqa: E402
 else:
     sys.path.insert(0, os.path.dirname(KLIPPY))
     import extras.bulk_sensor as bulk_sensor  # noqa: E402
     import extras.flow_sensor as flow_sensor  # noqa: E402
+    import extras.flow_sensor_simulation as simulation  # noqa: E402
 
-load_config_prefix = flow_sensor.load_config_prefix
+LOADERS = {flow_sensor: flow_sensor.load_config_prefix,
+           simulation: simulation.load_config_prefix}
 
 
 def subscribe(sensor):
@@ -90,16 +96,28 @@ def profile(sensor):
         f" {totals['calls']}\n"))
 
 
-def load_for_tests(config):
-    sensor = load_config_prefix(config)
-    if os.environ.get("FLOW_SENSOR_PROFILE"):
-        profile(sensor)    # no logging subscriber in the measured time
-    else:
-        subscribe(sensor)
-    if isinstance(sensor.source, flow_sensor.Ems22Source):
-        add_feed(config, sensor)
-    return sensor
+def loaded_for_tests(load_config_prefix):
+    def load_for_tests(config):
+        sensor = load_config_prefix(config)
+        if os.environ.get("FLOW_SENSOR_PROFILE"):
+            profile(sensor)    # no logging subscriber in the measured time
+        else:
+            subscribe(sensor)
+        if isinstance(sensor.source, flow_sensor.Ems22Source):
+            add_feed(config, sensor)
+        config.get_printer().register_event_handler("klippy:ready",
+                                                    log_twin_imported)
+        return sensor
+    return load_for_tests
 
 
-flow_sensor.load_config_prefix = load_for_tests
+def log_twin_imported():
+    # Once every section is loaded: a printer without
+    # [flow_sensor_simulation] never imports the twin
+    twins = sorted(name for name in sys.modules if name.endswith("twin"))
+    logging.info("TWIN_MODULES %s", " ".join(twins) or "none")
+
+
+for module, load in LOADERS.items():
+    module.load_config_prefix = loaded_for_tests(load)
 runpy.run_path(KLIPPY, run_name="__main__")

@@ -113,7 +113,7 @@ def test_calibration_with_slipping_speeds_changes_nothing(klipper_build,
         config=HERE / "flow_sensor_sim.cfg", should_fail=True)
     log = run_file(test, klipper_build, klippy_venv, short_tmp)
     assert "the speeds disagree by more than 2.00%; calibration unchanged" in log
-    assert "save_config: set [flow_sensor sim]" not in log
+    assert "save_config: set [flow_sensor" not in log
 
 
 def test_a_reversed_sensor_is_named_in_calibration(klipper_build, klippy_venv,
@@ -123,12 +123,43 @@ def test_a_reversed_sensor_is_named_in_calibration(klipper_build, klippy_venv,
         short_tmp, "reversed", "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=210\n"
         "CALIBRATE_FLOW_SENSOR SENSOR=cal LENGTH=5 SPEEDS=1,2\n",
         cfg=f"[include {HERE / 'flow_sensor_cal.cfg'}]\n"
-            "[flow_sensor cal]\ndirection: reverse\n", should_fail=True)
+            "[flow_sensor_simulation cal]\ndirection: reverse\n",
+        should_fail=True)
     log = run_file(test, klipper_build, klippy_venv, short_tmp)
     assert ("the sensor counts backwards (ratio -1.0" in log
-            and "set direction: forward in [flow_sensor cal]; calibration"
+            and "set direction: forward in [flow_sensor_simulation cal];"
+            " calibration"
             " unchanged" in log)
-    assert "save_config: set [flow_sensor cal]" not in log
+    assert "save_config: set [flow_sensor" not in log
+
+
+def test_only_a_simulation_section_imports_the_twin(klipper_build, klippy_venv,
+                                                    short_tmp):
+    def twin_modules(name, config):
+        (short_tmp / name).mkdir()   # a log of its own
+        _, test = write_test(short_tmp / name, name, "QUERY_FLOW_SENSOR\n",
+                             config=HERE / config)
+        log = run_file(test, Harnessed(klipper_build), klippy_venv,
+                       short_tmp / name)
+        return log, log.split("TWIN_MODULES ", 1)[1].split("\n", 1)[0].split()
+
+    # A printer with a real sensor never imports the simulated sensor's code
+    assert twin_modules("real", "flow_sensor.cfg")[1] == ["none"]
+    # [flow_sensor_simulation sim] does, and is the flow sensor "sim"
+    log, twins = twin_modules("sim", "flow_sensor_sim.cfg")
+    assert "flowloop.sensor.twin" in twins
+    assert any(name.endswith("flow_sensor_simulation.twin") for name in twins)
+    assert "flow_sensor sim: grip not judged" in log
+
+
+def test_a_simulation_and_a_real_sensor_of_one_name_are_refused(
+        klipper_build, klippy_venv, short_tmp):
+    _, test = write_test(
+        short_tmp, "clash", cfg=f"[include {HERE / 'flow_sensor_sim.cfg'}]\n"
+        "[flow_sensor sim]\nsensor_type: ems22\ncs_pin: PG0\n", should_fail=True)
+    log = run_file(test, klipper_build, klippy_venv, short_tmp)
+    assert ("Section [flow_sensor_simulation sim]: [flow_sensor sim] exists too;"
+            " a simulated sensor and a real one need names of their own") in log
 
 
 def test_pressure_advance_at_corners_is_not_a_retraction(klipper_build,

@@ -31,7 +31,7 @@ max_temp: 110
 #*# <---------------------- SAVE_CONFIG ---------------------->
 #*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.
 #*#
-#*# [flow_sensor sim]
+#*# [flow_sensor_simulation sim]
 #*# heater_power = 40
 #*#
 #*# [extruder]
@@ -41,8 +41,7 @@ max_temp: 110
 FLOWLOOP_CFG = """\
 [flowloop]
 
-[flow_sensor sim]
-sensor_type: simulated
+[flow_sensor_simulation sim]
 
 [flowrate_limiter]
 max_flow: 8
@@ -110,7 +109,8 @@ def test_uninstall_leaves_a_printer_cfg_klippy_starts_with(klipper_build,
     # the SAVE_CONFIG block's flowloop section is commented out inside it,
     # its other sections kept as SAVE_CONFIG wrote them
     text = main.read_text()
-    assert "#*# #[flow_sensor sim]" in text and "#*# [flow_sensor sim]" not in text
+    assert ("#*# #[flow_sensor_simulation sim]" in text
+            and "#*# [flow_sensor_simulation sim]" not in text)
     assert "#*# [extruder]\n#*# pid_kp = 22.200" in text
 
     install.apply(install.plan_printer_cfg(config_dir, stack.PROJECT))

@@ -91,7 +91,8 @@ def test_a_missing_link_is_named_with_flowloop_install(klipper_build, klippy_ven
                                                        moonraker_venv, capsys):
     where = stack.short_tempdir("fl-doc-tree-")
     try:
-        broken = copy_tree_without(klipper_build, "flow_sensor", where)
+        broken = copy_tree_without(klipper_build, "flow_sensor_simulation",
+                                   where)
         with stack.printer_stack(build=broken, klippy_ready=False) as ps:
             assert klippy_connected(ps)
             code, lines = doctor(ps, moonraker_venv, capsys)
@@ -100,12 +101,13 @@ def test_a_missing_link_is_named_with_flowloop_install(klipper_build, klippy_ven
     assert code == 1
     assert lines["links"].startswith("FAIL links: flowloop is not installed from"
                                      " this checkout: install would link")
-    assert "klippy/extras/flow_sensor ->" in lines["links"]
+    assert "klippy/extras/flow_sensor_simulation ->" in lines["links"]
     assert "fix: run flowloop install" in lines["links"]
-    # klippy cannot load [flow_sensor sim] without its module: said in its words
+    # klippy cannot load [flow_sensor_simulation sim] without its module:
+    # said in its words
     assert lines["config"].startswith(
-        "FAIL config: klippy stopped (error): Section 'flow_sensor sim' is not a"
-        " valid config section; fix:")
+        "FAIL config: klippy stopped (error): Section 'flow_sensor_simulation"
+        " sim' is not a valid config section; fix:")
 
 
 def test_firmware_without_the_sensor_command_gives_the_menuconfig_step(
@@ -136,14 +138,14 @@ def test_an_invalid_section_is_quoted_with_klippys_message(
         klipper_build, klippy_venv, moonraker_venv, capsys, short_tmp):
     cfg = short_tmp / "bad.cfg"
     cfg.write_text(f"[include {stack.PROJECT}/config/printer.cfg]\n\n"
-                   "[flow_sensor sim]\nsample_period: 5\n")
+                   "[flow_sensor_simulation sim]\nsample_period: 5\n")
     with stack.printer_stack(printer_cfg=cfg, klippy_ready=False) as ps:
         assert klippy_connected(ps)
         code, lines = doctor(ps, moonraker_venv, capsys)
     assert code == 1
     line = lines["config"]
     assert line.startswith("FAIL config: klippy stopped (error):")
-    assert "'sample_period' in section 'flow_sensor sim'" in line
+    assert "'sample_period' in section 'flow_sensor_simulation sim'" in line
     assert "fix: correct printer.cfg" in line
 
 

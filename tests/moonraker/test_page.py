@@ -35,7 +35,7 @@ EXCERPT = PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
 PRINTER_CFG = """\
 [include {project}/config/printer.cfg]
 
-[flow_sensor sim]
+[flow_sensor_simulation sim]
 heater_power: 40
 
 [flowrate_limiter]
@@ -524,7 +524,7 @@ min_extrude_temp: 0
 mode: static
 
 # a strong heater: the twin's nozzle is hot enough to melt within seconds
-[flow_sensor sim]
+[flow_sensor_simulation sim]
 heater_power: 150
 
 # realtime klippy has no endstops that answer: homing declares the position

@@ -29,8 +29,7 @@ def healthy(**changes) -> doctor.Facts:
                  "flow_sensor sim": {"samples": 1200, "sample_rate": 250.0,
                                      "fault": None, "errors": {}},
                  "configfile": {"settings": {
-                     "flow_sensor sim": {"sensor_type": "simulated",
-                                         "extruder": "extruder"}}}},
+                     "flow_sensor_simulation sim": {"extruder": "extruder"}}}},
         klipper_tree_checked=True, install_pending=())
     return dataclasses.replace(facts, **changes)
 

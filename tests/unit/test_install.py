@@ -792,7 +792,8 @@ def printer_cfg(config_dir):
     (config_dir / "printer.cfg").write_text(PRINTER_CFG)
     (config_dir / "extras").mkdir()
     (config_dir / "extras" / "flow.cfg").write_bytes(
-        b"[autotemp]\r\nextruder: extruder\r\n\r\n[heater_bed]\r\nmax_temp: 100"
+        b"[autotemp]\r\nextruder: extruder\r\n\r\n[flow_sensor_simulation demo]"
+        b"\r\nmelt_flow: 10\r\n\r\n[heater_bed]\r\nmax_temp: 100"
         b"\r\n\r\n[measure_profile]")  # no newline at the end
     (config_dir / "extras" / "other.cfg").write_text("[fan]\npin: PA8\n")
     return config_dir / "printer.cfg"
@@ -809,7 +810,7 @@ def test_uninstall_comments_out_flowloop_sections_everywhere_and_install_restore
         klipper_tree, printer_cfg, capsys):
     config_dir = printer_cfg.parent
     before = snapshot(config_dir)
-    assert len(flowloop_sections_klippy_reads(printer_cfg)) == 6
+    assert len(flowloop_sections_klippy_reads(printer_cfg)) == 7
     where = ("--klipper", str(klipper_tree), "--config-dir", str(config_dir),
              "--no-moonraker")
     assert run_install(*where) == 0
@@ -829,7 +830,8 @@ def test_uninstall_comments_out_flowloop_sections_everywhere_and_install_restore
     assert b"\n" not in flow.replace(b"\r\n", b"")  # still CRLF
     assert f"comment out [flowloop], [flow_sensor filament], [diff_ab_calibrate]," \
            f" [flowrate_limiter] in {printer_cfg}" in out
-    assert "[autotemp], [measure_profile]" in out
+    # the simulated sensor's own section too: its module is linked and gone
+    assert "[autotemp], [flow_sensor_simulation demo], [measure_profile]" in out
     assert len(list(config_dir.rglob("*" + install.BACKUP_SUFFIX + "*"))) == 2
     assert not list(config_dir.rglob("*.cfg" + install.BACKUP_SUFFIX))
     # twice: nothing more to do

@@ -97,7 +97,14 @@ def config_options(path: Path, tree: ast.AST) -> Set[str]:
         called = _called_name(node)
         names.update(HELPER_OPTIONS.get(called or "", ()))
         func = node.func
-        if (isinstance(func, ast.Attribute) and isinstance(func.value, ast.Name)
+        if called == "finite_float" and len(node.args) > 1:
+            # flowloop's float reader: finite_float(config, 'name', ...)
+            names.add(_str(node.args[1]))
+        elif (isinstance(func, ast.Name) and func.id == "getfloat"
+              and node.args and _str(node.args[0]) is not None):
+            # its short name, functools.partial(finite_float, config)
+            names.add(_str(node.args[0]))
+        elif (isinstance(func, ast.Attribute) and isinstance(func.value, ast.Name)
                 and func.value.id == "config" and CONFIG_GETTER.match(func.attr)):
             name = _str(node.args[0]) if node.args else None
             assert name is not None, (
@@ -415,9 +422,20 @@ def anchors(text: str) -> Set[str]:
 # --- the checks ---------------------------------------------------------------
 
 
+# A section built on another's object ([flow_sensor_simulation NAME] is the
+# flow sensor [flow_sensor NAME] on the twin): its own tables list what it
+# adds; the options, commands and status it shares are the other's rows.
+BUILT_ON = {"flow_sensor_simulation": "flow_sensor"}
+
+
+def klippy_body(doc: str, module: str, prefix: bool) -> Optional[str]:
+    name = f"[{module} NAME]" if prefix else f"[{module}]"
+    return section(doc, re.compile(re.escape(f"`{name}` (klippy)") + "$"))
+
+
 def klippy_problems(doc: str, sec: KlippySection) -> List[str]:
     name = f"[{sec.module} NAME]" if sec.prefix else f"[{sec.module}]"
-    body = section(doc, re.compile(re.escape(f"`{name}` (klippy)") + "$"))
+    body = klippy_body(doc, sec.module, sec.prefix)
     if body is None:
         return [f"no heading '## `{name}` (klippy)'"]
     where = f"{name}:"
@@ -446,7 +464,9 @@ def klippy_problems(doc: str, sec: KlippySection) -> List[str]:
         problems.append(f"{where} G-code table has `{command}`, the code has no such "
                         "command")
     if sec.status is not None:
-        status = first_cell_names(subsection(body, "Status"))
+        status_body = body if sec.module not in BUILT_ON else klippy_body(
+            doc, BUILT_ON[sec.module], sec.prefix)
+        status = first_cell_names(subsection(status_body, "Status"))
         for field in sorted(sec.status - set(status)):
             problems.append(f"{where} status field `{field}` not in its Status table")
         for field in sorted(set(status) - sec.status):
@@ -580,11 +600,13 @@ def test_the_code_facts_are_found(facts):
     by_module = {s.module: s for s in sections}
     sensor = by_module["flow_sensor"]
     assert sensor.prefix and not by_module["diff_ab_calibrate"].prefix
-    assert {"QUERY_FLOW_SENSOR", "SET_FLOW_SENSOR_SIMULATION"} <= \
-        set(sensor.commands)
+    simulation = by_module["flow_sensor_simulation"]
+    assert "QUERY_FLOW_SENSOR" in sensor.commands and simulation.prefix
+    assert set(simulation.commands) == {"SET_FLOW_SENSOR_SIMULATION"}
     assert {"SENSOR", "LENGTH", "SPEEDS", "MAX_SPREAD"} <= \
         sensor.commands["CALIBRATE_FLOW_SENSOR"].params
-    assert {"cs_pin", "spi_speed", "sensor_type", "seed"} <= sensor.options
+    assert {"cs_pin", "spi_speed", "sensor_type"} <= sensor.options
+    assert "seed" in simulation.options and "seed" not in sensor.options
     assert "kinematics" not in by_module["diff_ab_calibrate"].options
     assert "FORCE" in by_module["diff_ab_calibrate"].commands[
         "DIFF_AB_CALIBRATE"].params

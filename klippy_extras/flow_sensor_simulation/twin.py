@@ -1,9 +1,15 @@
-# [flow_sensor NAME] with sensor_type: simulated: a host-side twin of the
-# EMS22 (flowloop.sensor.twin) that turns the extruder stepper's real steps
-# into the payloads an MCU would send, fed to the same pipeline as the real
-# sensor's (the package's __init__ loads it).
+# [flow_sensor_simulation NAME]: a host-side twin of the EMS22
+# (flowloop.sensor.twin) that turns the extruder stepper's real steps into
+# the payloads an MCU would send, fed to the same pipeline as the real
+# sensor's (flow_sensor's FlowSensor); registered as [flow_sensor NAME] too,
+# with SET_FLOW_SENSOR_SIMULATION (the package's __init__ loads it).
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
+# flow_sensor first: it imports the shared module, which turns a requirement
+# of the core missing from klippy's Python into a config error
+from ..flow_sensor import FlowSensor
+
+# isort: split
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
 from flowloop.host.klipper_config import option_error
@@ -20,6 +26,24 @@ else:   # Klipper's klippy/extras/
     import chelper
 
 PLANNED_NEVER = 1e99   # print time past every planned move
+
+
+def load_simulated_sensor(config):
+    """The flow sensor [flow_sensor NAME] on the twin, for the section
+    [flow_sensor_simulation NAME]."""
+    section = config.get_name()
+    sensor_name = 'flow_sensor ' + section.split()[-1]
+    if config.has_section(sensor_name):
+        raise config.error(
+            f"Section [{section}]: [{sensor_name}] exists too; a simulated"
+            f" sensor and a real one need names of their own")
+    sensor = FlowSensor(config, SimulatedSource)
+    config.get_printer().add_object(sensor_name, sensor)
+    source = sensor.source
+    sensor.register_command('SET_FLOW_SENSOR_SIMULATION',
+                            source.cmd_SET_FLOW_SENSOR_SIMULATION,
+                            source.cmd_SET_FLOW_SENSOR_SIMULATION_help, config)
+    return sensor
 
 
 class SimulatedSource:
@@ -195,10 +219,21 @@ class SimulatedSource:
         self.catch_up(until)
 
     def set_fault(self, fault):
-        """SET_FLOW_SENSOR_SIMULATION: the twin misbehaves from now on
-        (None: it stops); FlowloopError names an unknown fault."""
+        """The twin misbehaves from now on (None: it stops); FlowloopError
+        names an unknown fault."""
         self.catch_up()
         self.twin.set_fault(fault)
+
+    cmd_SET_FLOW_SENSOR_SIMULATION_help = "Make the simulated sensor misbehave"
+
+    def cmd_SET_FLOW_SENSOR_SIMULATION(self, gcmd):
+        fault = gcmd.get('FAULT', 'none').lower()
+        try:
+            self.set_fault(None if fault == 'none' else fault)
+        except FlowloopError as e:
+            raise gcmd.error(str(e)) from None
+        gcmd.respond_info(
+            f"flow_sensor {self.sensor.name}: simulated fault {fault}")
 
 
 class StepClock:
