@@ -14,6 +14,11 @@
 # all (klippy_extras/flowloop.py ToolMoves).
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
+# The shared module first: it turns a requirement of the core missing from
+# klippy's Python into a config error
+from . import flowloop as flowloop_host
+
+# isort: split
 from flowloop.control import autotemp as fl_autotemp
 from flowloop.control import caps as fl_caps
 from flowloop.control import tools as fl_tools
@@ -24,8 +29,6 @@ from flowloop.host.klipper_config import (
     option_error,
 )
 from flowloop.material.active import working_point_arg
-
-from . import flowloop as flowloop_host
 
 DEFAULTS = HotendParams()
 

@@ -11,11 +11,14 @@
 import functools
 import re
 
+# The shared module first: it turns a requirement of the core missing from
+# klippy's Python into a config error
+from . import flowloop as flowloop_host
+
+# isort: split
 from flowloop.calibrate import diff_ab
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
-
-from . import flowloop as flowloop_host
 
 # stepper_x, stepper_x1, ... all move with motor A (X on cartesian)
 AXIS_STEPPER_RE = {axis: re.compile(re.escape(name) + r'\d*$')

@@ -11,11 +11,14 @@ import collections
 import functools
 import logging
 
+# The shared module first: it turns a requirement of the core missing from
+# klippy's Python into a config error
+from . import flowloop as flowloop_host
+
+# isort: split
 from flowloop.calibrate import delta
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
-
-from . import flowloop as flowloop_host
 
 try:    # klippy/extras/ (Klipper)
     from . import probe

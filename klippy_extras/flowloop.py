@@ -6,9 +6,31 @@
 # reads it (printer.objects.query flowloop) for /server/flowloop/info and
 # sends the active profiles through the flowloop/set_active_profile endpoint.
 #
+# Every flowloop module imports this one before the core: a core or a
+# requirement of it (numpy...) missing from klippy's Python is then one config
+# error naming what to install, as Klipper does for numpy, not an internal
+# error at the first import of numpy.
+#
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import logging
+import os
+import sys
 
+if (__package__ or '').startswith('klippy.'):   # Kalico: klippy.plugins
+    from .. import configfile
+else:   # Klipper: klippy/ is on the path
+    import configfile
+
+try:    # the core alone first: it imports only the standard library
+    from flowloop.host import requirements
+except ImportError:
+    raise configfile.error(
+        f"klippy's Python ({sys.executable}) has no flowloop: run"
+        f" {os.path.join(os.path.dirname(sys.executable), 'pip')} install"
+        f" klipper-flowloop (or pip install -e on a flowloop checkout)") from None
+if requirements.missing() is not None:
+    raise configfile.error(requirements.missing())
+# isort: split
 import flowloop
 from flowloop.control.tools import PerTool
 from flowloop.errors import FlowloopError

@@ -16,6 +16,11 @@
 # the extruder that prints; SET_/QUERY_FLOWRATE_LIMIT take EXTRUDER=.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
+# The shared module first: it turns a requirement of the core missing from
+# klippy's Python into a config error
+from . import flowloop as flowloop_host
+
+# isort: split
 from flowloop.control import caps as fl_caps
 from flowloop.control import limiter as fl_limiter
 from flowloop.control.hotend import nozzle_estimate_for
@@ -26,8 +31,6 @@ from flowloop.host.klipper_config import (
     option_error,
     option_message,
 )
-
-from . import flowloop as flowloop_host
 
 SETTING_FIELDS = {'max_flow': 'max_flow_mm3_s', 'mode': 'mode',
                   'min_grip': 'min_grip', 'min_speed_factor': 'min_speed_factor',

@@ -26,6 +26,11 @@
 import collections
 import logging
 
+# The shared module first: it turns a requirement of the core missing from
+# klippy's Python into a config error
+from .. import flowloop as flowloop_host
+
+# isort: split
 from flowloop.control import watchdog
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
@@ -38,7 +43,6 @@ from flowloop.sensor import grip as flow_grip
 
 # A package (this file and run.py): klippy/extras/measure_profile/ on
 # Klipper, klippy/plugins/measure_profile/ on Kalico
-from .. import flowloop as flowloop_host
 from .run import MeasurementStopped, Run
 
 number = flowloop_host.gcode_number
