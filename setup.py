@@ -14,7 +14,7 @@ from setuptools.command.build_py import build_py
 ROOT = Path(__file__).resolve().parent
 # folder -> the files of it a host loads (MANIFEST.in puts them in the sdist)
 HOST_FILES = {
-    "klippy_extras": ("*.py",),
+    "klippy_extras": ("**/*.py",),   # modules and packages (flow_sensor/)
     "moonraker_components": ("**/*.py",),
     "mcu_sensor": ("*.c", "*.h"),
 }

@@ -18,11 +18,12 @@ from pathlib import Path
 import pytest
 
 from devtools import stack
+from flowloop.host import install
 
 PROJECT = stack.PROJECT
 
 # folder -> the files a host loads from it; the wheel must carry each one
-HOST_FILES = {"klippy_extras": "*.py", "moonraker_components": "**/*.py",
+HOST_FILES = {"klippy_extras": "**/*.py", "moonraker_components": "**/*.py",
               "mcu_sensor": "*.[ch]"}
 SKIP = shutil.ignore_patterns(".git", ".venv", ".cache", "build", "dist",
                               "*.egg-info", "__pycache__", ".pytest_cache",
@@ -114,7 +115,11 @@ def test_an_installed_release_links_everything_a_checkout_links(dists, form,
             "--config-dir", config]
     out = _run([flowloop, *args], cwd=tmp_path)
     assert "pip install -U klipper-flowloop" in out
-    for module in (PROJECT / "klippy_extras").glob("*.py"):
+    # every module and package a checkout links (flow_sensor/,
+    # flow_sensor_simulation/, measure_profile/ too)
+    modules = install.klippy_modules(PROJECT)
+    assert {"flow_sensor", "flow_sensor_simulation"} <= {m.name for m in modules}
+    for module in modules:
         link = klipper / "klippy" / "extras" / module.name
         assert link.resolve() == (bundle / "klippy_extras" / module.name).resolve()
     # the MCU sources stay out of Klipper's checkout: flowloop firmware's copy
