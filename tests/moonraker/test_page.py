@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pytest
 
+from devtools import browser as browser_tools
 from devtools import stack
 from flowloop.gcode.annotate import annotate_file
 from tests.moonraker.conftest import stack_with_cfg
@@ -64,36 +65,11 @@ max_temp: 260
 """
 
 
-def _browser_missing():
-    try:
-        import selenium  # noqa: F401
-    except ImportError:
-        return "selenium is not installed (pip install -e '.[dev]')"
-    for name in ("chromium", "chromedriver"):
-        if shutil.which(name) is None:
-            return (f"{name} is not installed (Debian: apt-get install chromium "
-                    f"chromium-driver; .ci/run does it)")
-    return None
-
-
 def _chrome():
-    reason = _browser_missing()
+    reason = browser_tools.missing_reason()
     if reason:
         pytest.skip(reason)
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = shutil.which("chromium")
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu",
-                "--disable-dev-shm-usage", "--window-size=1400,1100",
-                "--no-first-run", "--disable-background-networking",
-                "--disable-component-update", "--disable-sync"):
-        options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs",
-                           {"browser": "ALL", "performance": "ALL"})
-    return webdriver.Chrome(options=options,
-                            service=Service(shutil.which("chromedriver")))
+    return browser_tools.chrome(1400, 1100, performance_log=True)
 
 
 @pytest.fixture(scope="module")

@@ -6,12 +6,12 @@ loud line."""
 
 from __future__ import annotations
 
-import shutil
 import sys
 from typing import Dict
 
 import pytest
 
+from devtools import browser as browser_tools
 from devtools import stack, ui
 from tests.moonraker.conftest import printer  # noqa: F401  (the shared stack)
 
@@ -62,25 +62,10 @@ class Served:
 def chrome():
     """Headless Chromium as tests/moonraker/test_page.py drives it (the
     browser's log kept for its JavaScript errors)."""
-    try:
-        from selenium import webdriver
-        from selenium.webdriver.chrome.service import Service
-    except ImportError:
-        pytest.skip("selenium is not installed (pip install -e '.[dev]')")
-    for name in ("chromium", "chromedriver"):
-        if shutil.which(name) is None:
-            pytest.skip(f"{name} is not installed (Debian: apt-get install "
-                        f"chromium chromium-driver)")
-    options = webdriver.ChromeOptions()
-    options.binary_location = shutil.which("chromium")
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu",
-                "--disable-dev-shm-usage", "--window-size=1400,1000",
-                "--no-first-run", "--disable-background-networking",
-                "--disable-component-update", "--disable-sync"):
-        options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    return webdriver.Chrome(options=options,
-                            service=Service(shutil.which("chromedriver")))
+    reason = browser_tools.missing_reason()
+    if reason:
+        pytest.skip(reason)
+    return browser_tools.chrome(1400, 1000)
 
 
 def pytest_terminal_summary(terminalreporter):

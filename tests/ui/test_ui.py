@@ -200,7 +200,7 @@ def details(driver, row) -> str:
     """The text of a Mainsail job's details dialog (opened by a click on the
     job's row)."""
     row.click()
-    dialog = stack.wait_until(lambda: _dialogs(driver), 5)
+    dialog = stack.wait_until(lambda: _dialogs(driver), 15)
     assert dialog, "no details dialog"
     return dialog[0].text
 
@@ -216,8 +216,12 @@ def test_the_jobs_figures_show_in_the_history(served, printer, browser, tmp_path
     go(browser, served, "/history")
     grip = figures(printer, printer.jobs["printed"])["lowest_grip"]["value"]
     if served.name == "mainsail":
-        rows = [row for row in browser.find_elements("css selector", "tbody tr")
-                if "block.gcode" in row.text]
+        def job_rows():
+            return [row for row in browser.find_elements("css selector", "tbody tr")
+                    if "block.gcode" in row.text]
+        # the table fills in as Mainsail's history answer arrives
+        stack.wait_until(lambda: len(job_rows()) >= len(printer.jobs), 20, 0.2)
+        rows = job_rows()
         assert len(rows) == len(printer.jobs), [r.text for r in rows]
         # the job from before flowloop (the oldest): its details open, none
         # of flowloop's figures in them
@@ -233,8 +237,11 @@ def test_the_jobs_figures_show_in_the_history(served, printer, browser, tmp_path
     else:
         # a column per figure, named by its description; the job from before
         # flowloop is a row of its own
+        count = f"1-{len(printer.jobs)} of {len(printer.jobs)}"
+        stack.wait_until(lambda: count in browser.find_element(
+            "css selector", "body").text, 20, 0.2)
         text = browser.find_element("css selector", "body").text
-        assert f"1-{len(printer.jobs)} of {len(printer.jobs)}" in text, text
+        assert count in text, text
         for figure in job_figures.FIGURES:
             assert figure.description.lower() in text.lower(), figure
     shot(browser, tmp_path, f"{served.name}-history")
