@@ -1,15 +1,23 @@
 """Flowrate limiter: what it saves, what it costs, on a real slicer file.
 
 - Under-extrusion and print time: the block excerpt (tests/data/gcode) on the
-  simulated sensor and hotend (tests/klippy/flowrate_limiter_bench.cfg: a
-  twin melting 70 % of what its optimistic profile says), limiter off,
-  reactive and predictive. Goal: predictive prevents >= 90 % of the
-  under-extrusion the uncapped run has, at a print-time cost below the
-  reactive mode's. The same run gives the same figures (the twin is seeded
-  and devtools.demo_flowrate_limiter.print_closed_loop syncs the sensor at
-  each chunk); besides the goal's ratio, the time each mode adds per mm of
+  simulated sensor and hotend, limiter off, reactive, predictive, and the
+  slip-free bound (a limiter told the twin's true capacity), on five
+  hotends (HOTENDS): the bench's own (a twin melting 70 % of what its
+  optimistic profile says, as tests/klippy/flowrate_limiter_bench.cfg) and
+  four the limiter was not tuned on, fixed before any tuning (issue 41): a
+  high-flow hotend, a worn nozzle, a noisy sensor (a slow high-mass one is
+  missing: the twin has no option for it). Goals: predictive prevents
+  >= 98 % of the under-extrusion the uncapped run has (issue 41, met on none
+  today: printed, not asserted; issue 30's 90 % is asserted) at a print
+  time within the slip-free bound's (asserted), and on the bench's hotend at
+  a print-time cost below the reactive mode's (not met). The same run gives
+  the same figures (the twin is seeded and
+  devtools.demo_flowrate_limiter.print_closed_loop syncs the sensor at each
+  chunk); besides the goals' ratios, the time each mode adds per mm of
   under-extrusion it prevents (reactive is faster partly because it lets the
-  feeder slip, and a slipping print runs at full speed).
+  feeder slip, and a slipping print runs at full speed). The table of
+  docs/flowrate_limiter.md is printed at the end.
 - The reactive rule against ddPrint's (linear in grip, no hysteresis) on the
   scenario of docs/flowrate_limiter.md (flowloop.control.rule_plot): a model,
   not a klippy run.
@@ -32,6 +40,8 @@ import resource
 import shutil
 import subprocess
 import threading
+from dataclasses import dataclass
+from typing import Tuple
 
 import numpy as np
 import pytest
@@ -45,23 +55,111 @@ from devtools.demo_flowrate_limiter import (
 )
 from devtools.klippy_api import KlippyApi
 from flowloop.control import rule_plot
+from flowloop.sensor.twin import DEFAULT_NOISE_COUNTS
 from tests.bench.size import FULL, pick
 from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps
 from tests.klippy.test_flowrate_limiter import AREA, CLOCK_HZ, HERE, gcode_extrusion
 
 
-def _scaled_profile(profile, scale):
+def _scaled_profile(profile, scale, name="truthful"):
     """The profile of a hotend melting `scale` of what `profile` says."""
     lines = {name: {**line, "flow_mm3_s": scale * line["flow_mm3_s"],
                     "slope_mm3_s_per_c": scale * line["slope_mm3_s_per_c"]}
              for name, line in profile["lines"].items()}
-    return {**profile, "identity": {**profile["identity"], "name": "truthful"},
+    return {**profile, "identity": {**profile["identity"], "name": name},
             "lines": lines}
 
 
+@dataclass(frozen=True)
+class Hotend:
+    """One simulated hotend of the bench print: the profile the limiter is
+    given (OPTIMISTIC_PROFILE times profile_scale), what the twin really
+    melts of it (melt_scale), the twin's other options, and the speed
+    factor (M220) the file is printed at."""
+    name: str
+    profile_scale: float = 1.0
+    melt_scale: float = 0.7
+    twin_options: Tuple[Tuple[str, str], ...] = ()
+    speed_percent: int = 100
+
+    @property
+    def profile(self):
+        return _scaled_profile(OPTIMISTIC_PROFILE, self.profile_scale,
+                               f"{self.name} profile")
+
+    @property
+    def true_profile(self):
+        """A profile that says exactly what this twin melts."""
+        return _scaled_profile(OPTIMISTIC_PROFILE,
+                               self.profile_scale * self.melt_scale,
+                               f"{self.name} truthful")
+
+    def config(self, tmp_path, melt_scale):
+        options = (("melt_scale", f"{melt_scale:g}"),) + self.twin_options
+        path = tmp_path / f"{self.name}-{melt_scale:g}.cfg".replace(" ", "_")
+        path.write_text(f"[include {HERE / 'flowrate_limiter_loop.cfg'}]\n"
+                        "[flow_sensor_simulation sim]\n"
+                        + "".join(f"{k}: {v}\n" for k, v in options))
+        return path
+
+    def gcode(self, gcode, tmp_path):
+        if self.speed_percent == 100:
+            return gcode
+        path = tmp_path / f"{self.name}.gcode".replace(" ", "_")
+        path.write_text(f"M220 S{self.speed_percent}\n" + gcode.read_text())
+        return path
+
+
+# The bench's own hotend (as tests/klippy/flowrate_limiter_bench.cfg: 40 W,
+# melting 70 % of its optimistic profile, 4.2 mm^3/s at 200 C), and the
+# hotends the limiter was not tuned on, fixed before any tuning (issue 41).
+# Not here: a slow high-mass hotend (its melt lag and heat capacity twice
+# the bench's): the twin takes neither as an option yet
+# (docs/flowrate_limiter.md, "Hotends it was not tuned on").
+BENCH_HOTEND = Hotend("bench")
+HOTENDS = (
+    BENCH_HOTEND,
+    # twice the bench's capacity (8.4 mm^3/s at 200 C) and heater, the
+    # file printed at twice its speeds so that it still asks for more
+    Hotend("high-flow", profile_scale=2.0,
+           twin_options=(("heater_power", "80"),), speed_percent=200),
+    # a worn nozzle: melts 15 % less than its profile says
+    Hotend("worn nozzle", melt_scale=0.85),
+    # the sensor's noise twice the datasheet's (twin.DEFAULT_NOISE_COUNTS)
+    Hotend("noisy sensor",
+           twin_options=(("noise_counts", f"{2 * DEFAULT_NOISE_COUNTS:g}"),)),
+)
+
 # The smoke run's print: the excerpt's first lines (homing and the start of
-# its first layer)
+# its first layer), on the bench's hotend and the held-out one whose set-up
+# differs most (its profile, heater and speed factor): every run of a
+# hotend takes 7 s however short the file, the warm-up included
 SMOKE_LINES = 400
+SMOKE_HOTENDS = HOTENDS[:2]
+RUN_NAMES = ("off", "reactive", "predictive", "knowing the capacity")
+
+
+def _print_hotend(hotend, gcode, build, venv, tmp_path):
+    """(under-extruded mm, print time s) of each run on this hotend: the
+    limiter off, reactive, predictive, and the slip-free bound: the same
+    twin under the temperature cap alone on a profile that says exactly
+    what it melts (a limiter that knows the capacity at every
+    temperature)."""
+    gcode = hotend.gcode(gcode, tmp_path)
+    commanded = gcode_extrusion(gcode)
+    given = hotend.config(tmp_path, hotend.melt_scale)
+    runs = ((0, hotend.profile, given, "predictive"),
+            (1, hotend.profile, given, "reactive"),
+            (1, hotend.profile, given, "predictive"),
+            (1, hotend.true_profile, hotend.config(tmp_path, 1.0), "temperature"))
+    results = {}
+    for name, (enable, profile, cfg, mode) in zip(RUN_NAMES, runs):
+        status, moved = print_closed_loop(enable, build, venv, profile, cfg,
+                                          mode, gcode)
+        results[name] = (commanded - moved, status["print_time"])
+        if name == "predictive":
+            results["model"] = status["model"]
+    return results
 
 
 def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
@@ -70,24 +168,33 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
     if not FULL:
         gcode = tmp_path / "smoke.gcode"
         gcode.write_text("\n".join(GCODE.read_text().splitlines()[:SMOKE_LINES]))
-    commanded = gcode_extrusion(gcode)
-    config = HERE / "flowrate_limiter_bench.cfg"
-    # The slip-free bound: the same twin (melt_scale 1 on a profile that says
-    # exactly what the bench's twin melts) under the temperature cap alone,
-    # a limiter that knows the hotend's capacity at every temperature
-    truthful = (_scaled_profile(OPTIMISTIC_PROFILE, 0.7),
-                HERE / "flowrate_limiter_loop.cfg", "temperature")
-    results = {}
-    for name, enable, (profile, cfg, mode) in (
-            ("off", 0, (OPTIMISTIC_PROFILE, config, "predictive")),
-            ("reactive", 1, (OPTIMISTIC_PROFILE, config, "reactive")),
-            ("predictive", 1, (OPTIMISTIC_PROFILE, config, "predictive")),
-            ("knowing the capacity", 1, truthful)):
-        status, moved = print_closed_loop(enable, klipper_build, klippy_venv,
-                                          profile, cfg, mode, gcode)
-        results[name] = (commanded - moved, status["print_time"])
-        bench.figure(f"limiter {name}: under-extruded", commanded - moved, " mm")
-        bench.figure(f"limiter {name}: print time", status["print_time"], " s")
+    table = {}
+    for hotend in pick(HOTENDS, SMOKE_HOTENDS):
+        results = table[hotend.name] = _print_hotend(
+            hotend, gcode, klipper_build, klippy_venv, tmp_path)
+        for name in RUN_NAMES:
+            lost, took = results[name]
+            bench.figure(f"{hotend.name}: limiter {name}: under-extruded",
+                         lost, " mm")
+            bench.figure(f"{hotend.name}: limiter {name}: print time", took, " s")
+        bench.figure(f"{hotend.name}: predictive's grip model at the end",
+                     results["model"]["capacity_mm3_s"], " mm^3/s at"
+                     f" {results['model']['ref_temp_c']:g} C")
+    _bench_hotend_ratios(bench, table[BENCH_HOTEND.name])
+    for name, r in table.items():
+        bench.ratio(f"{name}: predictive under-extrusion vs limiter off",
+                    r["predictive"][0], r["off"][0], " mm", goal="<= 0.02x")
+        bench.ratio(f"{name}: predictive print time vs the slip-free bound",
+                    r["predictive"][1], r["knowing the capacity"][1], " s",
+                    goal="<= 1.0x")
+    for line in _table(table):
+        bench.terminal.write_line(line)
+    if FULL:
+        _assert_goals_met_today(table)
+
+
+def _bench_hotend_ratios(bench, results):
+    """The bench hotend's figures against each other (issue 30's goals)."""
     lost_off, time_off = results["off"]
     for name in ("reactive", "predictive"):
         lost, took = results[name]
@@ -98,10 +205,11 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
                 results["reactive"][1], goal="< 1.0x")
     # What no slip costs at the least: predictive learns the capacity that
     # the bound is told
+    bound = results["knowing the capacity"][1]
     bench.ratio("predictive vs the slip-free bound: print time",
-                results["predictive"][1], results["knowing the capacity"][1])
+                results["predictive"][1], bound, goal="<= 1.0x")
     bench.ratio("reactive vs the slip-free bound: print time",
-                results["reactive"][1], results["knowing the capacity"][1])
+                results["reactive"][1], bound)
     # Reactive lets the feeder slip, and a slipping print runs at full speed:
     # the time each adds per mm of under-extrusion it prevents
     cost = {name: (results[name][1] - time_off) / (lost_off - results[name][0])
@@ -109,6 +217,33 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
     bench.ratio("predictive vs reactive: print time added per mm of"
                 " under-extrusion prevented", cost["predictive"], cost["reactive"],
                 " s/mm")
+
+
+def _table(table):
+    """The markdown table of docs/flowrate_limiter.md: under-extruded mm per
+    run, predictive's as a share of limiter-off (goal <= 0.02x), its print
+    time against the slip-free bound (goal <= 1.0x)."""
+    yield ("| hotend | off | reactive | predictive | knowing the capacity"
+           " | predictive / off | predictive time / bound |")
+    yield "| --- | --- | --- | --- | --- | --- | --- |"
+    for name, r in table.items():
+        lost = [r[run][0] for run in RUN_NAMES]
+        share = lost[2] / lost[0] if lost[0] > 0 else math.nan
+        time_share = r["predictive"][1] / r["knowing the capacity"][1]
+        yield (f"| {name} | " + " | ".join(f"{v:.2f} mm" for v in lost)
+               + f" | {share:.3f}x | {time_share:.3f}x |")
+
+
+def _assert_goals_met_today(table):
+    """Asserted where every hotend met it when the held-out ones were set up
+    (2026-11-29): predictive's print time within the slip-free bound's
+    (issue 41's goal, 0.983-0.997x) and its under-extrusion <= 0.10x of
+    limiter-off (issue 30's, 0.027-0.062x). Issue 41's <= 0.02x is met on
+    none of them: printed in the table, not asserted
+    (docs/flowrate_limiter.md says what it would take)."""
+    for name, r in table.items():
+        assert r["predictive"][1] <= r["knowing the capacity"][1], (name, r)
+        assert r["predictive"][0] <= 0.10 * r["off"][0], (name, r)
 
 
 def test_reactive_rule_against_ddprint_s(bench):
