@@ -3,6 +3,7 @@ of time, as AUTOTEMP_FLOW commands (flowloop.gcode.annotate)."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from typing import List
@@ -16,6 +17,7 @@ from ..gcode.annotate import (
     AnnotateSettings,
     annotate_file,
 )
+from ..gcode.melt import MELT_TIME_S
 from ..gcode.reference_planner import PrinterLimits, limits_from_config
 from .flags import with_flags
 from .paths import refuse_overwriting
@@ -54,6 +56,10 @@ def register(subparsers) -> None:
     p.add_argument("--window", type=float, default=DEFAULT_WINDOW_S, metavar="S",
                    help=f"length of the windows whose peak flow is announced "
                         f"(default {DEFAULT_WINDOW_S:g})")
+    p.add_argument("--melt-window", type=float, default=MELT_TIME_S, metavar="S",
+                   help=f"the time the flow is averaged over: bursts shorter"
+                        f" than it are announced as their mean (your hotend's"
+                        f" melt lag; docs/autotemp.md; default {MELT_TIME_S:g})")
     p.add_argument("--bake", type=Path, metavar="PROFILE.json",
                    help="write autotemp's targets for this material profile as"
                         " plain M104 S<target> instead of AUTOTEMP_FLOW (for a"
@@ -82,7 +88,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    settings = AnnotateSettings(lead_s=args.lead, window_s=args.window)
+    settings = AnnotateSettings(lead_s=args.lead, window_s=args.window,
+                                melt_s=args.melt_window)
     config = None
     if args.printer_cfg:
         from ..host.klipper_config import read_config
@@ -189,12 +196,33 @@ def bake_notes(result, printer_cfg, profile, wp: float) -> List[str]:
     if result.capped_by_heater:
         notes.append(f"targets capped at {cap} ({result.heater.source}), below"
                      f" the profile's {profile.bounds.max_temp_c:g} C")
+    if result.flat_line is not None:
+        notes.append(result.flat_line)
     if result.capped_windows:
         flow = max_volumetric_speed(profile, result.cap_c, wp)
-        notes.append(f"{result.capped_windows} windows need more than {cap}:"
+        which = (f"every window with flow ({result.capped_windows}) needs"
+                 if result.capped_windows >= result.flow_windows
+                 else f"{result.capped_windows} windows need")
+        notes.append(f"{which} more than {cap}:"
                      f" clamped there; the hotend melts {flow:.2f} mm^3/s there:"
                      f" slice with a max volumetric speed of {flow:.2f} mm^3/s,"
                      f" or let [flowrate_limiter] hold the flow")
+    if result.travel_tail_s:
+        from ..report.recorder import duration_text
+        notes.append(f"nothing is extruded in the last"
+                     f" {duration_text(result.travel_tail_s)} of the print (after"
+                     f" {duration_text(result.last_extrusion_s)}): the baked"
+                     f" targets fall to their minimum there")
+    if result.behind_s > 0.0:
+        from ..report.recorder import duration_text
+        rise = (f"up to {result.longest_rise_s:.0f} s"
+                if math.isfinite(result.longest_rise_s) else "longer")
+        notes.append(f"the modelled nozzle is behind the plan for"
+                     f" {duration_text(result.behind_s)} of the print: windows"
+                     f" are announced {result.lead_s:g} s ahead, and a rise from"
+                     f" the profile's minimum to {result.cap_c:g} C takes this"
+                     f" hotend {rise}: annotate"
+                     f" with --lead {result.lead_needed_s:g}")
     if result.brought_within:
         h = result.heater
         notes.append(f"{result.brought_within} of the file's own M104/M109"

@@ -48,10 +48,19 @@ DEFAULT_MARGIN_S = 0.5
 # Share of the heater's spare power a planned rise may use: the rest absorbs
 # what the model does not know (a flow a little above the window's peak).
 POWER_SHARE = 0.9
+# An announced flow may be this share below the mean flow it stands for
+# (flowloop.gcode.melt: its cells carry the higher of the means at their
+# ends, and between them the mean moves by up to CELL_S / MELT_TIME_S of
+# the flow): the need is that of the flow this much higher.
+FLOW_MARGIN = 0.005
+# A rise is counted to within this of max_temp (the targets' resolution),
+# and at most this many grid steps long (an hour).
+RISE_TOP_C = 0.01
+MAX_RISE_STEPS = 36000
+# The modelled nozzle this far below the plan is behind it.
+BEHIND_C = 1.0
 # Windows further back than this are forgotten.
 KEEP_S = 2.0
-# The modelled nozzle this far below the plan is behind it: full heat.
-BEHIND_C = 1.0
 DEFAULT_PARAMS = HotendParams()
 
 
@@ -120,19 +129,27 @@ class TemperaturePlan:
         self.margin_s = margin_s
         self.windows: List[FlowWindow] = []     # by start time
         self.capped_windows = 0                 # needing more than max_temp
+        self.flow_windows = 0                   # announced with flow
+        # print time the modelled nozzle was behind the plan (a rise
+        # announced later than it takes)
+        self.behind_s = 0.0
+        self._behind_from_s = -math.inf
         self.peak_flow_mm3_s = 0.0
         # the planned grid: index of its first point, nozzle temperatures
         self._first = 0
         self._nozzle: List[float] = []
-        # the nozzle as the targets set so far move it (the hotend model)
+        # the nozzle as the targets set so far move it (the hotend model),
+        # dead_time_s ahead of the last target set (at _model_set_s)
         self._model: Optional[HotendModel] = None
+        self._model_set_s = -math.inf
+        self._first_c: Optional[float] = None
 
     # --- inputs -------------------------------------------------------------
     def need_c(self, flow_mm3_s: float) -> float:
         """The temperature a flow needs, within the limits (min when idle)."""
         if flow_mm3_s <= 0.0:
             return self.limits.min_temp_c
-        return self.limits.clamp(self.line.temp_c(flow_mm3_s))
+        return self.limits.clamp(self.line.temp_c(flow_mm3_s * (1.0 + FLOW_MARGIN)))
 
     def announce(self, now_s: float, flow_mm3_s: float, lead_s: float,
                  duration_s: float) -> FlowWindow:
@@ -140,10 +157,13 @@ class TemperaturePlan:
         check_announcement(flow_mm3_s, lead_s, duration_s)
         start = now_s + lead_s
         window = FlowWindow(start, start + duration_s, flow_mm3_s)
-        if flow_mm3_s > 0.0 and self.line.temp_c(flow_mm3_s) \
-                > self.limits.max_temp_c:
-            self.capped_windows += 1
+        if flow_mm3_s > 0.0:
+            self.flow_windows += 1
+            if self.line.temp_c(flow_mm3_s) > self.limits.max_temp_c:
+                self.capped_windows += 1
         self.peak_flow_mm3_s = max(self.peak_flow_mm3_s, flow_mm3_s)
+        if self._model is None and self._first_c is None:
+            self._first_c = self.nozzle_c(now_s)
         keys = [w.start_s for w in self.windows]
         self.windows.insert(bisect.bisect_right(keys, start), window)
         self._forget(now_s - KEEP_S)
@@ -171,7 +191,11 @@ class TemperaturePlan:
                      math.ceil((w.end_s + self.margin_s) / GRID_S))
             if hi < lo:
                 continue
-            temp = self.need_c(w.flow_mm3_s)
+            # within RISE_TOP_C of max_temp at most: the lag reaches
+            # max_temp itself only asymptotically, so a plan at it would
+            # start every rise toward it as early as the windows are known
+            temp = min(self.need_c(w.flow_mm3_s),
+                       self.limits.max_temp_c - RISE_TOP_C)
             for k in range(lo - first, hi - first + 1):
                 if temp > need[k]:
                     need[k] = temp
@@ -203,6 +227,21 @@ class TemperaturePlan:
         by_power = later_c - GRID_S * POWER_SHARE * spare_w / p.heat_capacity_j_per_c
         return min(top, max(by_lag, by_power))
 
+    def longest_rise_s(self) -> float:
+        """How long the plan takes to bring the nozzle from min_temp to
+        within RISE_TOP_C of max_temp at the flow the line melts there,
+        dead time included: announcements must come at least that far ahead
+        of a window that needs max_temp, or the nozzle is late for it."""
+        limits = self.limits
+        flow = self.line.flow_mm3_s(limits.max_temp_c)
+        temp, steps = limits.max_temp_c - RISE_TOP_C, 0
+        while temp > limits.min_temp_c and steps < MAX_RISE_STEPS:
+            earlier = self._lowest_before(temp, flow)
+            if earlier >= temp:     # the heater cannot hold it: no rise ends
+                return math.inf
+            temp, steps = earlier, steps + 1
+        return steps * GRID_S + self.params.dead_time_s
+
     def nozzle_c(self, time_s: float) -> float:
         """The planned nozzle temperature at time_s (>= the need)."""
         k = math.floor(time_s / GRID_S) - self._first
@@ -213,35 +252,65 @@ class TemperaturePlan:
         return self._nozzle[k]
 
     def target_at(self, time_s: float, hold_s: float = GRID_S) -> float:
-        """The heater target to set at time_s and hold for hold_s: seen
-        dead_time_s later, it makes the lag follow the planned nozzle
-        temperature (at least) over the whole hold; in 0.01 degC."""
+        """The heater target to set at time_s and hold for hold_s: the lowest
+        that, seen dead_time_s later, keeps the nozzle at or above the
+        planned temperature over the whole hold, from where the hotend model
+        run on the targets set so far puts the nozzle then (a nozzle still
+        hot from a peak is not pushed as if it were at the plan; one behind
+        the plan gets the full target until it is back on it); in 0.01 degC."""
         p = self.params
         seen = time_s + p.dead_time_s
-        decay = math.exp(-GRID_S / p.time_constant_s)
-        best = self.limits.min_temp_c
-        # every grid step that starts within the hold (and the one after)
-        for i in range(max(1, math.ceil(hold_s / GRID_S)) + 1):
-            t = seen + i * GRID_S
-            now_c, next_c = self.nozzle_c(t), self.nozzle_c(t + GRID_S)
-            target = (next_c - now_c * decay) / (1.0 - decay)
-            best = max(best, target, next_c)
-        best = self._catch_up(time_s, best)
-        return round(self.limits.clamp(best), 2)
+        start_c = self._nozzle_when_seen(time_s)
+        if start_c < self.nozzle_c(seen) - BEHIND_C:
+            # until the next target (holds of successive targets overlap)
+            self.behind_s += min(hold_s, time_s - self._behind_from_s)
+        self._behind_from_s = time_s
+        best = -math.inf
+        # every grid step that ends within the hold (and the one after)
+        for j in range(1, max(1, math.ceil(hold_s / GRID_S)) + 2):
+            decay = math.exp(-j * GRID_S / p.time_constant_s)
+            want = self.nozzle_c(seen + j * GRID_S)
+            best = max(best, (want - start_c * decay) / (1.0 - decay))
+        # never below what the window the target acts in needs
+        best = max(best, self.need_c(self.flow_at(seen)))
+        target = round(self.limits.clamp(best), 2)
+        self._model.set_target(time_s, target)
+        return target
 
-    def _catch_up(self, time_s: float, target_c: float) -> float:
-        """Where the nozzle has fallen behind the plan (a rise announced
-        later than it takes), the full target until it is back on it: the
-        hotend model run on the targets set so far tells."""
+    def start_at(self, time_s: float, temp_c: float) -> None:
+        """The nozzle is at temp_c at time_s, held there until then (the
+        start G-code's wait): the model runs on from there."""
+        self._model = HotendModel(self.params, temp_c, time_s, temp_c)
+        self._model_set_s = time_s
+        self._first_c = None
+
+    def applied(self, time_s: float, target_c: float) -> None:
+        """The target last planned (at time_s) was set as target_c instead
+        (the bake's whole degree, rounded up): the model runs on it."""
+        if self._model is not None:
+            self._model.set_target(time_s, target_c)
+
+    def _nozzle_when_seen(self, time_s: float) -> float:
+        """The modelled nozzle temperature at time_s + dead_time_s, when a
+        target set at time_s starts to act: the model runs dead_time_s ahead
+        of the targets, on the targets set so far and the announced flow."""
         model = self._model
-        if model is None or time_s < model.time_s:
-            start = self.nozzle_c(time_s)
-            model = self._model = HotendModel(self.params, start, time_s, start)
-        model.advance(time_s, self.flow_at(time_s))
-        if model.temp_c < self.nozzle_c(time_s) - BEHIND_C:
-            target_c = self.limits.max_temp_c
-        model.set_target(time_s, target_c)
-        return target_c
+        seen = time_s + self.params.dead_time_s
+        if model is None or seen < model.time_s - 1e-9 \
+                or time_s < self._model_set_s:
+            # where the plan had the nozzle before its first window (a
+            # window announced too late finds it there), else on the plan
+            start = self._first_c if self._first_c is not None \
+                else self.nozzle_c(seen)
+            self._first_c = None
+            model = self._model = HotendModel(self.params, start, seen, start)
+        self._model_set_s = time_s
+        t = model.time_s
+        while t < seen - 1e-9:
+            step = min(seen, (math.floor(t / GRID_S + 1e-9) + 1) * GRID_S)
+            model.advance(step, self.flow_at(t))
+            t = step
+        return model.temp_c
 
     def flow_at(self, time_s: float) -> float:
         """The announced flow at time_s (0 where none)."""
@@ -262,6 +331,28 @@ def plan_for(profile: Profile, working_point: float,
     limits = TempLimits.of(profile, heater_max_temp_c, heater_min_temp_c)
     return TemperaturePlan(profile_line(profile, working_point), limits,
                            params, margin_s)
+
+
+# A line gaining less than this over the whole min..max range: the
+# temperature hardly changes what the hotend melts (the bench's ddPrint
+# profiles gain 6.3-8.6 mm^3/s over theirs).
+FLAT_GAIN_MM3_S = 1.0
+
+
+def flat_line_note(line: Line, limits: TempLimits) -> Optional[str]:
+    """One line when the melt line barely rises over the limits (None
+    otherwise): autotemp then plans max_temp wherever the flow is more than
+    min_temp melts, and can save little."""
+    low = line.flow_mm3_s(limits.min_temp_c)
+    high = line.flow_mm3_s(limits.max_temp_c)
+    if high - low >= FLAT_GAIN_MM3_S:
+        return None
+    return (f"the profile's line gains only {high - low:.2f} mm^3/s from"
+            f" {limits.min_temp_c:g} to {limits.max_temp_c:g} C ({low:.2f} to"
+            f" {high:.2f} mm^3/s): the temperature hardly changes what the"
+            f" hotend melts; any flow above {low:.2f} mm^3/s is planned up to"
+            f" {limits.max_temp_c:g} C, and autotemp saves little over a fixed"
+            f" temperature")
 
 
 # ---------------------------------------------------------------------------
@@ -422,6 +513,12 @@ class Autotemp:
             self.target_c, self.planned_flow_mm3_s = target, flow
             self.status = self._status()
         return target
+
+    def applied(self, time_s: float, target_c: float) -> None:
+        """The target from target_at(time_s) was set as target_c (a bake
+        rounds it up to a whole degree)."""
+        if self.active:
+            self.plan.applied(time_s, target_c)
 
     def on_flush(self, flush_s: float, heater_target_c: float,
                  printing: bool = True) -> Optional[float]:

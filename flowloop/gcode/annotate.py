@@ -54,6 +54,11 @@ READAHEAD_S = 1.0
 MIN_LEAD_S = 2.0
 MAX_LEAD_S = 120.0
 MIN_WINDOW_S = 0.1
+# The melt window's bounds: below MIN_MELT_S the 10 ms cells' error grows
+# past the plan's FLOW_MARGIN (flowloop.control.autotemp), beyond MAX_MELT_S
+# no hotend holds a burst's heat (docs/autotemp.md, The flow to melt).
+MIN_MELT_S = 0.25
+MAX_MELT_S = 2.0
 COMMAND = "AUTOTEMP_FLOW"
 # Moonraker reads this much of a file's head when it looks for a marker.
 HEADER_BYTES = 1024 * 1024
@@ -72,6 +77,8 @@ _READ_AT_ONCE = 1 << 17
 class AnnotateSettings:
     lead_s: float = DEFAULT_LEAD_S
     window_s: float = DEFAULT_WINDOW_S
+    # the time the flow is averaged over (flowloop.gcode.melt)
+    melt_s: float = MELT_TIME_S
 
     def __post_init__(self):
         if not (isinstance(self.lead_s, (int, float))
@@ -82,6 +89,10 @@ class AnnotateSettings:
                 and MIN_WINDOW_S <= self.window_s <= self.lead_s):
             raise FlowloopError(f"window must be {MIN_WINDOW_S:g} s to the lead"
                                 f" ({self.lead_s:g} s), not {self.window_s!r}")
+        if not (isinstance(self.melt_s, (int, float))
+                and MIN_MELT_S <= self.melt_s <= MAX_MELT_S):
+            raise FlowloopError(f"melt window must be {MIN_MELT_S:g} to"
+                                f" {MAX_MELT_S:g} s, not {self.melt_s!r}")
 
     @property
     def placement_s(self) -> float:
@@ -101,7 +112,7 @@ class Summary:
 def marker_line(settings: AnnotateSettings) -> str:
     return (f"; flowloop autotemp annotations v{FORMAT_VERSION}: {COMMAND} "
             f"FLOW=<peak mm^3/s> LEAD=<s> DURATION=<s>, lead {settings.lead_s:g} s,"
-            f" window {settings.window_s:g} s, melt {MELT_TIME_S:g} s")
+            f" window {settings.window_s:g} s, melt {settings.melt_s:g} s")
 
 
 def is_annotated(head: bytes) -> bool:
@@ -565,7 +576,7 @@ class Annotator:
 def feed(annotator: Annotator, events: Iterable[Union[Event, Segments]]) -> None:
     """The planner's events into an annotator, as the flow to melt
     (flowloop.gcode.melt), then its last windows closed."""
-    for event in melt_events(events):
+    for event in melt_events(events, annotator.settings.melt_s):
         if isinstance(event, Barrier):
             annotator.barrier(event)
         elif isinstance(event, Lines):

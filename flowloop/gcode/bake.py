@@ -38,12 +38,12 @@ import math
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import BinaryIO, List, Optional, Tuple
+from typing import BinaryIO, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 
 from .. import files
-from ..control.autotemp import DEFAULT_PARAMS, GRID_S, Autotemp
+from ..control.autotemp import DEFAULT_PARAMS, GRID_S, Autotemp, flat_line_note
 from ..control.hotend import HotendModel, HotendParams
 from ..errors import FlowloopError
 from ..material.profile import Profile
@@ -51,6 +51,7 @@ from .annotate import (
     COMMAND,
     FORMAT_VERSION,
     HEADER_BYTES,
+    MAX_LEAD_S,
     READAHEAD_S,
     AnnotateSettings,
     Annotator,
@@ -66,6 +67,9 @@ from .reference_planner import PrinterLimits
 from .start import LineFix, StartFix, StartHeat, find_start_heat, heat_at, start_fix
 
 BAKE_STEP_S = 0.5
+# Print time without extrusion after the last extruding move worth a note
+# (an end G-code's moves take seconds).
+TRAVEL_TAIL_S = 30.0
 _ANNOUNCEMENT = re.compile(
     COMMAND + r" FLOW=(?P<flow>[0-9.]+) LEAD=(?P<lead>[0-9.]+)"
     r" DURATION=(?P<duration>[0-9.]+)$")
@@ -98,6 +102,30 @@ class BakeResult:
     # profile's max_temp_c and the heater's max_temp
     capped_by_heater: bool = False   # the heater's max_temp is that cap
     brought_within: int = 0  # the file's own M104/M109 outside the heater's range
+    flow_windows: int = 0    # announced windows with flow
+    last_extrusion_s: Optional[float] = None  # print time the last extrusion ends
+    flat_line: Optional[str] = None  # the profile's line barely rises (a note)
+    behind_s: float = 0.0    # print time the modelled nozzle was behind the plan
+    longest_rise_s: float = 0.0  # the plan's rise from min to max temperature
+    lead_s: float = 0.0      # how far ahead the windows were announced
+
+    @property
+    def lead_needed_s(self) -> float:
+        """The lead that announces a window needing max_temp in time for the
+        longest rise (whole 10 s, within annotate's bounds)."""
+        if not math.isfinite(self.longest_rise_s):
+            return MAX_LEAD_S
+        return min(MAX_LEAD_S, max(
+            self.lead_s, 10.0 * math.ceil((self.longest_rise_s + READAHEAD_S) / 10.0)))
+
+    @property
+    def travel_tail_s(self) -> float:
+        """Print time after the last extrusion ends, where it is more than
+        TRAVEL_TAIL_S (0 otherwise)."""
+        if self.last_extrusion_s is None:
+            return 0.0
+        tail = self.print_time_s - self.last_extrusion_s
+        return tail if tail > TRAVEL_TAIL_S else 0.0
 
 
 class _Recorder(Annotator):
@@ -109,6 +137,7 @@ class _Recorder(Annotator):
         self.moves: List[Tuple[float, int]] = []       # (print time, offset)
         self.demand: List[float] = []                   # peak per GRID_S
         self.first_extrusion: Optional[Tuple[float, int]] = None  # (time, offset)
+        self.last_extrusion_s: Optional[float] = None   # when the last ends
 
     def emit(self, offset: int, time_s: float, line: str) -> None:
         self.commands.append((offset, time_s, line))
@@ -119,12 +148,14 @@ class _Recorder(Annotator):
             batch.offset[1:] != batch.offset[:-1])))
         self.moves.extend(zip(batch.start_s[new].tolist(),
                               batch.offset[new].tolist()))
-        if self.first_extrusion is None:
-            flowing = np.flatnonzero(batch.flow_mm3_s > 0.0)
-            if flowing.size:
+        flowing = np.flatnonzero(batch.flow_mm3_s > 0.0)
+        if flowing.size:
+            if self.first_extrusion is None:
                 k = int(flowing[0])
                 self.first_extrusion = (float(batch.start_s[k]),
                                         int(batch.offset[k]))
+            k = int(flowing[-1])
+            self.last_extrusion_s = float(batch.start_s[k] + batch.duration_s[k])
         super().lines(batch)
 
     def cells(self, cells: Cells) -> None:
@@ -177,31 +208,71 @@ def replay(commands: List[Tuple[int, float, str]], end_s: float,
     return targets
 
 
-def _placements(moves: List[Tuple[float, int]], targets: List[Optional[float]],
-                from_offset: int = 0, heater: Optional[HeaterRange] = None
-                ) -> List[Tuple[int, int]]:
-    """(byte offset, whole-degree target) of each M104 to write, at move
-    lines from byte from_offset on (within the heater's range, if known)."""
-    emit_at: List[Tuple[float, int]] = []
+class Placement(NamedTuple):
+    time_s: float    # print time of the move line the M104 goes before
+    offset: int      # that line's byte offset
+    target_c: int    # whole degrees
+
+
+def bake_schedule(commands: List[Tuple[int, float, str]],
+                  moves: List[Tuple[float, int]], controller: Autotemp,
+                  from_offset: int = 0, heater: Optional[HeaterRange] = None,
+                  start: Optional[Tuple[float, float]] = None
+                  ) -> List[Placement]:
+    """The M104 to write, at move lines from byte from_offset on, one every
+    BAKE_STEP_S of print time where the target changes. Klipper runs an
+    M104 up to READAHEAD_S before the move after it, and it holds until the
+    next one runs: each is the controller's target set READAHEAD_S early and
+    held until the next one's move, so the nozzle is on the plan whenever
+    in that span it runs, rounded up to a whole degree (within the heater's
+    range, if known); the controller's model is told the value written.
+    start: (print time, temperature) where the start G-code's wait leaves
+    the nozzle, if known."""
+    slots: List[Tuple[float, int]] = []
     for time_s, offset in moves:
         if offset < from_offset:
             continue
-        if not emit_at or time_s >= emit_at[-1][0] + BAKE_STEP_S:
-            emit_at.append((time_s, offset))
-    out: List[Tuple[int, int]] = []
+        if not slots or time_s >= slots[-1][0] + BAKE_STEP_S:
+            slots.append((time_s, offset))
+    out: List[Placement] = []
     last = None
-    for i, (time_s, offset) in enumerate(emit_at):
-        until = emit_at[i + 1][0] if i + 1 < len(emit_at) else time_s + BAKE_STEP_S
-        lo = max(0, math.floor((time_s - READAHEAD_S) / GRID_S))
-        hi = min(len(targets) - 1, math.ceil(until / GRID_S))
-        span = [x for x in targets[lo:hi + 1] if x is not None]
-        if not span:
+    i = 0
+    started = start is None
+    for k, (time_s, offset) in enumerate(slots):
+        until = slots[k + 1][0] if k + 1 < len(slots) else time_s + BAKE_STEP_S
+        set_s = max(0.0, time_s - READAHEAD_S)
+        while i < len(commands) and commands[i][1] <= set_s:
+            controller.announce(commands[i][1], *parse_announcement(commands[i][2]))
+            i += 1
+        if not started and controller.active:
+            # the wait's temperature, held until the first baked M104 can run
+            controller.plan.start_at(min(set_s, start[0]), start[1])
+            started = True
+        target = controller.target_at(set_s, until - set_s)
+        if target is None:
             continue
-        value = _whole(max(span), heater)
+        value = _whole(target, heater)
+        controller.applied(set_s, value)
         if value != last:
-            out.append((offset, value))
+            out.append(Placement(time_s, offset, value))
             last = value
     return out
+
+
+def schedule_targets(placements: List[Placement], end_s: float,
+                     early_s: float = READAHEAD_S) -> List[Optional[float]]:
+    """The baked targets on the GRID_S grid, each M104 acting early_s before
+    its move (None before the first)."""
+    targets: List[Optional[float]] = [None] * (math.ceil(end_s / GRID_S) + 1)
+    for p in placements:
+        k = max(0, math.ceil((p.time_s - early_s) / GRID_S - 1e-9))
+        if k < len(targets):
+            targets[k] = float(p.target_c)
+    held = None
+    for k, value in enumerate(targets):
+        held = value if value is not None else held
+        targets[k] = held
+    return targets
 
 
 def _whole(temp_c: float, heater: Optional[HeaterRange]) -> int:
@@ -277,17 +348,24 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
     if controller.plan is None:
         raise FlowloopError(f"{profile.name}: {controller.why}")
     end_s = rec.end_s + 1.0
-    targets = replay(rec.commands, end_s, controller)
-    timeline = Timeline(demand_mm3_s=rec.demand + [0.0] * max(
-        0, len(targets) - len(rec.demand)), target_c=targets)
-    known = [x for x in targets if x is not None]
     fix, from_s = _start(src, rec, params, heater, profile, working_point,
                          newline)
+    placements = bake_schedule(
+        rec.commands, rec.moves, controller, fix.end if fix is not None else 0,
+        heater, None if fix is None else (from_s, float(fix.start_c)))
+    # the M104 act up to READAHEAD_S early: the modelled run is the worse
+    # of the two ends
+    early = schedule_targets(placements, end_s)
+    late = schedule_targets(placements, end_s, 0.0)
+    known = [x for x in early if x is not None]
     start_c = fix.start_c if fix is not None else (
         known[0] if known else controller.plan.limits.min_temp_c)
-    short_s = _simulate(timeline, targets, controller, start_c, from_s)
-    placements = _placements(rec.moves, targets,
-                             fix.end if fix is not None else 0, heater)
+    demand = rec.demand + [0.0] * max(0, len(early) - len(rec.demand))
+    short_s = _simulate(Timeline(demand_mm3_s=demand), late, controller,
+                        start_c, from_s)
+    timeline = Timeline(demand_mm3_s=demand, target_c=early)
+    short_s = max(short_s, _simulate(timeline, early, controller, start_c,
+                                     from_s))
     overridden = brought_within = 0
 
     def write(out: BinaryIO) -> None:
@@ -300,15 +378,20 @@ def bake_file(src: Path, dst: Path, profile: Profile, working_point: float,
     result = BakeResult(
         commands=len(placements), overridden=overridden,
         # what the file sets, not what the plan held before the start's wait
-        min_target_c=min((t for _, t in placements), default=None),
-        max_target_c=max((t for _, t in placements), default=None),
+        min_target_c=min((p.target_c for p in placements), default=None),
+        max_target_c=max((p.target_c for p in placements), default=None),
         capped_windows=controller.plan.capped_windows,
         # the file's peak as its annotation announces it (annotate's summary)
         peak_flow_mm3_s=quantise_flow(rec.peak),
         print_time_s=rec.end_s, under_capacity_s=short_s, start=fix,
         heater=heater, cap_c=cap_c,
         capped_by_heater=cap_c < profile.bounds.max_temp_c,
-        brought_within=brought_within)
+        brought_within=brought_within,
+        flow_windows=controller.plan.flow_windows,
+        last_extrusion_s=rec.last_extrusion_s,
+        flat_line=flat_line_note(controller.plan.line, controller.plan.limits),
+        behind_s=controller.plan.behind_s,
+        longest_rise_s=controller.plan.longest_rise_s(), lead_s=settings.lead_s)
     return result, timeline
 
 
@@ -368,7 +451,7 @@ def marker_line(profile: Profile, working_point: float,
             f" {params.dead_time_s:g} s")
 
 
-def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
+def _write(src: Path, out: BinaryIO, placements: List[Placement],
            newline: bytes, profile: Profile, working_point: float,
            params: HotendParams, fix: Optional[StartFix] = None,
            heater: Optional[HeaterRange] = None) -> Tuple[int, int]:
@@ -376,7 +459,7 @@ def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
     M104/M109 brought within the heater's range)."""
     overridden = brought_within = 0
     i = 0
-    first = placements[0][0] if placements else None
+    first = placements[0].offset if placements else None
     with open(src, "rb") as f:
         # a UTF-8 byte-order mark is left out, as annotate leaves it out: the
         # marker is the file's first bytes
@@ -392,8 +475,8 @@ def _write(src: Path, out: BinaryIO, placements: List[Tuple[int, int]],
                 if fix.action == "raise":
                     offset += len(line)
                     continue
-            while i < len(placements) and placements[i][0] <= offset:
-                out.write(f"M104 S{placements[i][1]}".encode() + newline)
+            while i < len(placements) and placements[i].offset <= offset:
+                out.write(f"M104 S{placements[i].target_c}".encode() + newline)
                 i += 1
             if fix is not None and fix.heat_fix is not None \
                     and fix.heat_fix.offset == offset:

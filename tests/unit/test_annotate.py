@@ -306,6 +306,30 @@ def test_settings_refuse_nonsense():
         AnnotateSettings(lead_s=0.5)
     with pytest.raises(FlowloopError, match="window must be"):
         AnnotateSettings(lead_s=5, window_s=10)
+    for melt_s in (0.1, 2.5, float("nan")):
+        with pytest.raises(FlowloopError, match="melt window must be 0.25 to 2 s"):
+            AnnotateSettings(melt_s=melt_s)
+
+
+def test_the_melt_window_is_a_setting_and_the_marker_says_it(tmp_path, capsys):
+    """--melt-window: the time the flow is averaged over (issue 40: the
+    hotend's melt lag, docs/autotemp.md); a shorter one announces more of a
+    burst, and the marker names it."""
+    peaks = {}
+    src = DATA / "curves_0.6mm_layers_1_8.gcode"    # short bursts of infill
+    for melt in ("0.25", "0.5", "2"):
+        out = tmp_path / f"m{melt}.gcode"
+        assert cli.main(["annotate", str(src), "-o", str(out),
+                         "--melt-window", melt]) == 0
+        said = capsys.readouterr().out
+        peaks[melt] = float(re.search(r"peak flow (\S+) mm", said).group(1))
+        assert out.read_text().splitlines()[0].endswith(f", melt {melt} s")
+    assert peaks == {"0.25": 25.9, "0.5": 21.2, "2": 19.9}
+    assert cli.main(["annotate", str(REAL), "-o", str(tmp_path / "x.gcode"),
+                     "--melt-window", "0.1"]) == 2
+    assert capsys.readouterr().err == ("flowloop annotate: error: melt window must"
+                                       " be 0.25 to 2 s, not 0.1\n")
+    assert not (tmp_path / "x.gcode").exists()
 
 
 # --- the command ------------------------------------------------------------------

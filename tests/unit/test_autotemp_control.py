@@ -7,6 +7,7 @@ import pytest
 
 from flowloop.control.autotemp import (
     DONE_AFTER_S,
+    FLOW_MARGIN,
     GRID_S,
     LOOKAHEAD_WINDOW_S,
     MAX_HOLD_S,
@@ -44,9 +45,13 @@ def test_annotations_set_the_source_targets_and_the_m104_override():
     s = a.status
     assert s["source"] == "annotation" and s["working_point"] == 0.5
     assert s["profile"] == PROFILE.name
-    need = temp_for_flow(PROFILE, 12.0, 0.5)
-    assert need > PROFILE.bounds.min_temp_c
-    # during the window the target is the need (a steady state)
+    # the need: the announced flow's, FLOW_MARGIN higher
+    need = temp_for_flow(PROFILE, 12.0 * (1 + FLOW_MARGIN), 0.5)
+    assert need > temp_for_flow(PROFILE, 12.0, 0.5) > PROFILE.bounds.min_temp_c
+    # during the window the target is the need (a steady state), the
+    # targets set as the print goes (the model runs on them)
+    for k in range(160):
+        a.target_at(k * 0.1)
     assert a.target_at(16.0) == pytest.approx(need, abs=0.01)
     assert a.status["target"] == pytest.approx(need, abs=0.01)
     assert a.status["planned_flow"] == 12.0
@@ -92,8 +97,8 @@ def test_a_working_point_of_its_own_changes_the_line():
     before = a.target_at(16.0)
     a.set_working_point(1.0, 0.0)
     assert a.status["working_point"] == 1.0
-    assert a.target_at(16.0) == pytest.approx(temp_for_flow(PROFILE, 12.0, 1.0),
-                                              abs=0.01)
+    assert a.target_at(16.0) == pytest.approx(
+        temp_for_flow(PROFILE, 12.0 * (1 + FLOW_MARGIN), 1.0), abs=0.01)
     assert a.target_at(16.0) != before
     with pytest.raises(FlowloopError):
         a.set_working_point(1.5)
@@ -122,9 +127,12 @@ def test_a_flush_looks_ahead_over_the_gap_since_the_last_one():
     a, b = active(), active()
     for ctl in (a, b):
         ctl.announce(0.0, 1.0, 0.0, 30.0)
-        ctl.announce(0.0, 14.0, 10.6 + ctl.params.dead_time_s, 5.0)
-    a.on_flush(9.0, 200.0)
-    b.on_flush(9.9, 200.0)
+        ctl.announce(0.0, 10.0, 10.6 + ctl.params.dead_time_s, 5.0)
+    for k in range(91):                # flushes every 0.1 s up to 9 s
+        a.on_flush(k * 0.1, 200.0)
+        b.on_flush(k * 0.1, 200.0)
+    for k in range(91, 100):           # b flushes on to 9.9 s, a waits
+        b.on_flush(k * 0.1, 200.0)
     assert a.on_flush(10.0, 200.0) > b.on_flush(10.0, 200.0)
 
 

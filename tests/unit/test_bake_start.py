@@ -74,7 +74,7 @@ def test_the_print_starts_where_the_plan_starts(tmp_path, slicer):
         assert not re.search(r"^M109 S200", text, re.M)
     else:
         assert start.action == "add"
-        assert "added M109 S226 after it" in start.message
+        assert "added M109 S227 after it" in start.message
     # the heater waits at the plan's start before the first extrusion
     assert _wait_before_first_extrusion(text) == start.start_c
     # the modelled nozzle starts there
@@ -116,8 +116,8 @@ def test_the_cli_says_what_it_did_in_one_line(tmp_path, capsys):
     out = capsys.readouterr().out.splitlines()
     start = [x for x in out if x.strip().startswith("start:")]
     assert start == ["  start: PRINT_START (line 4) is given EXTRUDER=200, below"
-                     " the plan's 226 C: added M109 S226 after it; to heat once,"
-                     " give it EXTRUDER=226"]
+                     " the plan's 227 C: added M109 S227 after it; to heat once,"
+                     " give it EXTRUDER=227"]
 
 
 # --- the rule alone -------------------------------------------------------

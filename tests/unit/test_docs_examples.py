@@ -50,5 +50,5 @@ def test_the_autotemp_bake_worked_example(tmp_path, capsys):
                          .read_text(), re.M)
     assert [int(x) for x in listed.split(",")] == [int(x) for x in written]
     # the print starts at the raised wait
-    assert "M109 S226 ; flowloop bake: was M109 S200" in (
+    assert "M109 S227 ; flowloop bake: was M109 S200" in (
         tmp_path / "block_baked.gcode").read_text()

@@ -89,3 +89,35 @@ def test_with_a_melt_lag_near_the_residence_no_averaged_burst_costs_three_percen
     assert mean <= CAPACITY + 1e-9
     assert lost <= 0.03 * burst_mm
     assert grip > SLIP_GRIP
+
+
+def onset_s(melt_lag_s: float) -> float:
+    """The shortest burst (in 5 ms steps) that loses more than 0.5 % of its
+    filament on a twin of this melt lag."""
+    for ms in range(5, 1000, 5):
+        r = burst_on_twin(ms / 1000, melt_lag_s)
+        if r.lost_mm > 0.005 * r.burst_mm:
+            return ms / 1000
+    raise AssertionError("no burst slips")
+
+
+@pytest.mark.parametrize("melt_lag_s", [0.05, 0.3])
+def test_the_melt_window_a_twin_tolerates_is_its_melt_lag(melt_lag_s):
+    """Under-extrusion starts at a burst of about half the melt lag (the lag
+    smooths the demand as a first-order filter: this burst, three times the
+    base's margin to capacity, overflows it from ln(1.5) = 0.41 lags on).
+    A melt window no longer than the lag averages away only bursts that do
+    not slip, whatever their height (the window's mean of a burst is at
+    least its first-order peak); MELT_TIME_S (0.5 s) is that window for a
+    hotend whose melt lags 0.5 s, and averages away slipping bursts on the
+    twin's 0.05 s and the fil tier's 0.3 s (docs/autotemp.md)."""
+    onset = onset_s(melt_lag_s)
+    assert 0.4 * melt_lag_s <= onset <= 0.55 * melt_lag_s
+    # the longest burst a window of the lag averages within capacity
+    averaged = melt_lag_s * (CAPACITY - BASE) / (BURST - BASE)
+    assert averaged < onset
+    r = burst_on_twin(averaged, melt_lag_s)
+    assert r.lost_mm <= 0.005 * r.burst_mm and r.lowest_grip > SLIP_GRIP
+    # MELT_TIME_S averages away bursts up to a sixth of a second, which slip
+    # on both twins
+    assert MELT_TIME_S * (CAPACITY - BASE) / (BURST - BASE) > onset
