@@ -753,7 +753,7 @@
     }
     if (!names.sensor) {
       say("flow-chart", `No [flow_sensor] watches ${extruder}: measured flow and grip ` +
-          "need one (see flow_sensor.md; sensor_type: simulated needs no hardware).");
+          "need one (see flow_sensor.md; to try it without one, [flow_sensor_simulation NAME]).");
       $("#now .message").hidden = false;
       $("#now .message").textContent = `No [flow_sensor] on ${extruder}: no faults to show.`;
     }
