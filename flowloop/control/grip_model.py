@@ -14,10 +14,15 @@ C as `melted_capacity`, the C at which min(F(t), C) over its commanded flow
 F(t) averages to the flow the sensor measured. A window that kept up while
 its commanded flow peaked above C shows C is at least that peak (one that
 slipped within SLIP_TOLERANCE: the C its slip gives). The fit is least
-squares over the most recent windows, pulled toward the seed (a prior worth
-`prior_windows` windows on the capacity and a temperature span of
-`PRIOR_SPAN_C` on the slope), so a few windows at one temperature move the
-capacity but not the slope.
+squares over the most recent windows, pulled toward the seed: on the slope
+by a prior worth `prior_windows` windows over a temperature span of
+`PRIOR_SPAN_C`, so windows at one temperature do not tilt it; on the
+capacity by one worth only `capacity_prior_windows` (half a window): the
+profile's capacity is a guess made on another hotend or day, a window that
+slipped measures this one's, so the first slip moves the capacity two
+thirds of the way and the seed no longer holds the fit above what the
+windows measure (worth 5 windows, it held the bench's twin 1 % above its
+capacity for the whole print, every capped move slipping that much).
 
 The predictive cap is C(T), the flow at which the model predicts the feeder
 starts to slip: it acts before grip falls, where the reactive rule (and
@@ -41,6 +46,7 @@ from ..window import Window
 SLIP_TOLERANCE = 0.02
 MAX_OBSERVATIONS = 200
 DEFAULT_PRIOR_WINDOWS = 5.0
+DEFAULT_CAPACITY_PRIOR_WINDOWS = 0.5
 PRIOR_SPAN_C = 20.0
 # 1.75 mm filament (mm^2): the area a rule assumes when it is given none
 DEFAULT_FILAMENT_AREA_MM2 = 2.405
@@ -154,9 +160,13 @@ class WindowFlow:
 class GripModel:
     def __init__(self, seed: CapacityLine,
                  prior_windows: float = DEFAULT_PRIOR_WINDOWS,
-                 filament_area_mm2: float = DEFAULT_FILAMENT_AREA_MM2):
-        if prior_windows <= 0:
-            raise FlowloopError(f"prior_windows must be above 0, not {prior_windows}")
+                 filament_area_mm2: float = DEFAULT_FILAMENT_AREA_MM2,
+                 capacity_prior_windows: float = DEFAULT_CAPACITY_PRIOR_WINDOWS):
+        for name, value in (("prior_windows", prior_windows),
+                            ("capacity_prior_windows", capacity_prior_windows)):
+            if not value > 0:
+                raise FlowloopError(f"{name} must be above 0, not {value}")
+        self.capacity_prior_windows = capacity_prior_windows
         self.filament_area_mm2 = filament_area_mm2
         self.seed = seed
         self.fitted = seed
@@ -179,7 +189,8 @@ class GripModel:
             return False  # kept up where the fit said it would: nothing new
         # what it melted when asked for more (its peak if it kept up whole)
         self.observations.append((float(temp_c), float(flow.melted_mm3_s)))
-        self.fitted = fit_capacity(self.seed, self.observations, self.prior_windows)
+        self.fitted = fit_capacity(self.seed, self.observations,
+                                   self.prior_windows, self.capacity_prior_windows)
         return True
 
     def cap_mm3_s(self, temp_c: float) -> float:
@@ -195,18 +206,20 @@ class GripModel:
 
 
 def fit_capacity(seed: CapacityLine, observations, prior_windows: float
-                 = DEFAULT_PRIOR_WINDOWS) -> CapacityLine:
+                 = DEFAULT_PRIOR_WINDOWS, capacity_prior_windows: float
+                 = DEFAULT_CAPACITY_PRIOR_WINDOWS) -> CapacityLine:
     """Least squares C(T) through (temp_c, capacity) points, pulled toward seed.
 
-    Minimises sum (c_i - a - b (T_i - T_ref))^2 + w (a - a0)^2
-    + w S^2 (b - b0)^2, with w = prior_windows, S = PRIOR_SPAN_C.
+    Minimises sum (c_i - a - b (T_i - T_ref))^2 + wa (a - a0)^2
+    + w S^2 (b - b0)^2, with wa = capacity_prior_windows,
+    w = prior_windows, S = PRIOR_SPAN_C.
     """
     ref = seed.ref_temp_c
-    w = prior_windows
-    wb = w * PRIOR_SPAN_C ** 2
+    wa = capacity_prior_windows
+    wb = prior_windows * PRIOR_SPAN_C ** 2
     # Normal equations of the regularised problem (2x2).
-    s00, s01, s11 = w, 0.0, wb
-    r0, r1 = w * seed.capacity_mm3_s, wb * seed.slope_mm3_s_per_c
+    s00, s01, s11 = wa, 0.0, wb
+    r0, r1 = wa * seed.capacity_mm3_s, wb * seed.slope_mm3_s_per_c
     for temp_c, seen in observations:
         x = temp_c - ref
         s00 += 1.0

@@ -8,8 +8,9 @@
   four the limiter was not tuned on, fixed before any tuning (issue 41): a
   high-flow hotend, a worn nozzle, a noisy sensor (a slow high-mass one is
   missing: the twin has no option for it). Goals: predictive prevents
-  >= 98 % of the under-extrusion the uncapped run has (issue 41, met on none
-  today: printed, not asserted; issue 30's 90 % is asserted) at a print
+  >= 98 % of the under-extrusion the uncapped run has (issue 41: asserted on
+  the worn nozzle, where it is met; printed elsewhere, where issue 30's 90 %
+  is asserted) at a print
   time within the slip-free bound's (asserted), and on the bench's hotend at
   a print-time cost below the reactive mode's (not met). The same run gives
   the same figures (the twin is seeded and
@@ -234,16 +235,21 @@ def _table(table):
                + f" | {share:.3f}x | {time_share:.3f}x |")
 
 
+# Where issue 41's under-extrusion goal (<= 0.02x of limiter-off) is met
+# today; elsewhere it is printed, not asserted (docs/flowrate_limiter.md
+# says what it would take)
+GOAL_MET_TODAY = ("worn nozzle",)
+
+
 def _assert_goals_met_today(table):
-    """Asserted where every hotend met it when the held-out ones were set up
-    (2026-11-29): predictive's print time within the slip-free bound's
-    (issue 41's goal, 0.983-0.997x) and its under-extrusion <= 0.10x of
-    limiter-off (issue 30's, 0.027-0.062x). Issue 41's <= 0.02x is met on
-    none of them: printed in the table, not asserted
-    (docs/flowrate_limiter.md says what it would take)."""
+    """Asserted where it was met on 2026-11-29: predictive's print time
+    within the slip-free bound's on every hotend (issue 41's goal,
+    0.993-0.999x), its under-extrusion <= 0.10x of limiter-off (issue 30's,
+    0.015-0.032x), and <= 0.02x (issue 41's) on GOAL_MET_TODAY."""
     for name, r in table.items():
         assert r["predictive"][1] <= r["knowing the capacity"][1], (name, r)
-        assert r["predictive"][0] <= 0.10 * r["off"][0], (name, r)
+        goal = 0.02 if name in GOAL_MET_TODAY else 0.10
+        assert r["predictive"][0] <= goal * r["off"][0], (name, r)
 
 
 def test_reactive_rule_against_ddprint_s(bench):

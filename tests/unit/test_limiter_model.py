@@ -86,12 +86,31 @@ def test_with_one_temperature_the_slope_stays_near_the_seed(points):
     seed = CapacityLine(210.0, 10.0, 0.15)
     same_temp = [(215.0, flow) for _, flow in points]
     fit = fit_capacity(seed, same_temp)
-    # all at one temperature: the data pins C(215), the prior the slope
+    # all at one temperature: the data pins C(215) (the seed's capacity is
+    # worth half a window), the prior the slope
     if points:
         mean = sum(f for _, f in same_temp) / len(same_temp)
         n = len(same_temp)
         assert fit.at(215.0) == pytest.approx(
-            (n * mean + 5 * seed.at(215.0)) / (n + 5), rel=0.2, abs=0.5)
+            (n * mean + 0.5 * seed.at(215.0)) / (n + 0.5), rel=0.05, abs=0.05)
+        assert abs(fit.slope_mm3_s_per_c - 0.15) \
+            <= 0.002 * abs(mean - seed.at(215.0)) + 1e-9
+
+
+def test_one_slipped_window_moves_the_capacity_most_of_the_way():
+    # the profile's capacity is a guess, a slip a measurement of this hotend
+    model = GripModel(CapacityLine(210.0, 10.0, 0.15))
+    model.learn(seen(12.0, 7.0 / 12.0, 210.0))
+    assert 7.0 < model.cap_mm3_s(210.0) < 8.1
+
+
+def test_the_seed_does_not_hold_the_fit_above_what_the_windows_measure():
+    # a profile 40 % optimistic, a hundred windows that slipped at 7 mm^3/s:
+    # a cap even 1 % above 7 slips every capped move by 1 %
+    model = GripModel(CapacityLine(210.0, 10.0, 0.15))
+    for _ in range(100):
+        model.learn(seen(12.0, 7.0 / 12.0, 200.0))
+    assert model.cap_mm3_s(200.0) == pytest.approx(7.0, rel=0.005)
 
 
 def test_the_line_it_is_seeded_from_is_the_material_line():
