@@ -3,7 +3,8 @@
 With Klipper: the demo printer's [flow_sensor_simulation sim] twin
 (config/printer.cfg) follows extrude moves and printed lines at rising
 volumetric flow; grip drops once the flow exceeds what its hotend melts at
-200 C and recovers at 250 C. Offline: the same twin, decoder and grip estimator run in-process.
+200 C and recovers at 250 C. Offline: the same twin, decoder and grip
+estimator run in-process.
 """
 
 from __future__ import annotations
