@@ -277,6 +277,11 @@ class TemperaturePlan:
         self._model.set_target(time_s, target)
         return target
 
+    @property
+    def started(self) -> bool:
+        """Whether the model runs (start_at, or the first target_at)."""
+        return self._model is not None
+
     def start_at(self, time_s: float, temp_c: float) -> None:
         """The nozzle is at temp_c at time_s, held there until then (the
         start G-code's wait): the model runs on from there."""
@@ -359,8 +364,12 @@ def flat_line_note(line: Line, limits: TempLimits) -> Optional[str]:
 # The controller [autotemp] and the bake both drive
 
 SOURCES = ("annotation", "lookahead")
-# Lookahead (no annotations): moves are gathered into windows this long.
+# Lookahead (no annotations): moves are gathered into windows this long,
+# each lengthened by the host's read-ahead (Klipper's BUFFER_TIME_HIGH, 1 s,
+# until the host is known): the moves run up to that much after they are
+# queued.
 LOOKAHEAD_WINDOW_S = 1.0
+DEFAULT_READ_AHEAD_S = 1.0    # host.klipper_config.HOST_BUFFER_TIME_S["Klipper"]
 # This long after the last window known, the print is over: the source is
 # forgotten and the slicer's M104 obeyed again.
 DONE_AFTER_S = 5.0
@@ -484,8 +493,17 @@ class Autotemp:
         if g[0] >= LOOKAHEAD_WINDOW_S:
             self._gathered = None
             self.source = "lookahead"
-            self.plan.announce(now_s, g[1], 0.0, g[0])
+            # the moves gathered are still in the lookahead queue: they run
+            # after now_s, up to the host's read-ahead later
+            self.plan.announce(now_s, g[1], 0.0, g[0] + self._read_ahead_s())
             self.status = self._status()
+
+    def _read_ahead_s(self) -> float:
+        """How far ahead the host's toolhead reads G-code (set_host's
+        buffer_time_s; Klipper's 1 s before the host is known)."""
+        if self.host and self.host.get("buffer_time_s") is not None:
+            return float(self.host["buffer_time_s"])
+        return DEFAULT_READ_AHEAD_S
 
     def stop(self) -> None:
         """Forget the windows and the source: the heater was turned off, or
@@ -536,6 +554,11 @@ class Autotemp:
         if self.source is not None and heater_target_c == 0.0:
             self.stop()
             return None
+        if self.active and self.source is not None and not self.plan.started:
+            # the heater is where its target is when autotemp takes over (the
+            # start G-code's M109 waited for it): the model starts there,
+            # within the plan's limits
+            self.plan.start_at(flush_s, self.plan.limits.clamp(heater_target_c))
         target = self.target_at(flush_s, hold)
         return None if target == heater_target_c else target
 

@@ -94,15 +94,25 @@ def test_the_hotend_keeps_up_where_the_files_temperatures_do_not(runs):
 
 def test_a_file_without_annotations_is_followed_reactively(klipper_build,
                                                            klippy_venv):
+    text = GCODE.read_text()
     records, moved, log = print_with_autotemp(1, klipper_build, klippy_venv,
-                                              text=GCODE.read_text())
+                                              text=text)
+    _, moved_off, _ = print_with_autotemp(0, klipper_build, klippy_venv,
+                                          text=text)
     assert "Unknown command" not in log
     statuses = [r["autotemp"] for r in records]
     assert {s["source"] for s in statuses} - {None} == {"lookahead"}
     assert "reactive" in statuses[-1]["why"] or statuses[-1]["source"] is None
     targets = [s["target"] for s in statuses if s["target"] is not None]
-    # the infill's flow raises the target above the minimum, within the clamp
-    assert max(targets) > LIMITS.min_temp_c + 10 and max(targets) <= 225.0
+    assert targets and max(targets) <= 225.0
+    # the infill's flow raises the heater while the moves run (the records
+    # are taken after each chunk's M400, when nothing is queued and the
+    # target has fallen back: no window is known there): it slips less
+    commanded = gcode_extrusion(GCODE)
+    lost_on, lost_off = commanded - moved, commanded - moved_off
+    print(f"filament lost: reactive autotemp {lost_on:.1f} mm, the file's own"
+          f" temperatures {lost_off:.1f} mm of {commanded:.1f}")
+    assert lost_on < 0.8 * lost_off
 
 
 def test_the_status_says_which_host_it_runs_on(host, klipper_build, klippy_venv,

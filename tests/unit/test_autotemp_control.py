@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from flowloop.control.autotemp import (
+    DEFAULT_READ_AHEAD_S,
     DONE_AFTER_S,
     FLOW_MARGIN,
     GRID_S,
@@ -16,6 +17,7 @@ from flowloop.control.autotemp import (
     hold_s,
 )
 from flowloop.errors import FlowloopError
+from flowloop.host.klipper_config import HOST_BUFFER_TIME_S, host_facts
 from flowloop.material.profile import profile_from_dict, temp_for_flow
 from tests.samples import make
 
@@ -70,6 +72,39 @@ def test_without_annotations_moves_make_reactive_windows():
     # the window's peak, not its last move, sets the need
     assert temp_for_flow(PROFILE, 3.0, 0.5) < temp_for_flow(PROFILE, 14.0, 0.5)
     assert a.target_at(0.0) >= temp_for_flow(PROFILE, 14.0, 0.5)
+
+
+def test_a_reactive_window_covers_the_hosts_read_ahead():
+    """The moves gathered are still in Klipper's lookahead queue: they run
+    up to the host's read-ahead after they are queued, so the window lasts
+    that much longer (without it, the klippy test's reactive print lost
+    more filament than the file's own temperatures: the targets fell back
+    before the moves ran)."""
+    # before the host is known: Klipper's (the one number, kept equal)
+    assert DEFAULT_READ_AHEAD_S == HOST_BUFFER_TIME_S["Klipper"]
+    for host, read_ahead in ((None, 1.0), (host_facts(True, "pid"), 2.0)):
+        a = active()
+        if host is not None:
+            a.set_host(host)
+        a.on_move(10.0, 14.0, LOOKAHEAD_WINDOW_S)
+        (window,) = a.plan.windows
+        assert window.start_s == 10.0
+        assert window.end_s == pytest.approx(10.0 + LOOKAHEAD_WINDOW_S + read_ahead)
+
+
+def test_the_model_starts_where_the_heater_was_set():
+    """At the first flush the heater is at its target (the start's M109
+    waited for it): a window 3 s ahead that needs that temperature needs no
+    push; from the profile's minimum it needs the full target."""
+    need = temp_for_flow(PROFILE, 12.0 * (1 + FLOW_MARGIN), 0.5)
+    targets = {}
+    for heater_c in (round(need + 0.5), PROFILE.bounds.min_temp_c):
+        a = active()
+        a.announce(0.0, 12.0, 3.0, 10.0)
+        targets[heater_c] = a.on_flush(0.0, heater_c)
+    hot, cold = targets.values()
+    assert hot is None or hot <= need + 1.0       # None: the heater's target
+    assert cold == PROFILE.bounds.max_temp_c
 
 
 def test_after_the_last_window_it_stands_down():
