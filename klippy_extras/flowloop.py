@@ -40,8 +40,8 @@ from flowloop.material.active import Activation, working_point_arg
 from flowloop.numbers import REQUIRED, read_integer, read_number
 from flowloop.sensor import ems22
 
-SECTIONS = ('flow_sensor', 'flowrate_limiter', 'autotemp',
-            'diff_ab_calibrate', 'endstop_calibrate')
+SECTIONS = ('flow_sensor', 'flow_sensor_simulation', 'flowrate_limiter',
+            'autotemp', 'diff_ab_calibrate', 'endstop_calibrate')
 
 
 class FlowloopHost:
@@ -79,9 +79,15 @@ class FlowloopHost:
         return stageable, paste
 
     def _handle_connect(self):
+        loaded = [(name, obj) for name, obj in self.printer.lookup_objects()
+                  if name.split()[0] in SECTIONS]
+        # a simulation is also registered as [flow_sensor NAME]: listed once,
+        # by the section the config has
+        simulated = {id(obj) for name, obj in loaded
+                     if name.split()[0] == 'flow_sensor_simulation'}
         self.sections = tuple(sorted(
-            name for name, obj in self.printer.lookup_objects()
-            if name.split()[0] in SECTIONS))
+            name for name, obj in loaded
+            if name.split()[0] != 'flow_sensor' or id(obj) not in simulated))
         for name, mcu in self.printer.lookup_objects('mcu'):
             self.sensor_firmware[name] = _has_command(mcu, ems22.QUERY_CMD)
         self.status = self._status(self.status['profiles'])

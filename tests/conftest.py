@@ -181,7 +181,7 @@ NOT_ON_HOST = {
             "nozzle_scrubber_gcode, ...) from [endstop_calibrate]; Klipper's "
             "access tracking then lists options flowloop never reads",
         # Kalico behaves otherwise, by design
-        "test_requirements.py::test_a_missing_numpy_*":
+        "test_missing_requirements.py::test_a_missing_numpy_*":
             "Kalico's own klippy imports numpy at start (webhooks.py): it "
             "does not run without it, so no flowloop section meets its lack",
         "test_endstop_calibrate.py::test_klippy_puts_the_carriages_where_"

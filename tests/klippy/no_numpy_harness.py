@@ -1,4 +1,4 @@
-"""klippy as test_requirements.py needs it: run in place of klippy.py (cwd:
+"""klippy as test_missing_requirements.py needs it: run in place of klippy.py (cwd:
 the Klipper tree) with numpy hidden from klippy's Python (an import of it
 fails, and find_spec does not find it), as on a printer whose klippy-env
 never got flowloop's requirements. Everything else is Klipper's own."""

@@ -43,7 +43,8 @@ def test_info_reports_what_klippy_loaded(full_stack):
     cfg = (stack.PROJECT / "config" / "printer.cfg").read_text()
     declared = sorted(line.strip("[]") for line in cfg.splitlines()
                       if line.startswith("[") and line.strip("[]").split()[0] in (
-                          "flow_sensor", "flowrate_limiter", "autotemp",
+                          "flow_sensor", "flow_sensor_simulation",
+                          "flowrate_limiter", "autotemp",
                           "diff_ab_calibrate", "endstop_calibrate"))
     assert declared and info["sections"] == declared
 
