@@ -38,10 +38,22 @@ except ImportError:  # without pytest-xdist pytest runs serially: no scheduler
     LoadScopeScheduling = object
 
 ALONE = "alone:"
+# a group that runs when no other test runs at all, not even at SCHED_IDLE
+# (the firmware-in-the-loop tier: its simulated MCU lost the clock beside
+# idle-class tests, "Timer too close", where the paced klippy tests did not)
+QUIET = "quiet:"
 
 
 def is_alone(scope: str) -> bool:
     return scope.startswith(ALONE)
+
+
+def is_quiet(scope: str) -> bool:
+    return scope.startswith(QUIET)
+
+
+def runs_apart(scope: str) -> bool:
+    return is_alone(scope) or is_quiet(scope)
 
 
 def _groups_path(testrunuid: str) -> Path:
@@ -92,7 +104,7 @@ def order(config, items, group_of: Callable[[object], Optional[str]],
 
     def rank(item):
         key = group_of(item) or item.nodeid
-        return (is_alone(key), -total[key], fallback(item))
+        return (runs_apart(key), is_quiet(key), -total[key], fallback(item))
     items.sort(key=rank)
 
 
@@ -175,7 +187,7 @@ class AloneLastScheduling(LoadScopeScheduling):
         return self._groups.get(nodeid, nodeid)
 
     def _alone_next(self) -> bool:
-        return bool(self.workqueue) and is_alone(next(iter(self.workqueue)))
+        return bool(self.workqueue) and runs_apart(next(iter(self.workqueue)))
 
     def _others_done(self) -> bool:
         return not any(self._pending_of(work)
@@ -232,55 +244,58 @@ class AloneBesideScheduling(AloneLastScheduling):
     one wants, and places a waking normal process on a CPU that runs only
     idle-class ones as if it were free. So a paced test keeps the clock it
     would have alone, and the machine's second core is not left idle for
-    the minutes the paced tiers take (they wait on the clock, not the CPU).
+    the minutes the paced tests take (they wait on the clock, not the CPU).
 
     The runner takes the next alone group whenever it asks for work, and
-    the rest once none is left; the others never get an alone group. Where
-    idle classes are not to be had, AloneLastScheduling's order holds.
+    the rest once none is left; the others never get an alone group. The
+    ``quiet:`` groups come last, as AloneLastScheduling runs its groups:
+    on one worker once every other test has finished. Where idle classes
+    are not to be had, AloneLastScheduling's order holds for both.
     """
 
-    def _alone_next(self) -> bool:   # the base class's "only alone left"
-        return False
+    def __init__(self, config, log=None) -> None:
+        super().__init__(config, log)
+        self.beside = None   # the worker the alone groups run on
+
+    def _alone_next(self) -> bool:   # the quiet phase: only quiet groups left
+        return bool(self.workqueue) and all(is_quiet(s) for s in self.workqueue)
 
     def _next_scope(self, node) -> Optional[str]:
-        if self.runner is None or self.runner not in self.assigned_work:
-            self.runner = node
-        alone = node is self.runner
+        if self.beside is None or self.beside not in self.assigned_work:
+            self.beside = node
+        alone = node is self.beside
         fallback = None
         for scope in self.workqueue:
+            if is_quiet(scope):
+                continue
             if is_alone(scope) == alone:
                 return scope
             if fallback is None and not is_alone(scope):
                 fallback = scope
-        return fallback   # the runner, out of alone groups: the rest
+        return fallback   # the alone groups' worker, out of them: the rest
 
     def _assign_work_unit(self, node) -> None:
+        if self._alone_next():
+            super()._assign_work_unit(node)
+            return
         scope = self._next_scope(node)
         if scope is None:
             return
         self.workqueue.move_to_end(scope, last=False)
-        super(AloneLastScheduling, self)._assign_work_unit(node)
+        LoadScopeScheduling._assign_work_unit(self, node)
 
     def _reschedule(self, node) -> None:
-        if node.shutting_down:
+        if node.shutting_down or not self.workqueue or self._alone_next():
+            super()._reschedule(node)
             return
-        if self.workqueue and self._next_scope(node) is None:
-            # only alone groups are left, and this is not their runner: it
-            # finishes what it holds (it keeps its last test until told)
+        if self._next_scope(node) is None:
+            # nothing left this worker may run: what remains are the alone
+            # groups (another worker's) and the quiet ones (the last
+            # worker's); it finishes what it holds (it keeps its last test
+            # until told)
             node.shutdown()
             return
-        super(AloneLastScheduling, self)._reschedule(node)
-
-    def mark_test_complete(self, node, item_index: int, duration: float = 0) -> None:
-        super(AloneLastScheduling, self).mark_test_complete(node, item_index, duration)
-
-    def remove_node(self, node):
-        crashed = super(AloneLastScheduling, self).remove_node(node)
-        if node is self.runner:
-            self.runner = None
-            for other in self.nodes:
-                self._reschedule(other)
-        return crashed
+        LoadScopeScheduling._reschedule(self, node)
 
 
 def idle_class_available() -> bool:

@@ -27,7 +27,8 @@ stack.cache_bytecode()
 TIERS = ("unit", "c", "klippy", "moonraker", "ui", "bench", "fil")
 
 
-# Tiers that only run alone under `make test`'s scheduler: they run paced to
+# Tiers that run with no other test beside them under `make test`'s scheduler
+# (its quiet groups), last: they run paced to
 # the wall clock from start to end (devtools/pytest_schedule.py).
 ALONE_TIERS = ("fil",)
 # The order groups are handed to workers in when the last run's durations
@@ -75,6 +76,14 @@ def _alone(item, tier: str) -> bool:
     return tier in ALONE_TIERS or item.get_closest_marker("alone") is not None
 
 
+def _prefix(item, tier: str) -> str:
+    """The group's kind for the scheduler: the fil tier runs with nothing
+    beside it (quiet), other alone tests beside idle-class ones (alone)."""
+    if tier in ALONE_TIERS:
+        return pytest_schedule.QUIET
+    return pytest_schedule.ALONE if _alone(item, tier) else ""
+
+
 # Tiers whose tests start hosts: tests that share a module-scoped fixture (a
 # stack started once) run on one worker. unit and c tests, and tests that
 # share nothing, are spread one by one.
@@ -112,11 +121,11 @@ def _xdist_groups(items) -> dict:
         nodes = [f"{module}::{name}" for name in shared]
         for other in nodes[1:]:
             parent[find(other)] = find(nodes[0])
-        keyed.append((item, nodes, _alone(item, tier)))
-    for item, nodes, alone in keyed:
+        keyed.append((item, nodes, _prefix(item, tier)))
+    for item, nodes, prefix in keyed:
         if nodes:
             root = find(nodes[0])
-            groups[item] = (pytest_schedule.ALONE if alone else "") + root
+            groups[item] = prefix + root
     return groups
 
 

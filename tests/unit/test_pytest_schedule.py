@@ -69,6 +69,11 @@ def test_alone(n):
 @pytest.mark.group("alone:other")
 def test_alone_too(n):
     time.sleep(0.3)
+
+@pytest.mark.parametrize("n", range({quiet}))
+@pytest.mark.group("quiet:fil")
+def test_quiet(n):
+    time.sleep(0.3)
 """
 
 
@@ -83,12 +88,12 @@ LAST, BESIDE = "AloneLastScheduling", "AloneBesideScheduling"
 
 
 def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=False,
-              scheduler=LAST):
+              scheduler=LAST, quiet: int = 0):
     (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers = group\n")
     (tmp_path / "conftest.py").write_text(CONFTEST)
     # ungrouped, each test its own unit (the klippy .test files), or one group
     group = "" if per_test_group else '\n@pytest.mark.group("module")'
-    suite = SUITE.format(normal=normal, alone=alone, group=group)
+    suite = SUITE.format(normal=normal, alone=alone, group=group, quiet=quiet)
     (tmp_path / "test_suite.py").write_text(textwrap.dedent(suite))
     runs = tmp_path / "runs.jsonl"
     proc = subprocess.run(
@@ -124,10 +129,15 @@ def test_alone_groups_run_after_the_rest_with_nothing_beside_them(
                     reason="no SCHED_IDLE on this system")
 def test_alone_groups_run_on_one_worker_with_the_rest_beside_them_idle(tmp_path):
     runs = run_suite(tmp_path, normal=9, alone=2, workers=3, per_test_group=True,
-                     scheduler=BESIDE)
+                     scheduler=BESIDE, quiet=2)
     alone = [r for r in runs if r[0].startswith("test_alone")]
     normal = [r for r in runs if r[0].startswith("test_normal")]
-    assert len(alone) == 4 and len(normal) == 9
+    quiet = [r for r in runs if r[0].startswith("test_quiet")]
+    assert len(alone) == 4 and len(normal) == 9 and len(quiet) == 2
+    # the quiet groups: last, with nothing beside them, not even idle
+    for q in quiet:
+        assert not [r[0] for r in runs if r is not q and overlaps(q, r)], q
+    assert min(q[1] for q in quiet) >= max(r[2] for r in alone + normal)
     # one runner, one alone test at a time, at the normal policy
     assert len({a[3] for a in alone}) == 1
     assert not any(overlaps(a, b) for a in alone for b in alone if a is not b)
