@@ -22,17 +22,10 @@ from flowloop.control.autotemp import (
     flat_line_note,
 )
 from flowloop.material.profile import Line
+from tests.unit.test_autotemp_bake import WEAK  # the bake's weak profile
 
 pytestmark = pytest.mark.unit
 
-WEAK = {"identity": {"name": "weak", "nozzle_diameter_mm": 0.4},
-        "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                               "flow_mm3_s": 4.5},
-                  "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                                 "flow_mm3_s": 3.5}},
-        "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 200.0,
-                   "max_temp_c": 240.0},
-        "provenance": {"method": "manual"}}
 # Every heater target a line sets (commented lines set none).
 TARGET = re.compile(r"^\s*M10[49]\b[^;\n]*?\s[SR](\d+(?:\.\d*)?)", re.M)
 START = "G28\nM109 S200\nG90\nM82\nG92 E0\n"
