@@ -701,20 +701,16 @@ def plan_moonraker_conf(config_dir: Path, source: Path,
         return changes
     edits: List[Callable[[str], str]] = []
     said: List[str] = []
-    if FLOWLOOP_SECTION.search(drop_block(text, "component")):
-        changes.append(Change(conf, f"{conf} has a [flowloop] section of its own:"
-                              f" left as it is", note=True))
-        edits.append(lambda t: drop_block(t, "component"))
-    else:
-        edits.append(lambda t: put_block(t, "component", COMPONENT_BLOCK))
-        said.append("[flowloop]")
-    if WEBCAM_SECTION.search(drop_block(text, "webcam")):
-        changes.append(Change(conf, f"{conf} has a [webcam {PANEL_WEBCAM}] section "
-                              f"of its own: left as it is", note=True))
-        edits.append(lambda t: drop_block(t, "webcam"))
-    else:
-        edits.append(lambda t: put_block(t, "webcam", WEBCAM_BLOCK))
-        said.append(f"[webcam {PANEL_WEBCAM}]")
+    for block, section, pattern, body in (
+            ("component", "[flowloop]", FLOWLOOP_SECTION, COMPONENT_BLOCK),
+            ("webcam", f"[webcam {PANEL_WEBCAM}]", WEBCAM_SECTION, WEBCAM_BLOCK)):
+        if pattern.search(drop_block(text, block)):   # the user's own wins
+            changes.append(Change(conf, f"{conf} has a {section} section of its "
+                                  f"own: left as it is", note=True))
+            edits.append(lambda t, block=block: drop_block(t, block))
+        else:
+            edits.append(lambda t, block=block, body=body: put_block(t, block, body))
+            said.append(section)
     if not is_checkout(source):
         # Installed from a wheel: pip updates it, not a git_repo updater.
         edits.append(lambda t: drop_block(t, "update-manager"))
