@@ -205,3 +205,25 @@ def test_the_next_run_starts_with_what_took_longest_in_the_last(tmp_path):
                    cwd=tmp_path, check=True, capture_output=True, timeout=60,
                    env=BARE_ENV)
     assert collected()[0] == "test_slow"
+
+
+def test_a_python_the_run_starts_keeps_bytecode_in_the_cache_not_beside_sources(
+        tmp_path):
+    """devtools.stack.cache_bytecode (called by tests/conftest.py): with
+    PYTHONDONTWRITEBYTECODE set, a Python the run starts still keeps its
+    bytecode, under the cache's pycache prefix and never in the source's
+    folder (a user's Klipper checkout stays as it was)."""
+    source = tmp_path / "src"
+    source.mkdir()
+    (source / "mod.py").write_text("X = 1\n")
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(PROJECT),
+           "PYTHONDONTWRITEBYTECODE": "1", "FLOWLOOP_CACHE": str(tmp_path / "cache")}
+    script = ("import os, subprocess, sys\n"
+              "from devtools import stack\n"
+              "stack.cache_bytecode()\n"
+              "subprocess.run([sys.executable, '-c', 'import mod'],"
+              f" cwd={str(source)!r}, check=True,"
+              f" env={{**os.environ, 'PYTHONPATH': {str(source)!r}}})\n")
+    subprocess.run([sys.executable, "-c", script], check=True, env=env, timeout=60)
+    assert not (source / "__pycache__").exists()
+    assert list((tmp_path / "cache" / "pycache").rglob("mod.*.pyc"))
