@@ -20,7 +20,7 @@ import subprocess
 from pathlib import Path
 from typing import List, Optional, Tuple, Union
 
-from .stack import KlipperBuild, Venv
+from .stack import REALTIME_KLIPPY, KlipperBuild, Venv
 
 EXPECT_LOG = "# EXPECT_LOG:"
 EXPECT_NO_LOG = "# EXPECT_NO_LOG:"
@@ -131,7 +131,12 @@ def run_file(test_file: Path, build: KlipperBuild, venv: Venv, workdir: Path,
             gcode_file = workdir / f"run{i}.gcode"
             gcode_file.write_text("\n".join(run.gcode + [""]))
         log_file = workdir / f"run{i}.log"
-        cmd = [str(venv.python), str(build.klippy), str(run.config),
+        # Klipper's own klippy runs through the launcher that waits for the
+        # output to be written before exit (realtime_klippy.py --no-pace); a
+        # test's harness script runs as it is
+        own = Path(build.klippy) == Path(build.tree) / "klippy" / "klippy.py"
+        launcher = [str(REALTIME_KLIPPY), "--no-pace"] if own else []
+        cmd = [str(venv.python)] + launcher + [str(build.klippy), str(run.config),
                "-i", str(gcode_file), "-o", str(workdir / f"run{i}.output"),
                "-l", str(log_file), "-v"]
         for d in run.dictionaries:

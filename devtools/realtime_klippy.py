@@ -1,7 +1,7 @@
 """Run the user's klippy in batch mode (-o FILE) with print time paced to
 the real clock, so G-code executes in real time.
 
-    python devtools/realtime_klippy.py KLIPPER/klippy/klippy.py [klippy options]
+    python devtools/realtime_klippy.py [--no-pace] KLIPPER/klippy/klippy.py [options]
 
 Batch-mode klippy reports print time 0 for ever (its MCU never answers) and
 its toolhead never pauses, so a file races through in a fraction of a
@@ -20,13 +20,54 @@ not verified, M109 does not wait. flowloop's simulated sensor
 ([flow_sensor_simulation NAME]) sees the paced clock and samples as time
 passes (and gives the heater the twin's nozzle temperature). Nothing here
 is written into Klipper's tree.
+
+Paced or not (--no-pace: plain batch mode, as Klipper's own test runner
+runs it), klippy's exit waits until the serial queue has written every
+message it holds to the output file (drain_on_disconnect): batch-mode klippy
+does not, and on a busy machine the queue's thread lags the step generator,
+so the output lost its last seconds of steps (seen on Kalico, whose exit
+comes straight after the last flush).
 """
 
 from __future__ import annotations
 
+import logging
 import os
+import re
 import sys
+import time
 from pathlib import Path
+
+# How long an exit waits for the serial queue to write what it holds: a
+# long batch print leaves at most a few MB there, written in well under this
+DRAIN_TIMEOUT_S = 60.0
+QUEUED = re.compile(r"ready_bytes=(\d+) upcoming_bytes=(\d+)")
+
+
+def queued_bytes(stats: str) -> int:
+    """The bytes a serial queue still holds, from its stats line (Klipper's
+    and Kalico's serialqueue_get_stats both end with them)."""
+    match = QUEUED.search(stats)
+    return 0 if match is None else int(match.group(1)) + int(match.group(2))
+
+
+def drain_on_disconnect(serial_reader_class) -> None:
+    """Make a batch-mode serial reader write out everything queued before
+    its queue's thread is stopped (klippy:disconnect)."""
+    disconnect = serial_reader_class.disconnect
+
+    def drained_disconnect(self):
+        if self.serialqueue is not None:
+            start = time.monotonic()
+            queued = left = queued_bytes(self.stats(0.))
+            while left and time.monotonic() < start + DRAIN_TIMEOUT_S:
+                time.sleep(0.005)
+                left = queued_bytes(self.stats(0.))
+            logging.info("realtime_klippy: %d bytes queued at exit, %d left"
+                         " after %.3f s", queued, left, time.monotonic() - start)
+        disconnect(self)
+
+    serial_reader_class.disconnect = drained_disconnect
 
 
 def pace(printer) -> None:
@@ -68,22 +109,31 @@ def install(printer_class) -> None:
 
 
 def main() -> None:
-    if len(sys.argv) < 2:
+    args = sys.argv[1:]
+    paced = args[:1] != ["--no-pace"]
+    if not paced:
+        args = args[1:]
+    if not args:
         raise SystemExit(__doc__)
-    klippy_py = Path(sys.argv[1]).resolve()
+    klippy_py = Path(args[0]).resolve()
     klippy_dir = klippy_py.parent
-    sys.argv = [str(klippy_py)] + sys.argv[2:]
+    sys.argv = [str(klippy_py)] + args[1:]
     sys.path[0:1] = []  # not devtools/: klippy's modules must win
     if (klippy_dir / "__init__.py").exists():
         # Kalico: klippy is a package run from the tree's root
         sys.path.insert(0, str(klippy_dir.parent))
         from klippy import printer as klippy_module
+        from klippy import serialhdl
     else:
         # Klipper: klippy.py is a script beside its modules
         sys.path.insert(0, str(klippy_dir))
         import klippy as klippy_module
+        import serialhdl
     os.chdir(klippy_dir.parent)
-    install(klippy_module.Printer)
+    if "-o" in sys.argv or any(a.startswith("--debugoutput") for a in sys.argv):
+        drain_on_disconnect(serialhdl.SerialReader)
+    if paced:
+        install(klippy_module.Printer)
     klippy_module.main()
 
 

@@ -76,8 +76,9 @@ def output_is_whole(log: str, lines: List[str], step_pins: List[str],
     takes part in; within 10 ms: a step, not a move).
     In batch mode the output is written by the serial queue's own thread,
     and klippy's exit does not wait for it: on a busy machine the last
-    messages can be lost (seen on Kalico: 9 steps once, 3.5 s of steps
-    once)."""
+    messages were lost (on Kalico: 9 steps once, 3.5 s of steps once, every
+    run beside six busy processes), until run_file's launcher made the exit
+    wait (devtools/realtime_klippy.py, drain_on_disconnect)."""
     exits = EXITING.findall(log)
     if not exits:
         return True  # no exit line to judge by
