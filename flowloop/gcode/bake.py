@@ -193,10 +193,17 @@ def parse_announcement(line: str) -> Tuple[float, float, float]:
 
 
 def replay(commands: List[Tuple[int, float, str]], end_s: float,
-           controller: Autotemp) -> List[Optional[float]]:
+           controller: Autotemp, start: Optional[Tuple[float, float]] = None
+           ) -> List[Optional[float]]:
     """The target [autotemp] sets at each GRID_S of print time, each
-    announcement reaching it at its place (in print time)."""
+    announcement reaching it at its place (in print time). start: (print
+    time, temperature) where the start G-code's wait leaves the nozzle, as
+    the printer's first flush tells [autotemp] (Autotemp.on_flush: the
+    heater's target); without it the controller's model starts at the
+    profile's minimum, and a file that starts hot is pushed as if cold."""
     targets: List[Optional[float]] = []
+    if start is not None and controller.active:
+        controller.plan.start_at(*start)
     i = 0
     for k in range(math.ceil(end_s / GRID_S) + 1):
         t = k * GRID_S

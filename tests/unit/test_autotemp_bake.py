@@ -30,6 +30,7 @@ from flowloop.material.profile import profile_from_dict
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
 BLOCK = DATA / "block_layers_1_2.gcode"
+BRIDGE_LAYER = DATA / "box_bridge_layer.gcode"
 SMALL_PARTS = DATA / "corpus" / "small_parts_fwretract_petg.gcode.gz"
 PETG_UM2 = (Path(__file__).resolve().parents[1] / "data" / "ddprint-profiles"
             / "mat-profiles" / "UM2-1" / "herz_petg_white.json")
@@ -167,6 +168,36 @@ def test_each_baked_m104_keeps_the_plan_whenever_klipper_runs_it(tmp_path):
         assert excess < 0.5
     assert all(petg.bounds.min_temp_c <= p.target_c <= petg.bounds.max_temp_c
                for p in placements)
+
+
+def test_replay_starts_the_model_where_the_nozzle_is(tmp_path):
+    """A file that starts hot (a layer from the middle of a print, its
+    nozzle at 249 C): told where the nozzle starts, as the printer's first
+    flush tells [autotemp] the heater's target, the replayed controller does
+    not push it as if it sat at the profile's minimum (210 C). Not told, it
+    held max_temp (260 C) for the first 30 s and the nozzle 5.0 C higher
+    over the file, the bench's +6.5 C over the physical limit (issue 40)."""
+    (petg,) = [p for p in import_file(PETG_UM2).profiles
+               if p.identity.nozzle_diameter_mm == 0.4]
+    rec = plan_announcements(BRIDGE_LAYER, PrinterLimits(), AnnotateSettings())
+    demand = rec.demand
+    flowing = [k for k, f in enumerate(demand) if f > 0]
+    start_c = 249.0
+
+    def replayed(start):
+        controller = Autotemp()
+        controller.set_profile(petg, 0.5)
+        targets = replay(rec.commands, rec.end_s + 1.0, controller, start)
+        return controller.plan, targets, _modelled(targets, demand, start_c)
+    plan, told, temps = replayed((0.0, start_c))
+    _, blind, blind_temps = replayed(None)
+    top_c = plan.limits.max_temp_c
+    assert all(t == top_c for t in blind[:200])     # the old push
+    assert max(told[:200]) < top_c - 5.0
+    # the need is met wherever there is flow
+    assert all(temps[k] >= plan.line.temp_c(demand[k]) - 0.01 for k in flowing)
+    saved = sum(blind_temps[k] - temps[k] for k in flowing) / len(flowing)
+    assert saved > 3.0
 
 
 def test_bake_refuses_an_annotated_file_and_writes_nothing(tmp_path):
