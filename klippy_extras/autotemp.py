@@ -24,6 +24,8 @@ from flowloop.control import caps as fl_caps
 from flowloop.control import tools as fl_tools
 from flowloop.control.hotend import HotendParams
 from flowloop.errors import FlowloopError
+from flowloop.gcode import melt_window as fl_melt_window
+from flowloop.host import klipper_config
 from flowloop.host.klipper_config import (
     extruder_for,
     option_error,
@@ -58,6 +60,11 @@ class Autotemp:
             except FlowloopError as e:
                 raise option_error(config, option, str(e)) from None
             params[field] = value
+        # read by the annotator (flowloop annotate --printer-cfg, Moonraker's
+        # upload processor), not here: checked as it reads it
+        self.melt_window = klipper_config.finite_float(
+            config, 'melt_window', fl_melt_window.MELT_TIME_S,
+            minval=fl_melt_window.MIN_MELT_S, maxval=fl_melt_window.MAX_MELT_S)
         wp = config.get('working_point', None)
         try:
             self.working_point = None if wp is None else working_point_arg(wp)

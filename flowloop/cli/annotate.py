@@ -17,7 +17,7 @@ from ..gcode.annotate import (
     AnnotateSettings,
     annotate_file,
 )
-from ..gcode.melt import MELT_TIME_S
+from ..gcode.melt_window import MELT_TIME_S, melt_window_from_config
 from ..gcode.reference_planner import PrinterLimits, limits_from_config
 from .flags import with_flags
 from .paths import refuse_overwriting
@@ -56,10 +56,11 @@ def register(subparsers) -> None:
     p.add_argument("--window", type=float, default=DEFAULT_WINDOW_S, metavar="S",
                    help=f"length of the windows whose peak flow is announced "
                         f"(default {DEFAULT_WINDOW_S:g})")
-    p.add_argument("--melt-window", type=float, default=MELT_TIME_S, metavar="S",
+    p.add_argument("--melt-window", type=float, default=None, metavar="S",
                    help=f"the time the flow is averaged over: bursts shorter"
                         f" than it are announced as their mean (your hotend's"
-                        f" melt lag; docs/autotemp.md; default {MELT_TIME_S:g})")
+                        f" melt lag; docs/autotemp.md; default: --printer-cfg's"
+                        f" [autotemp] melt_window, else {MELT_TIME_S:g})")
     p.add_argument("--bake", type=Path, metavar="PROFILE.json",
                    help="write autotemp's targets for this material profile as"
                         " plain M104 S<target> instead of AUTOTEMP_FLOW (for a"
@@ -88,15 +89,22 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    settings = AnnotateSettings(lead_s=args.lead, window_s=args.window,
-                                melt_s=args.melt_window)
     config = None
+    melt_s = args.melt_window
     if args.printer_cfg:
         from ..host.klipper_config import read_config
         config = read_config(args.printer_cfg)
         limits = limits_from_config(config)
+        if melt_s is None:
+            # the printer's own window, where its [autotemp] sets one
+            try:
+                melt_s = melt_window_from_config(config)
+            except FlowloopError as e:
+                raise FlowloopError(f"{args.printer_cfg}: {e}") from None
     else:
         limits = PrinterLimits()
+    settings = AnnotateSettings(lead_s=args.lead, window_s=args.window,
+                                melt_s=MELT_TIME_S if melt_s is None else melt_s)
     if args.bake is not None:
         return run_bake(args, settings, limits, config)
     if args.plot is not None or args.working_point is not None:
@@ -118,7 +126,7 @@ def run(args) -> int:
     print(f"{out}: {summary.windows} {'window' if summary.windows == 1 else 'windows'}"
           f", peak flow {summary.peak_flow_mm3_s:.1f} mm^3/s, print time "
           f"{minutes // 60}:{minutes % 60:02d}:{seconds:02d} (lead {settings.lead_s:g}"
-          f" s, window {settings.window_s:g} s)")
+          f" s, window {settings.window_s:g} s, melt window {settings.melt_s:g} s)")
     return 0
 
 

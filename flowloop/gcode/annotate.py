@@ -42,6 +42,7 @@ from .. import files
 from ..errors import FlowloopError
 from .bulk_planner import Segments, plan_batches
 from .melt import MELT_TIME_S, Cells, Lines, melt_events
+from .melt_window import check_melt_window
 from .reference_planner import Barrier, Event, PrinterLimits
 
 # v2: FLOW is the flow to melt (flowloop.gcode.melt: the mean over
@@ -54,11 +55,6 @@ READAHEAD_S = 1.0
 MIN_LEAD_S = 2.0
 MAX_LEAD_S = 120.0
 MIN_WINDOW_S = 0.1
-# The melt window's bounds: below MIN_MELT_S the 10 ms cells' error grows
-# past the plan's FLOW_MARGIN (flowloop.control.autotemp), beyond MAX_MELT_S
-# no hotend holds a burst's heat (docs/autotemp.md, The flow to melt).
-MIN_MELT_S = 0.25
-MAX_MELT_S = 2.0
 COMMAND = "AUTOTEMP_FLOW"
 # Moonraker reads this much of a file's head when it looks for a marker.
 HEADER_BYTES = 1024 * 1024
@@ -77,7 +73,8 @@ _READ_AT_ONCE = 1 << 17
 class AnnotateSettings:
     lead_s: float = DEFAULT_LEAD_S
     window_s: float = DEFAULT_WINDOW_S
-    # the time the flow is averaged over (flowloop.gcode.melt)
+    # the time the flow is averaged over (flowloop.gcode.melt; the
+    # printer's setting: flowloop.gcode.melt_window)
     melt_s: float = MELT_TIME_S
 
     def __post_init__(self):
@@ -89,10 +86,10 @@ class AnnotateSettings:
                 and MIN_WINDOW_S <= self.window_s <= self.lead_s):
             raise FlowloopError(f"window must be {MIN_WINDOW_S:g} s to the lead"
                                 f" ({self.lead_s:g} s), not {self.window_s!r}")
-        if not (isinstance(self.melt_s, (int, float))
-                and MIN_MELT_S <= self.melt_s <= MAX_MELT_S):
-            raise FlowloopError(f"melt window must be {MIN_MELT_S:g} to"
-                                f" {MAX_MELT_S:g} s, not {self.melt_s!r}")
+        try:
+            check_melt_window(self.melt_s)
+        except FlowloopError as e:
+            raise FlowloopError(f"melt window {e}") from None
 
     @property
     def placement_s(self) -> float:

@@ -9,7 +9,9 @@ highest flows these hotends print), the heater answers after a dead time of
 about a second, and the grip windows that judge a slip span 1.25 mm of
 filament (0.1-0.3 s at 10-30 mm^3/s). What the melt zone has to heat is the
 flow over a time comparable with its residence; docs/autotemp.md gives the
-evidence for MELT_TIME_S and what a shorter burst does.
+evidence for MELT_TIME_S and what a shorter burst does. The window is a
+setting of the printer (flowloop.gcode.melt_window: `--melt-window`, else
+`[autotemp] melt_window`, else MELT_TIME_S).
 
 `melt_events()` turns the planner's events into the flow the annotator
 announces: the move batches as they were (`Lines`: where commands may go)
@@ -35,9 +37,9 @@ from typing import Iterable, Iterator, List, NamedTuple, Union
 import numpy as np
 
 from .bulk_planner import Segments
+from .melt_window import MELT_TIME_S
 from .reference_planner import Barrier, Segment
 
-MELT_TIME_S = 0.5
 CELL_S = 0.01
 _RECORDS_PER_BATCH = 256
 

@@ -332,6 +332,50 @@ def test_the_melt_window_is_a_setting_and_the_marker_says_it(tmp_path, capsys):
     assert not (tmp_path / "x.gcode").exists()
 
 
+def test_the_melt_window_is_the_printers_autotemp_setting(tmp_path, capsys):
+    """[autotemp] melt_window in the printer.cfg the annotator is given
+    (--printer-cfg; Moonraker's upload processor passes its
+    annotate_printer_cfg) sets the window; --melt-window wins over it; on a
+    toolchanger the shortest of the [autotemp NAME] sections' (a shorter
+    window announces more of a burst)."""
+    src = DATA / "curves_0.6mm_layers_1_8.gcode"    # short bursts of infill
+    cfg = tmp_path / "printer.cfg"
+
+    def annotated(text, *extra):
+        cfg.write_text(text)
+        out = tmp_path / "out.gcode"
+        out.unlink(missing_ok=True)
+        assert cli.main(["annotate", str(src), "-o", str(out), "--printer-cfg",
+                         str(cfg), *extra]) == 0
+        said = capsys.readouterr().out
+        marker = out.read_text().splitlines()[0]
+        return (float(re.search(r"peak flow (\S+) mm", said).group(1)),
+                re.search(r"melt (\S+) s$", marker).group(1),
+                re.search(r"melt window (\S+) s\)", said).group(1))
+    assert annotated("[autotemp]\nmelt_window: 0.25\n") == (25.9, "0.25", "0.25")
+    assert annotated("[autotemp]\ntime_constant: 4\n") == (21.2, "0.5", "0.5")
+    assert annotated("[autotemp]\nmelt_window: 0.25\n",
+                     "--melt-window", "0.5") == (21.2, "0.5", "0.5")
+    assert annotated("[autotemp]\nmelt_window: 2\n[autotemp extruder1]\n"
+                     "melt_window: 0.25\n[autotemp extruder2]\n") \
+        == (25.9, "0.25", "0.25")
+
+
+@pytest.mark.parametrize("value", ["0.1", "2.5", "nan", "inf", "half"])
+def test_a_bad_melt_window_in_the_printer_cfg_names_the_option(tmp_path, capsys,
+                                                               value):
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text(f"[autotemp extruder1]\nmelt_window: {value}\n")
+    out = tmp_path / "out.gcode"
+    assert cli.main(["annotate", str(REAL), "-o", str(out), "--printer-cfg",
+                     str(cfg)]) == 2
+    shown = repr(value) if value == "half" else value
+    assert capsys.readouterr().err == (
+        f"flowloop annotate: error: {cfg}: Section [autotemp extruder1], option"
+        f" melt_window: must be 0.25 to 2 s, not {shown}\n")
+    assert not out.exists()
+
+
 # --- the command ------------------------------------------------------------------
 
 def test_the_command_annotates_and_says_what_it_did(tmp_path, capsys):
@@ -340,7 +384,8 @@ def test_the_command_annotates_and_says_what_it_did(tmp_path, capsys):
     assert cli.main(["annotate", str(src), "-o", str(out), "--lead", "10"]) == 0
     said = capsys.readouterr().out
     assert re.match(r".*out.gcode: \d+ windows, peak flow \d+\.\d mm\^3/s, print time"
-                    r" 0:0\d:\d\d \(lead 10 s, window 1 s\)\n$", said)
+                    r" 0:0\d:\d\d \(lead 10 s, window 1 s, melt window 0.5 s\)\n$",
+                    said)
     peak = re.search(r"peak flow (\S+) mm", said).group(1)
     assert cli.main(["annotate", str(out)]) == 0
     assert capsys.readouterr().out == (
