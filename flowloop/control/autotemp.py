@@ -556,9 +556,11 @@ class Autotemp:
             return None
         if self.active and self.source is not None and not self.plan.started:
             # the heater is where its target is when autotemp takes over (the
-            # start G-code's M109 waited for it): the model starts there,
-            # within the plan's limits
-            self.plan.start_at(flush_s, self.plan.limits.clamp(heater_target_c))
+            # start G-code's M109 waited for it): the model starts there, also
+            # below the profile's minimum (clamped up, it believed the nozzle
+            # hotter than it is and planned too little heat for the first
+            # windows). Targets stay within the limits (target_at).
+            self.plan.start_at(flush_s, heater_target_c)
         target = self.target_at(flush_s, hold)
         return None if target == heater_target_c else target
 

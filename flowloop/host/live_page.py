@@ -20,6 +20,7 @@ from ..control.hotend import HotendParams
 from ..errors import FlowloopError
 from ..gcode.annotate import COMMAND, HEADER_BYTES, is_annotated
 from ..gcode.bake import parse_announcement, replay
+from ..gcode.start import find_start_heat
 from ..material.plot import COLORS
 from ..material.profile import Profile, decode_profile, encode_profile, profile_line
 
@@ -162,6 +163,22 @@ def _buckets(values: Sequence[Optional[float]], size: int) -> List[Optional[floa
     return out
 
 
+def _start(path: Path, first_offset: int, heater_max_temp_c: Optional[float]
+           ) -> Optional[Tuple[float, float]]:
+    """Where the start G-code's wait leaves the nozzle (the last M109 or
+    start macro's temperature before the first announcement), as [autotemp]
+    finds it at the printer's first flush: the replay's start. None: the
+    file sets none (an excerpt), the model starts at the profile's
+    minimum."""
+    with open(path, "rb") as f:
+        heat = find_start_heat(f, first_offset)
+    if heat.temp_c is None:
+        return None
+    temp_c = heat.temp_c if heater_max_temp_c is None \
+        else min(heat.temp_c, heater_max_temp_c)
+    return 0.0, temp_c
+
+
 def file_plan(path: Path, profile: Optional[Profile], working_point: float,
               heater_max_temp_c: Optional[float] = None,
               params: HotendParams = DEFAULT_PARAMS) -> Dict[str, Any]:
@@ -193,7 +210,9 @@ def file_plan(path: Path, profile: Optional[Profile], working_point: float,
             why = controller.why
         else:
             commands = [(a.offset, a.time_s, a.line) for a in timed]
-            targets = replay(commands, end_s, controller)[:steps]
+            targets = replay(commands, end_s, controller,
+                             _start(path, timed[0].offset, heater_max_temp_c)
+                             )[:steps]
     size = max(1, math.ceil(steps / MAX_PLAN_POINTS))
     positions = [(a.offset, round(a.time_s, 2)) for a in timed]
     if len(positions) > MAX_PLAN_POINTS:

@@ -107,6 +107,23 @@ def test_the_model_starts_where_the_heater_was_set():
     assert cold == PROFILE.bounds.max_temp_c
 
 
+def test_a_heater_set_below_the_profiles_minimum_is_not_believed_hotter():
+    """M109 S200 before a profile whose minimum is 210: the model starts at
+    200, so the first window gets the heat it needs from there (clamped up
+    to the minimum, the model believed the nozzle 10 C hotter and planned
+    the same as from 210). The target itself stays within the limits."""
+    low = PROFILE.bounds.min_temp_c
+    targets = {}
+    for heater_c in (low - 10.0, low):
+        a = active()
+        a.announce(0.0, 2.0, 2.0, 10.0)   # a small flow: the need sits near low
+        targets[heater_c] = a.on_flush(0.0, heater_c)
+    from_below, from_low = targets[low - 10.0], targets[low]
+    assert from_below is not None
+    assert from_below > (low if from_low is None else from_low)
+    assert low <= from_below <= PROFILE.bounds.max_temp_c
+
+
 def test_after_the_last_window_it_stands_down():
     a = active()
     a.announce(0.0, 6.0, 2.0, 3.0)
@@ -200,9 +217,10 @@ def test_no_target_leaves_the_heaters_own_limits():
     a = active()
     a.set_heater(PROFILE.bounds.min_temp_c + 5, PROFILE.bounds.min_temp_c + 20)
     a.announce(0.0, 0.1, 1.0, 5.0)                   # needs the profile's min
-    assert a.on_flush(2.0, 1.0) == PROFILE.bounds.min_temp_c + 5
+    held = PROFILE.bounds.min_temp_c + 5.5           # the start's M109
+    assert a.on_flush(2.0, held) == PROFILE.bounds.min_temp_c + 5
     a.announce(2.0, 100.0, 1.0, 5.0)                 # beyond the heater
-    assert a.on_flush(4.0, 1.0) == PROFILE.bounds.min_temp_c + 20
+    assert a.on_flush(4.0, held) == PROFILE.bounds.min_temp_c + 20
     assert a.status["min_temp"] == PROFILE.bounds.min_temp_c + 5
     b = active()
     b.set_heater(255.0, 250.0)   # nothing left between them: off, saying why

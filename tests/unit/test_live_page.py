@@ -21,6 +21,7 @@ from flowloop.gcode.reference_planner import PrinterLimits
 from flowloop.host import live_page
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.samples import make
+from tests.unit.test_autotemp_bake import WEAK
 
 pytestmark = pytest.mark.unit
 
@@ -134,6 +135,25 @@ def test_the_planned_temperature_is_autotemps_replay(annotated):
     assert min(shown) == pytest.approx(min(known), abs=1.0)
     assert PROFILE.bounds.min_temp_c <= min(shown) <= max(shown) \
         <= PROFILE.bounds.max_temp_c
+
+
+def test_the_plan_starts_where_the_files_wait_leaves_the_nozzle(tmp_path):
+    """The page replays from the start G-code's M109, as [autotemp] starts
+    from the heater's target at the printer's first flush: a file that
+    waits hot is not shown pushed to the maximum as if it started cold."""
+    line = dict(WEAK["lines"]["real_print"], slope_mm3_s_per_c=0.25)
+    profile = profile_from_dict(dict(
+        WEAK, lines={"into_air": line, "real_print": line},
+        bounds=dict(WEAK["bounds"], max_temp_c=260.0)))
+    first = {}
+    for wait_c in (200, 235):   # the first layer needs about 215 C
+        src = tmp_path / f"s{wait_c}.gcode"
+        src.write_text(EXCERPT.read_text().replace("M109 S200", f"M109 S{wait_c}"))
+        annotate_file(src, tmp_path / f"a{wait_c}.gcode")
+        plan = live_page.file_plan(tmp_path / f"a{wait_c}.gcode", profile, 0.5)
+        first[wait_c] = plan["target_c"][0]
+    assert first[200] == profile.bounds.max_temp_c     # pushed from 200 C
+    assert first[235] < 220                            # already hot enough
 
 
 def test_the_plan_flow_is_the_announced_flow(annotated):
