@@ -37,6 +37,10 @@ SENSOR_SCALE_RANGE = (0.5, 2.0)
 
 
 MELT_SCALE_RANGE = (0.1, 2.0)
+# The twin's melt lag: how long its melt takes to follow a change of demand
+# (a first-order lag on the demand it melts against)
+DEFAULT_MELT_TIME_S = 0.05
+MELT_TIME_RANGE = (0.01, 2.0)
 
 
 def scaled_line(line: Line, scale: float) -> Line:
@@ -70,7 +74,7 @@ class SimulatedEms22:
                  sensor_scale: float = 1.0,
                  noise_counts: float = DEFAULT_NOISE_COUNTS,
                  spi_mode: int = 2, filament_area_mm2: float = 2.405,
-                 melt_time_s: float = 0.05, seed: int = 0,
+                 melt_time_s: float = DEFAULT_MELT_TIME_S, seed: int = 0,
                  hotend: Optional[HotendModel] = None):
         self.melt = melt
         self.hotend = hotend

@@ -12,7 +12,7 @@ from ..flow_sensor import FlowSensor
 # isort: split
 from flowloop.control.hotend import HotendModel, HotendParams
 from flowloop.errors import FlowloopError
-from flowloop.host.klipper_config import option_error
+from flowloop.host.klipper_config import finite_float, option_error
 from flowloop.material.profile import FlowLine, profile_line
 from flowloop.sensor import grip as flow_grip
 from flowloop.sensor import pipeline as fl_pipeline
@@ -46,6 +46,11 @@ def load_simulated_sensor(config):
     return sensor
 
 
+# The twin heater's options besides heater_power: HotendParams' fields
+HOTEND_OPTIONS = (('heater_time_constant', 'time_constant_s'),
+                  ('heater_heat_capacity', 'heat_capacity_j_per_c'))
+
+
 class SimulatedSource:
     """A host-side twin of the sensor: at each step generation it turns the
     extruder stepper's motion into the bytes an MCU would send."""
@@ -55,29 +60,33 @@ class SimulatedSource:
         self.printer = config.get_printer()
         self.mcu = self.printer.lookup_object('mcu')
         default = twin.DEFAULT_MELT_LINE
-        melt_temp = config.getfloat('melt_temp', 200.)
+        melt_temp = finite_float(config, 'melt_temp', 200.)
         melt = FlowLine(
-            slope_mm3_s_per_c=config.getfloat(
-                'melt_slope', default.slope_mm3_s_per_c, above=0.),
+            slope_mm3_s_per_c=finite_float(config, 'melt_slope',
+                                           default.slope_mm3_s_per_c, above=0.),
             temp_c=melt_temp,
-            flow_mm3_s=config.getfloat('melt_flow',
-                                       default.flow_mm3_s(melt_temp), above=0.))
+            flow_mm3_s=finite_float(config, 'melt_flow',
+                                    default.flow_mm3_s(melt_temp), above=0.))
         low, high = twin.MELT_SCALE_RANGE
-        self.melt_scale = config.getfloat('melt_scale', 1., minval=low,
-                                          maxval=high)
+        self.melt_scale = finite_float(config, 'melt_scale', 1., minval=low,
+                                       maxval=high)
         low, high = twin.SENSOR_SCALE_RANGE
+        lag_low, lag_high = twin.MELT_TIME_RANGE
         self.twin = twin.SimulatedEms22(
             twin.scaled_line(melt.line(), self.melt_scale),
             counts_per_mm=sensor.counts_per_mm,
-            sensor_scale=config.getfloat('sensor_scale', 1., minval=low,
-                                         maxval=high),
-            noise_counts=config.getfloat('noise_counts',
-                                         twin.DEFAULT_NOISE_COUNTS, minval=0.),
+            sensor_scale=finite_float(config, 'sensor_scale', 1., minval=low,
+                                      maxval=high),
+            noise_counts=finite_float(config, 'noise_counts',
+                                      twin.DEFAULT_NOISE_COUNTS, minval=0.),
             spi_mode=sensor.spi_mode, seed=config.getint('seed', 0),
+            melt_time_s=finite_float(config, 'melt_time',
+                                     twin.DEFAULT_MELT_TIME_S,
+                                     minval=lag_low, maxval=lag_high),
             hotend=self._hotend(config))
         # The extruder's real rotation_distance (default: as configured)
-        self.true_rotation_distance = config.getfloat(
-            'true_rotation_distance', None, above=0.)
+        self.true_rotation_distance = finite_float(
+            config, 'true_rotation_distance', None, above=0.)
         self.start_clock = None
         self.rest_ticks = self.time_shift = 0
         self.stepper = self.heater = None
@@ -94,13 +103,26 @@ class SimulatedSource:
     def _hotend(config):
         # With heater_power the twin's nozzle heats, lags and sags
         # (flowloop.control.hotend); without it it is at its target at once.
-        power = config.getfloat('heater_power', None)
+        # heater_time_constant and heater_heat_capacity make it slower or
+        # heavier (a high-mass hotend); they describe that heater only.
+        power = finite_float(config, 'heater_power', None)
+        shape = {name: finite_float(config, option, None)
+                 for option, name in HOTEND_OPTIONS}
         if power is None:
+            for option, name in HOTEND_OPTIONS:
+                if shape[name] is not None:
+                    raise option_error(config, option,
+                                       "needs heater_power (the twin has no"
+                                       " heater without it)")
             return None
+        params = {name: value for name, value in shape.items()
+                  if value is not None}
         try:
-            return HotendModel(HotendParams(max_power_w=power))
+            return HotendModel(HotendParams(max_power_w=power, **params))
         except FlowloopError as e:
-            raise option_error(config, 'heater_power', str(e)) from None
+            option = next((o for o, n in HOTEND_OPTIONS if n in str(e)),
+                          'heater_power')
+            raise option_error(config, option, str(e)) from None
 
     def _handle_profile(self, extruder, profile, working_point):
         # The twin melts what the active profile's line says (one melt line)
