@@ -144,7 +144,10 @@ def _locked(name: str) -> Iterator[None]:
 
 
 def _prune(candidates, keep: Path, newest: int = 2) -> None:
-    """Drop stale builds, sparing the newest few (another run may still use them)."""
+    """Drop stale builds, sparing the newest few (another run may still use
+    them: each use makes a build newest, build_klipper; a second checkout's
+    run once pruned the build a running make test used, as the last use
+    did not count)."""
     old = sorted((p for p in candidates if p.is_dir() and p != keep),
                  key=lambda p: p.stat().st_mtime, reverse=True)
     for path in old[newest:]:
@@ -197,6 +200,8 @@ def build_klipper(source: Path = PROJECT, targets=TARGETS,
     build = KlipperBuild(tree, host)
     with _locked(host):
         if (tree / ".flowloop-ready").exists():
+            # a build in use is a recent one: _prune spares the newest
+            os.utime(tree)
             return build
         log(f"copying {klipper_path(host)} to {tree} and patching it")
         tmp = tree.with_name(tree.name + ".tmp")

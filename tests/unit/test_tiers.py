@@ -51,3 +51,27 @@ def test_an_unknown_host_is_refused_in_one_line():
     assert proc.returncode != 0
     assert proc.stderr.strip().splitlines()[-1] == (
         "FLOWLOOP_HOSTS: marlin is not one of klipper, kalico")
+
+
+def test_a_build_in_use_is_spared_when_another_checkout_prunes(tmp_path,
+                                                               monkeypatch):
+    """A second checkout's build prunes all but the newest few builds: the
+    one a running make test reuses must count as new (it was pruned once,
+    and that run's klippy tests errored)."""
+    import os
+
+    from devtools import stack
+    monkeypatch.setattr(stack, "cache_dir", lambda: tmp_path)
+    monkeypatch.setattr(stack, "klipper_key", lambda source, host: "0" * 16)
+    in_use = tmp_path / f"klipper-{'0' * 16}"
+    stale = [tmp_path / f"klipper-{k}{'0' * 15}" for k in "abc"]
+    for age, tree in enumerate([in_use] + stale):
+        tree.mkdir()
+        (tree / ".flowloop-ready").write_text("")
+        os.utime(tree, (1000.0 + age, 1000.0 + age))   # in_use the oldest
+    stack.build_klipper()                              # the running suite
+    new = tmp_path / f"klipper-{'f' * 16}"
+    new.mkdir()
+    stack._prune(tmp_path.glob("klipper-[0-9a-f]*"), keep=new)
+    assert in_use.is_dir()
+    assert sum(tree.is_dir() for tree in stale) == 1
