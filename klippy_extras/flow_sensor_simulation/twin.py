@@ -106,23 +106,24 @@ class SimulatedSource:
         # heater_time_constant and heater_heat_capacity make it slower or
         # heavier (a high-mass hotend); they describe that heater only.
         power = finite_float(config, 'heater_power', None)
-        shape = {name: finite_float(config, option, None)
-                 for option, name in HOTEND_OPTIONS}
+        shape = {
+            'heater_time_constant': finite_float(
+                config, 'heater_time_constant', None, above=0.),
+            'heater_heat_capacity': finite_float(
+                config, 'heater_heat_capacity', None, above=0.)}
         if power is None:
-            for option, name in HOTEND_OPTIONS:
-                if shape[name] is not None:
+            for option, value in shape.items():
+                if value is not None:
                     raise option_error(config, option,
                                        "needs heater_power (the twin has no"
                                        " heater without it)")
             return None
-        params = {name: value for name, value in shape.items()
-                  if value is not None}
+        params = {name: shape[option] for option, name in HOTEND_OPTIONS
+                  if shape[option] is not None}
         try:
             return HotendModel(HotendParams(max_power_w=power, **params))
         except FlowloopError as e:
-            option = next((o for o, n in HOTEND_OPTIONS if n in str(e)),
-                          'heater_power')
-            raise option_error(config, option, str(e)) from None
+            raise option_error(config, 'heater_power', str(e)) from None
 
     def _handle_profile(self, extruder, profile, working_point):
         # The twin melts what the active profile's line says (one melt line)
