@@ -196,19 +196,30 @@ def _dialogs(driver):
             if d.is_displayed()]
 
 
-def details(driver, row) -> str:
+def details(driver, row, filename: str) -> str:
     """The text of a Mainsail job's details dialog (opened by a click on the
-    job's row)."""
+    job's row), once it shows its first entry, the job's file name.
+
+    The dialog is displayed before its text is: under load CI once read it
+    empty mid-transition. Its entries scroll in a 350 px box, so the text is
+    the rendered text a user scrolls through (innerText), not only what
+    Selenium sees in the box at once."""
     row.click()
-    dialog = stack.wait_until(lambda: _dialogs(driver), 15)
-    assert dialog, "no details dialog"
-    return dialog[0].text
+
+    def texts():
+        return [driver.execute_script("return arguments[0].innerText", d)
+                for d in _dialogs(driver)]
+    text = stack.wait_until(lambda: [t for t in texts() if filename in t], 15, 0.2)
+    assert text, f"no details dialog showing {filename}: {texts()!r}"
+    return text[0]
 
 
 def close_dialog(driver) -> None:
+    """Close the details dialog and wait until it is gone: it fades out, and
+    the next job's dialog read while it still shows read the old job's."""
     _dialogs(driver)[0].find_element("css selector", "button").click()
     assert stack.wait_until(lambda: not driver.find_elements(
-        "css selector", ".v-overlay--active"), 5)
+        "css selector", ".v-overlay--active") and not _dialogs(driver), 5)
 
 
 def test_the_jobs_figures_show_in_the_history(served, printer, browser, tmp_path):
@@ -225,11 +236,11 @@ def test_the_jobs_figures_show_in_the_history(served, printer, browser, tmp_path
         assert len(rows) == len(printer.jobs), [r.text for r in rows]
         # the job from before flowloop (the oldest): its details open, none
         # of flowloop's figures in them
-        before = details(browser, rows[-1])
+        before = details(browser, rows[-1], "block.gcode")
         assert "Lowest grip" not in before, before
         close_dialog(browser)
         # the newest job's details: flowloop's figures with their units
-        text = details(browser, rows[0])
+        text = details(browser, rows[0], "block.gcode")
         # flowloop's figures end the dialog: scrolled into the screenshot
         browser.execute_script("arguments[0].querySelectorAll('*').forEach("
                                "e => { e.scrollTop = e.scrollHeight; })",
