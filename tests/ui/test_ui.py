@@ -269,9 +269,13 @@ def test_mainsails_statistics_name_flowloops_totals_with_units(
                     "test_the_jobs_figures_show_in_the_history)")
     open_ui(browser, served)
     go(browser, served, "/history")
-    panel = browser.find_element("css selector", ".history-statistics-panel")
-    browser.execute_script("arguments[0].scrollIntoView()", panel)
-    text = panel.text
+    panels = stack.wait_until(lambda: browser.find_elements(
+        "css selector", ".history-statistics-panel"), 15, 0.2)
+    assert panels, "no statistics panel in Mainsail's history"
+    browser.execute_script("arguments[0].scrollIntoView()", panels[0])
+    # the totals fill in as Mainsail's answer arrives
+    stack.wait_until(lambda: "Limiter slowed the print" in panels[0].text, 15, 0.2)
+    text = panels[0].text
     shot(browser, tmp_path, "mainsail-statistics")
     # were "under_extruded 0 undefined" and "peak_flow 0 undefined" (a
     # maximum Mainsail shows as a total)
