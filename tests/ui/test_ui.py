@@ -331,11 +331,13 @@ def test_the_live_page_is_a_dashboard_panel_with_the_report_a_click_away(
 
 def test_the_nozzle_health_announcement_links_its_plot(served, browser, tmp_path):
     open_ui(browser, served)
-    entries = js(browser, STORE + (".state.server.announcements.entries"
-                                   if served.name == "mainsail"
-                                   else ".state.announcements.entries"))
-    ours = [e for e in entries if e["feed"] == "flowloop"]
-    assert ours and ours[0]["url"].startswith("/server/flowloop/nozzle_health/plot")
+    store = STORE + (".state.server.announcements.entries"
+                     if served.name == "mainsail" else ".state.announcements.entries")
+    # the announcements arrive with the UI's own query of them
+    ours = stack.wait_until(lambda: [e for e in js(browser, store) or []
+                                     if e["feed"] == "flowloop"], 15, 0.2)
+    assert ours, js(browser, store)
+    assert ours[0]["url"].startswith("/server/flowloop/nozzle_health/plot")
     assert js_errors(browser) == []
 
 
@@ -356,8 +358,11 @@ return found[0] || null;
 def test_a_macros_parameter_shows_its_default(served, browser):
     open_ui(browser, served)
     if served.name == "mainsail":
-        macro = js(browser, STORE + ".getters['printer/getMacro']"
-                                    "('FLOWRATE_LIMIT_START')")
+        # the macros are known once Mainsail has read the printer's config
+        macro = stack.wait_until(lambda: js(
+            browser, STORE + ".getters['printer/getMacro']('FLOWRATE_LIMIT_START')"),
+            15, 0.2)
+        assert macro, "no FLOWRATE_LIMIT_START macro in Mainsail's store"
         default = macro["params"]["MAX_FLOW"]["default"]
     else:
         fields = stack.wait_until(lambda: browser.execute_script(
