@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 
+from devtools import stack
 from devtools.klippy_api import KlippyApi
 from tests.bench.size import pick
 from tests.fil.conftest import build_or_skip, fil_printer
@@ -46,8 +47,19 @@ sample_period: {period}
 """
 
 
-def _measure(printer):
-    """(work share of the AVR, chip selects per second, link bytes per second)"""
+def _measure(printer, sampling: bool = True):
+    """(work share of the AVR, chip selects per second, link bytes per second)
+
+    With a sensor (sampling), the warm-up starts at its first chip select:
+    in a make test run [angle]'s query once had not started 2.5 s after its
+    client subscribed (no frame in the window: 0 samples), a failure with
+    no figure to say why."""
+    if sampling:
+        first = int(printer.sim.status()["frames"])
+        started = stack.wait_until(
+            lambda: int(printer.sim.status()["frames"]) > first, FIRST_DATA_S, 0.05)
+        assert started, (f"no chip select in {FIRST_DATA_S:g} s of the sensor's"
+                         f" query: {printer.klippy.log_tail(2000)}")
     time.sleep(WARMUP_S)
     s0 = printer.sim.status()
     time.sleep(MEASURE_S)
@@ -64,11 +76,11 @@ def _measure(printer):
 def _run(build, sections, angle=False):
     with fil_printer(build, sections) as printer:
         if not angle:
-            return _measure(printer)
-        # [angle] samples only while a client reads its dump endpoint
-        with KlippyApi(printer.klippy.api_socket) as dump:
-            dump.send("angle/dump_angle", sensor="bench",
-                      response_template={})
+            return _measure(printer, sampling=bool(sections))
+        # [angle] samples only while a client reads its dump endpoint: the
+        # subscription's answer first (an error raises), then its samples
+        with KlippyApi(printer.klippy.api_socket, timeout=FIRST_DATA_S) as dump:
+            dump.call("angle/dump_angle", sensor="bench", response_template={})
             return _measure(printer)
 
 
