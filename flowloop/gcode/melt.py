@@ -26,10 +26,8 @@ Barriers cut the average: no flow is counted across a wait the file does not
 time.
 
 It costs a few array passes per cell: the moves' trapezoids become pieces of
-constant slope, the volume at the grid times is an interpolation between
-the pieces' ends (exact where the flow is constant) with the bend of an
-accelerating piece added at its own times, and each centred mean is the
-difference of two volumes.
+constant slope, each grid time is given its piece by a repeat (no search per
+cell), and each centred mean is the difference of two volumes.
 """
 
 from __future__ import annotations
@@ -108,37 +106,23 @@ def _pieces(batch: Segments, volume_before: float) -> _Pieces:
 def volume_at(pieces: _Pieces, times: np.ndarray) -> np.ndarray:
     """Plastic (mm^3) left through the nozzle by each of times (increasing,
     within the batch or after it; one before it counts as at its start)."""
-    # The volume is linear in time over a piece of constant flow (a cruise,
-    # travel) and between pieces: one interpolation between the pieces' ends
-    # is exact there. A piece whose flow changes (accel, decel) bends below
-    # its chord by 0.5 * slope * u * (u - length); that is added at its
-    # times only (a small share of them)
+    # times[first[p]:first[p + 1]] fall in piece p. A piece of no length
+    # that the next one starts with gets none (nor does it change where the
+    # others start): only the others are searched for (the first and last
+    # are kept: one before the batch counts as at its start)
     start, length = pieces.start_s, pieces.length_s
-    end = start + length
-    knots = np.empty(2 * len(start))
-    knots[0::2] = start
-    knots[1::2] = end
-    # a piece's end is the next one's start, to rounding: never after it
-    np.maximum.accumulate(knots, out=knots)
-    volume = np.empty(len(knots))
-    volume[0::2] = pieces.volume_mm3
-    volume[1:-1:2] = pieces.volume_mm3[1:]
-    volume[-1] = pieces.end_volume_mm3
-    at = np.interp(times, knots, volume)
-    bent = np.flatnonzero((pieces.slope_mm3_s2 != 0.0) & (length > 0.0))
-    if bent.size:
-        lo = _search_grid(times, start[bent])
-        count = _search_grid(times, end[bent]) - lo
-        np.maximum(count, 0, out=count)
-        total = int(count.sum())
-        if total:
-            piece = np.repeat(bent, count)
-            # the times of each bent piece: lo[k], lo[k] + 1, ... count[k] of them
-            first = np.cumsum(count) - count
-            i = np.arange(total) + np.repeat(lo - first, count)
-            u = times[i] - start[piece]
-            at[i] += 0.5 * pieces.slope_mm3_s2[piece] * u * (u - length[piece])
-    return at
+    keep = np.empty(len(start), bool)
+    keep[0] = keep[-1] = True
+    np.not_equal(length[1:-1], 0.0, out=keep[1:-1])
+    keep[1:-1] |= start[2:] != start[1:-1]
+    kept = np.flatnonzero(keep)
+    first = np.maximum.accumulate(_search_grid(times, start[kept]))
+    first[0] = 0
+    counts = np.diff(np.append(first, len(times)))
+    i = np.repeat(kept, counts)
+    u = np.clip(times - start[i], 0.0, length[i])
+    return pieces.volume_mm3[i] + u * (pieces.flow_mm3_s[i]
+                                       + 0.5 * pieces.slope_mm3_s2[i] * u)
 
 
 def _search_grid(times: np.ndarray, keys: np.ndarray) -> np.ndarray:
