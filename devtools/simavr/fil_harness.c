@@ -557,11 +557,25 @@ watch_firmware_clock(void)
 }
 
 // --- pacing -------------------------------------------------------------------
+// lag_s: how far simulated time is behind the wall clock. own_lag_s: the
+// part of it the harness made itself (CPU time it ran beyond the simulated
+// time it produced while behind), as opposed to time it was not running at
+// all (descheduled, or the machine stalled): only the first says the
+// simulation is too slow for real time.
 static struct {
     struct timespec start;
-    double lag_s, max_lag_s, reported_lag_s;
-    double busy_wall_s;
+    double lag_s, max_lag_s, max_lag_at_s, reported_lag_s;
+    double own_lag_s, max_own_lag_s;
+    double last_sim_s, last_cpu_s;
 } pace;
+
+static double
+cpu_seconds(void)
+{
+    struct timespec now;
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &now);
+    return now.tv_sec + now.tv_nsec * 1e-9;
+}
 
 static double
 wall_seconds(void)
@@ -603,13 +617,15 @@ command(char *line)
     if (n < 1)
         return reply("error empty command");
     if (!strcmp(name, "status")) {
-        return reply("cycle=%llu sim_s=%.6f wall_s=%.6f lag_ms=%.3f"
-                     " max_lag_ms=%.3f steps=%ld filament_mm=%.6f counts=%ld"
+        return reply("cycle=%llu sim_s=%.6f wall_s=%.6f cpu_s=%.6f lag_ms=%.3f"
+                     " max_lag_ms=%.3f max_lag_at_s=%.3f max_own_lag_ms=%.3f"
+                     " steps=%ld filament_mm=%.6f counts=%ld"
                      " grip=%.6f fault=%s frames=%lu spi_bytes=%lu"
                      " to_host=%lu from_host=%lu dropped=%lu idle_cycles=%llu"
                      " lost_overflows=%lu lost_overflows_in_shutdown=%lu",
                      (unsigned long long)avr->cycle, sim_seconds(), wall_seconds(),
-                     pace.lag_s * 1e3, pace.max_lag_s * 1e3, fil.steps, fil.mm,
+                     cpu_seconds(), pace.lag_s * 1e3, pace.max_lag_s * 1e3,
+                     pace.max_lag_at_s, pace.max_own_lag_s * 1e3, fil.steps, fil.mm,
                      shaft_counts(), grip_now(), fault_names[chip.fault],
                      chip.frames, chip.bytes, serial.to_host, serial.from_host,
                      serial.dropped, (unsigned long long)prof.idle_cycles,
@@ -665,7 +681,7 @@ command(char *line)
         return pc_profile(what, path);
     }
     if (!strcmp(name, "reset_lag")) {
-        pace.max_lag_s = 0;
+        pace.max_lag_s = pace.max_lag_at_s = pace.max_own_lag_s = 0;
         return reply("ok");
     }
     return reply("error unknown command '%s'", name);
@@ -724,18 +740,30 @@ open_control(const char *path)
 static void
 wait_and_serve(double sim_s)
 {
-    double ahead = sim_s - wall_seconds();
+    double ahead = sim_s - wall_seconds(), cpu_s = cpu_seconds();
+    double ran_over = (cpu_s - pace.last_cpu_s) - (sim_s - pace.last_sim_s);
+    pace.last_sim_s = sim_s;
+    pace.last_cpu_s = cpu_s;
     struct pollfd fds[3] = {
         { .fd = serial.master, .events = POLLIN },
         { .fd = client_fd >= 0 ? client_fd : listen_fd, .events = POLLIN },
     };
     if (ahead < 0) {
         pace.lag_s = -ahead;
-        if (pace.lag_s > pace.max_lag_s)
+        if (pace.lag_s > pace.max_lag_s) {
             pace.max_lag_s = pace.lag_s;
+            pace.max_lag_at_s = sim_s;
+        }
+        pace.own_lag_s += ran_over;
+        if (pace.own_lag_s < 0)
+            pace.own_lag_s = 0;
+        if (pace.own_lag_s > pace.lag_s)
+            pace.own_lag_s = pace.lag_s;
+        if (pace.own_lag_s > pace.max_own_lag_s)
+            pace.max_own_lag_s = pace.own_lag_s;
         ahead = 0;
     } else {
-        pace.lag_s = 0;
+        pace.lag_s = pace.own_lag_s = 0;
     }
     struct timespec ts = { (time_t)ahead, (long)((ahead - (time_t)ahead) * 1e9) };
     ppoll(fds, 2, &ts, NULL);
@@ -880,6 +908,7 @@ main(int argc, char **argv)
     signal(SIGINT, on_signal);
     signal(SIGPIPE, SIG_IGN);
     clock_gettime(CLOCK_MONOTONIC, &pace.start);
+    pace.last_cpu_s = cpu_seconds();
     printf("fil_harness: running %s at %u Hz, serial on %s, control on %s,"
            " EMS22 on %s SPI\n", elf, freq_hz, pty_path, control,
            chip.software ? "software" : "hardware");
@@ -908,7 +937,8 @@ main(int argc, char **argv)
         wait_and_serve(sim_seconds());
         if (pace.lag_s > pace.reported_lag_s + 0.05) {
             printf("fil_harness: simulation behind the wall clock by %.0f ms"
-                   " at %.3f s\n", pace.lag_s * 1e3, sim_seconds());
+                   " (%.0f ms of it running slower than real time) at %.3f s\n",
+                   pace.lag_s * 1e3, pace.own_lag_s * 1e3, sim_seconds());
             pace.reported_lag_s = pace.lag_s;
         } else if (pace.lag_s == 0) {
             pace.reported_lag_s = 0;
@@ -916,8 +946,10 @@ main(int argc, char **argv)
         if (stop_requested)
             break;
     }
-    printf("fil_harness: stopped at %.6f s, max lag %.1f ms, %lu frames\n",
-           sim_seconds(), pace.max_lag_s * 1e3, chip.frames);
+    printf("fil_harness: stopped at %.6f s, max lag %.1f ms at %.3f s (%.1f ms"
+           " running slower than real time), %lu frames\n", sim_seconds(),
+           pace.max_lag_s * 1e3, pace.max_lag_at_s, pace.max_own_lag_s * 1e3,
+           chip.frames);
     unlink(pty_path);
     unlink(control);
     return 0;

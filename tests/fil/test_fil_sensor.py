@@ -35,6 +35,8 @@ def _status(printer) -> dict:
 def test_klippy_connects_in_normal_mode(printer, fil_build):
     CLOCK["clock"] = simavr.FirmwareClock(printer, fil_build.elf("atmega2560"))
     CLOCK["start"] = CLOCK["clock"].read()
+    harness = printer.sim.status()
+    CLOCK["harness"] = (float(harness["cpu_s"]), float(harness["sim_s"]))
     log = printer.klippy.log_path.read_text()
     assert "Configured MCU 'mcu'" in log
     mcu = printer.query("mcu")
@@ -102,20 +104,30 @@ def test_the_sensor_follows_a_grip_ramp(printer):
 def test_klippys_clock_follows_the_firmwares(printer):
     clock = CLOCK["clock"]
     wall0, ticks0, cycles0 = CLOCK["start"]
+    cpu0, sim0 = CLOCK["harness"]
     wall1, ticks1, cycles1 = clock.read()
     firmware_hz = (ticks1 - ticks0) / (wall1 - wall0)
     cycles_hz = (cycles1 - cycles0) / (wall1 - wall0)
     klippy_hz = printer.query("mcu")["last_stats"]["freq"]
     status = printer.sim.status()
+    cpu_per_sim_s = ((float(status["cpu_s"]) - cpu0)
+                     / (float(status["sim_s"]) - sim0))
     print(f"over {wall1 - wall0:.1f} s: simulated {cycles_hz:.0f} cycles/s,"
           f" firmware clock {firmware_hz:.0f} Hz, klippy's estimate "
-          f"{klippy_hz:.0f} Hz; simulation at most {status['max_lag_ms']} ms"
-          f" behind the wall clock")
+          f"{klippy_hz:.0f} Hz; the harness used {cpu_per_sim_s:.2f} CPU s per"
+          f" simulated s; simulation at most {status['max_lag_ms']} ms behind"
+          f" the wall clock (at {status['max_lag_at_s']} s), of it"
+          f" {status['max_own_lag_ms']} ms running slower than real time")
     assert cycles_hz == pytest.approx(16e6, rel=0.001)
     # the firmware clock is read in 4 ms (65536 tick) steps
     resolution = 65536 / (wall1 - wall0) / 16e6
     assert klippy_hz == pytest.approx(firmware_hz, rel=0.001 + resolution)
-    assert float(status["max_lag_ms"]) < 50
+    # The harness keeps real time with room to catch up: it never fell
+    # behind by running slower than the firmware's 16 MHz. Time it was not
+    # running at all (descheduled, the machine stalled) also shows in
+    # max_lag_ms; that is the machine's, and CI once saw 65 ms of it.
+    assert float(status["max_own_lag_ms"]) < 50
+    assert cpu_per_sim_s < 0.8
     # every Timer1 overflow since reset reached timer_high (the harness
     # watches its steps): without flowloop's simavr timer fix one in a few
     # seconds did not, and the firmware's clock jumped 4.1 ms back
