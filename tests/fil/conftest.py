@@ -97,6 +97,52 @@ def printer(request, fil_build):
         yield fil
 
 
+# Moonraker's components subscribe to klippy's objects in their klippy-ready
+# handlers, each re-sending the merged subscription; a print_stats change
+# between two of them reaches only the later one's answer, and job_state
+# (its history) would never see the print start. A user starts a print long
+# after; a test waits for the handlers to end.
+SUBSCRIPTIONS_SETTLE_S = 2.0
+
+
+@contextlib.contextmanager
+def fil_moonraker(build, moonraker_venv, sections: str, profile: dict,
+                  extra_conf: str = "", hotend_temp_c: float = 25.0):
+    """A fil printer with `[virtual_sdcard]` on a Moonraker's gcodes folder
+    (sections: a format string given {gcodes}), and that Moonraker, ready
+    for a print, with `profile` stored and active on the extruder; both
+    stopped on leaving."""
+    data_dir = stack.short_tempdir("fl-filmr-")
+    gcodes = data_dir / "gcodes"
+    gcodes.mkdir(parents=True)
+    try:
+        with fil_printer(build, sections.format(gcodes=gcodes),
+                         hotend_temp_c=hotend_temp_c) as printer:
+            server = stack.Moonraker(moonraker_venv, data_dir,
+                                     klippy_uds=printer.klippy.api_socket,
+                                     extra_conf=extra_conf)
+            try:
+                server.wait_ready(klippy=True)
+                time.sleep(SUBSCRIPTIONS_SETTLE_S)
+                activate(server, profile)
+                yield printer, server
+            finally:
+                server.stop()
+    finally:
+        shutil.rmtree(data_dir, ignore_errors=True)
+
+
+def activate(server, profile: dict) -> None:
+    """Store `profile` in Moonraker and make it the extruder's active one
+    (the limiter's grip model starts afresh from it)."""
+    for path, body in (
+            ("/server/flowloop/profile", {"profile": profile}),
+            ("/server/flowloop/profile/activate",
+             {"name": profile["identity"]["name"], "extruder": "extruder"})):
+        status, answer = server.request("POST", path, body)
+        assert status == 200, answer
+
+
 def settle(printer, seconds: float = 0.4) -> dict:
     """The sensor's status once the samples of finished moves are in (M400
     returns when the last step is due; samples reach the host in messages

@@ -8,16 +8,14 @@ klippy)."""
 
 from __future__ import annotations
 
-import shutil
 import time
 import xml.etree.ElementTree as ET
 
 import pytest
 
-from devtools import stack
 from devtools.demo_flowrate_limiter import WEAK_PROFILE
 from flowloop.report import job_figures
-from tests.fil.conftest import fil_printer
+from tests.fil.conftest import fil_moonraker
 
 SECTIONS = """
 [virtual_sdcard]
@@ -28,14 +26,12 @@ path: {gcodes}
 [flow_sensor filament]
 sensor_type: ems22
 cs_pin: PG0
-grip_window: 10
 
 [flowrate_limiter]
 """
 # The thermistor pin reads this (the harness holds it): the profile's range
 HOTEND_C = 215.0
 LAYERS = 4
-SUBSCRIPTIONS_SETTLE_S = 2.0
 KEEP = 2   # number_of_reports_to_keep
 SVG = "{http://www.w3.org/2000/svg}"
 
@@ -63,37 +59,11 @@ def _wait(what, fn, timeout):
 @pytest.fixture(scope="module")
 def mr(fil_build, moonraker_venv):
     """Moonraker on the fil printer's klippy, its gcodes folder the
-    printer's virtual_sdcard."""
-    data_dir = stack.short_tempdir("fl-filmr-")
-    gcodes = data_dir / "gcodes"
-    gcodes.mkdir(parents=True)
-    try:
-        with fil_printer(fil_build, SECTIONS.format(gcodes=gcodes),
-                         hotend_temp_c=HOTEND_C) as printer:
-            server = stack.Moonraker(moonraker_venv, data_dir,
-                                     klippy_uds=printer.klippy.api_socket,
-                                     extra_conf=f"number_of_reports_to_keep:"
-                                                f" {KEEP}\n")
-            try:
-                server.wait_ready(klippy=True)
-                # Moonraker's components subscribe to klippy's objects in
-                # their klippy-ready handlers, each re-sending the merged
-                # subscription; a print_stats change between two of them
-                # reaches only the later one's answer, and job_state (its
-                # history) would never see the print start. A user starts a
-                # print long after; the test waits for the handlers to end.
-                time.sleep(SUBSCRIPTIONS_SETTLE_S)
-                for path, body in (
-                        ("/server/flowloop/profile", {"profile": WEAK_PROFILE}),
-                        ("/server/flowloop/profile/activate",
-                         {"name": "weak", "extruder": "extruder"})):
-                    status, answer = server.request("POST", path, body)
-                    assert status == 200, answer
-                yield server
-            finally:
-                server.stop()
-    finally:
-        shutil.rmtree(data_dir, ignore_errors=True)
+    printer's virtual_sdcard, the weak profile active."""
+    with fil_moonraker(fil_build, moonraker_venv, SECTIONS, WEAK_PROFILE,
+                       extra_conf=f"number_of_reports_to_keep: {KEEP}\n",
+                       hotend_temp_c=HOTEND_C) as (_, server):
+        yield server
 
 
 def _print_job(mr, name, states, cancel_after_s=None, layers=LAYERS):
@@ -167,6 +137,10 @@ def test_a_job_printed_through_moonraker_gets_a_flow_report(mr):
     assert figures["limiter_slowed"]["value"] == pytest.approx(
         summary["slowed_s"], abs=0.2)
     assert figures["peak_flow"]["value"] > 0, figures
+    # its grip judged throughout (the default 1.25 mm windows take 0.6 s at
+    # this flow; a window over 2 s is not judged): the model's grip 1.0
+    print("lowest grip", figures["lowest_grip"]["value"])
+    assert figures["lowest_grip"]["value"] >= 97, figures
 
 
 def test_a_job_cancelled_half_way_gets_a_report_that_says_so(mr):
