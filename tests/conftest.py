@@ -72,14 +72,27 @@ def _tier(path) -> str:
     return ""
 
 
+# A test that asks for this fixture runs the simulated MCU (the fil tier's,
+# or a bench's of it): it runs quiet wherever it lives.
+FIL_FIXTURE = "fil_build"
+
+
+def _quiet(item, tier: str) -> bool:
+    """With nothing beside it, not even idle-class tests: the fil tier and
+    every test that runs its simulated MCU (bench_fil's smoke runs ran
+    beside idle-class tests, and once the harness stood still for 319 ms of
+    wall clock, its own share 1 ms, and klippy shut down)."""
+    return tier in ALONE_TIERS or FIL_FIXTURE in getattr(item, "fixturenames", ())
+
+
 def _alone(item, tier: str) -> bool:
-    return tier in ALONE_TIERS or item.get_closest_marker("alone") is not None
+    return _quiet(item, tier) or item.get_closest_marker("alone") is not None
 
 
 def _prefix(item, tier: str) -> str:
     """The group's kind for the scheduler: the fil tier runs with nothing
     beside it (quiet), other alone tests beside idle-class ones (alone)."""
-    if tier in ALONE_TIERS:
+    if _quiet(item, tier):
         return pytest_schedule.QUIET
     return pytest_schedule.ALONE if _alone(item, tier) else ""
 

@@ -3,6 +3,8 @@ set before -m filters, whatever else reorders the collection."""
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -75,3 +77,36 @@ def test_a_build_in_use_is_spared_when_another_checkout_prunes(tmp_path,
     stack._prune(tmp_path.glob("klipper-[0-9a-f]*"), keep=new)
     assert in_use.is_dir()
     assert sum(tree.is_dir() for tree in stale) == 1
+
+
+GROUPS_PLUGIN = '''
+import json
+
+def pytest_collection_finish(session):
+    from tests import conftest
+    groups = conftest._xdist_groups(session.items)
+    print("GROUPS " + json.dumps({i.nodeid: g for i, g in groups.items()}))
+'''
+
+
+def test_every_test_of_the_simulated_mcu_runs_quiet(tmp_path):
+    """make test's scheduler runs a test that starts the fil tier's
+    simulated MCU with nothing beside it, wherever the test lives (a bench's
+    smoke run too); a paced klippy test runs alone, beside idle-class ones."""
+    (tmp_path / "groups_plugin.py").write_text(GROUPS_PLUGIN)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "--collect-only", "-q",
+         "-p", "no:cacheprovider", "-p", "groups_plugin",
+         "tests/bench/bench_fil.py", "tests/fil/test_fil_sensor.py",
+         "tests/bench/bench_realtime_klippy.py"],
+        cwd=PROJECT, capture_output=True, text=True, timeout=120,
+        env={**os.environ, "PYTHONPATH": str(tmp_path)})
+    line = next((x for x in proc.stdout.splitlines() if x.startswith("GROUPS ")),
+                None)
+    assert line, proc.stdout[-2000:] + proc.stderr[-2000:]
+    groups = json.loads(line[len("GROUPS "):])
+    fil = {k: g for k, g in groups.items() if "bench_fil" in k or "tests/fil/" in k}
+    paced = {k: g for k, g in groups.items() if "bench_realtime_klippy" in k}
+    assert any("bench_fil" in k for k in fil) and paced, groups
+    assert all(g.startswith("quiet:") for g in fil.values()), fil
+    assert all(g.startswith("alone:") for g in paced.values()), paced
