@@ -509,6 +509,17 @@ class HotendDriver:
         self._stop.set()
         self._thread.join(5)
 
+    def __enter__(self) -> HotendDriver:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        """Stopped; an error its thread met fails the block (unless the
+        block failed first)."""
+        self.stop()
+        if exc[0] is None and self.error is not None:
+            raise HarnessError(f"the hotend driver failed: {self.error!r}")
+
     def _read(self):
         status = self.sim.status()
         return float(status["sim_s"]), int(status["steps"])

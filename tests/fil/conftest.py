@@ -105,9 +105,26 @@ def printer(request, fil_build):
 SUBSCRIPTIONS_SETTLE_S = 2.0
 
 
+# The printer Moonraker prints jobs on: its virtual_sdcard in Moonraker's
+# gcodes folder, the EMS22, the limiter in its default (predictive) mode
+JOB_SECTIONS = """
+[virtual_sdcard]
+path: {gcodes}
+
+[display_status]
+
+[flow_sensor filament]
+sensor_type: ems22
+cs_pin: PG0
+
+[flowrate_limiter]
+"""
+
+
 @contextlib.contextmanager
-def fil_moonraker(build, moonraker_venv, sections: str, profile: dict,
-                  extra_conf: str = "", hotend_temp_c: float = 25.0):
+def fil_moonraker(build, moonraker_venv, profile: dict,
+                  sections: str = JOB_SECTIONS, extra_conf: str = "",
+                  hotend_temp_c: float = 25.0):
     """A fil printer with `[virtual_sdcard]` on a Moonraker's gcodes folder
     (sections: a format string given {gcodes}), and that Moonraker, ready
     for a print, with `profile` stored and active on the extruder; both

@@ -47,15 +47,11 @@ TARGET_C = 205.0
 def hot(fil_build):
     with fil_printer(fil_build, SECTIONS, hotend_temp_c=START_C) as printer:
         model = HotendModel(HOTEND, temp_c=START_C)
-        driver = simavr.HotendDriver(
-            printer.sim, model, MELT.line(),
-            ROTATION_DISTANCE / (FULL_STEPS * MICROSTEPS), math.pi * 1.75 ** 2 / 4)
-        driver.start()
-        try:
+        with simavr.HotendDriver(
+                printer.sim, model, MELT.line(),
+                ROTATION_DISTANCE / (FULL_STEPS * MICROSTEPS),
+                math.pi * 1.75 ** 2 / 4) as driver:
             yield printer, driver
-        finally:
-            driver.stop()
-        assert driver.error is None, driver.error
 
 
 def _extruder_temp(printer) -> float:

@@ -17,18 +17,6 @@ from devtools.demo_flowrate_limiter import WEAK_PROFILE
 from flowloop.report import job_figures
 from tests.fil.conftest import fil_moonraker
 
-SECTIONS = """
-[virtual_sdcard]
-path: {gcodes}
-
-[display_status]
-
-[flow_sensor filament]
-sensor_type: ems22
-cs_pin: PG0
-
-[flowrate_limiter]
-"""
 # The thermistor pin reads this (the harness holds it): the profile's range
 HOTEND_C = 215.0
 LAYERS = 4
@@ -60,7 +48,7 @@ def _wait(what, fn, timeout):
 def mr(fil_build, moonraker_venv):
     """Moonraker on the fil printer's klippy, its gcodes folder the
     printer's virtual_sdcard, the weak profile active."""
-    with fil_moonraker(fil_build, moonraker_venv, SECTIONS, WEAK_PROFILE,
+    with fil_moonraker(fil_build, moonraker_venv, WEAK_PROFILE,
                        extra_conf=f"number_of_reports_to_keep: {KEEP}\n",
                        hotend_temp_c=HOTEND_C) as (_, server):
         yield server

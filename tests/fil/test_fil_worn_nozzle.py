@@ -30,18 +30,6 @@ from tests.fil.conftest import (
     fil_moonraker,
 )
 
-SECTIONS = """
-[virtual_sdcard]
-path: {gcodes}
-
-[display_status]
-
-[flow_sensor filament]
-sensor_type: ems22
-cs_pin: PG0
-
-[flowrate_limiter]
-"""
 HOTEND_C = 215.0  # the harness holds the thermistor pin here
 WEAR = 0.85       # the bench's worn nozzle (bench_flowrate_limiter.HOTENDS)
 PROFILE_LINE = profile_line(profile_from_dict(WEAK_PROFILE), DEFAULT_WORKING_POINT)
@@ -80,16 +68,11 @@ def gcode_file() -> str:
 
 @pytest.fixture(scope="module")
 def worn(fil_build, moonraker_venv):
-    with fil_moonraker(fil_build, moonraker_venv, SECTIONS, WEAK_PROFILE,
+    with fil_moonraker(fil_build, moonraker_venv, WEAK_PROFILE,
                        hotend_temp_c=HOTEND_C) as (printer, server):
-        driver = simavr.HotendDriver(printer.sim, HeldHotend(HOTEND_C),
-                                     WORN_LINE, MM_PER_STEP, AREA_MM2)
-        driver.start()
-        try:
+        with simavr.HotendDriver(printer.sim, HeldHotend(HOTEND_C),
+                                 WORN_LINE, MM_PER_STEP, AREA_MM2):
             yield printer, server
-        finally:
-            driver.stop()
-        assert driver.error is None, driver.error
 
 
 def _job(printer, server, name: str, limiter_on: bool) -> dict:
