@@ -433,6 +433,10 @@ def data_address(elf: Path, symbol: str) -> int:
     raise HarnessError(f"no symbol {symbol} in {elf}")
 
 
+# FirmwareClock reads when the simulation is less than this behind the wall
+READ_LAG_MS = 1.0
+
+
 class FirmwareClock:
     """Klipper's own AVR clock (timer_high: Timer1 overflows it counted)
     against simulated cycles and the wall clock."""
@@ -441,11 +445,20 @@ class FirmwareClock:
         self.sim = printer.sim
         self.address = data_address(elf, "timer_high")
 
-    def read(self):
-        """(wall monotonic s, firmware clock in ticks (64k resolution), cycles)."""
-        answer = dict(p.split("=") for p in self.sim.control(
-            f"peek {self.address}").split())
-        return time.monotonic(), int(answer["value"]) << 16, int(answer["cycle"])
+    def read(self, timeout_s: float = 2.0):
+        """(wall monotonic s, firmware clock in ticks (64k resolution), cycles),
+        read while the simulation keeps up with the wall clock: read while
+        it catches up from a stall (the machine's, not the firmware's), the
+        clock would read that stall as a slow firmware. After timeout_s of
+        lag, what it reads then."""
+        end = time.monotonic() + timeout_s
+        while True:
+            answer = dict(p.split("=") for p in self.sim.control(
+                f"peek {self.address}").split())
+            now = time.monotonic()
+            if float(answer["lag_ms"]) < READ_LAG_MS or now > end:
+                return now, int(answer["value"]) << 16, int(answer["cycle"])
+            time.sleep(0.01)
 
 
 # Klipper's src/sched.c: static struct { struct timer *timer_list,

@@ -672,8 +672,9 @@ command(char *line)
         uint32_t addr = (uint32_t)a;
         if (addr + 1 >= avr->ramend + 1u)
             return reply("error address %u out of range", addr);
-        return reply("value=%u cycle=%llu", avr->data[addr] | (avr->data[addr + 1] << 8),
-                     (unsigned long long)avr->cycle);
+        return reply("value=%u cycle=%llu lag_ms=%.3f",
+                     avr->data[addr] | (avr->data[addr + 1] << 8),
+                     (unsigned long long)avr->cycle, pace.lag_s * 1e3);
     }
     if (!strcmp(name, "pcprof")) {
         char what[8] = "", path[200] = "";

@@ -160,6 +160,46 @@ def activate(server, profile: dict) -> None:
         assert status == 200, answer
 
 
+def wait_for(what: str, fn, timeout: float):
+    """fn()'s first true value, polled; the test fails naming `what` if
+    none comes within timeout seconds."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = fn()
+        if value:
+            return value
+        time.sleep(0.25)
+    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}",
+                pytrace=False)
+
+
+def start_job(server, name: str, gcode: str) -> None:
+    """Upload `gcode` as `name` to Moonraker and start printing it."""
+    server.upload(name, gcode.encode())
+    status, body = server.request("POST", f"/printer/print/start?filename={name}")
+    assert status == 200, body
+
+
+def ended_job(server, name: str, states, timeout: float = 60) -> dict:
+    """The job of file `name` in Moonraker's history once it has ended in
+    one of `states`."""
+    def ended():
+        jobs = server.request("GET", "/server/history/list?limit=3")[1][
+            "result"]["jobs"]
+        return next((j for j in jobs if j["filename"] == name
+                     and j["status"] in states), None)
+    return wait_for("the job in Moonraker's history", ended, timeout)
+
+
+def job_report(server, job: dict, timeout: float = 15) -> dict:
+    """The summary /server/flowloop/reports lists for `job` once stored."""
+    def listed():
+        result = server.request("GET", "/server/flowloop/reports")[1]["result"]
+        return next((r for r in result["reports"]
+                     if r["job_id"] == job["job_id"]), None)
+    return wait_for("the job's flow report", listed, timeout)
+
+
 def settle(printer, seconds: float = 0.4) -> dict:
     """The sensor's status once the samples of finished moves are in (M400
     returns when the last step is due; samples reach the host in messages

@@ -15,7 +15,13 @@ import pytest
 
 from devtools.demo_flowrate_limiter import WEAK_PROFILE
 from flowloop.report import job_figures
-from tests.fil.conftest import fil_moonraker
+from tests.fil.conftest import (
+    ended_job,
+    fil_moonraker,
+    job_report,
+    start_job,
+    wait_for,
+)
 
 # The thermistor pin reads this (the harness holds it): the profile's range
 HOTEND_C = 215.0
@@ -33,17 +39,6 @@ def gcode_file(layers: int = LAYERS) -> str:
     return "\n".join(out) + "\n"
 
 
-def _wait(what, fn, timeout):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        value = fn()
-        if value:
-            return value
-        time.sleep(0.25)
-    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}",
-                pytrace=False)
-
-
 @pytest.fixture(scope="module")
 def mr(fil_build, moonraker_venv):
     """Moonraker on the fil printer's klippy, its gcodes folder the
@@ -56,9 +51,7 @@ def mr(fil_build, moonraker_venv):
 
 def _print_job(mr, name, states, cancel_after_s=None, layers=LAYERS):
     """Upload and print a file; its job in the history once it ended."""
-    mr.upload(name, gcode_file(layers).encode())
-    status, body = mr.request("POST", f"/printer/print/start?filename={name}")
-    assert status == 200, body
+    start_job(mr, name, gcode_file(layers))
     if cancel_after_s is not None:
         time.sleep(cancel_after_s)
         # the running job's report so far, served while it prints
@@ -69,23 +62,13 @@ def _print_job(mr, name, states, cancel_after_s=None, layers=LAYERS):
         assert status == 200 and name in live, live[:300]
         status, body = mr.request("POST", "/printer/print/cancel")
         assert status == 200, body
-
-    def ended():
-        jobs = mr.request("GET", "/server/history/list?limit=3")[1]["result"]["jobs"]
-        return next((j for j in jobs if j["filename"] == name
-                     and j["status"] in states), None)
-    return _wait("the job in Moonraker's history", ended, 60)
+    return ended_job(mr, name, states)
 
 
 def _print(mr, name, states, cancel_after_s=None):
     """_print_job; (its job, its report's summary, the report's HTML)."""
     job = _print_job(mr, name, states, cancel_after_s)
-
-    def listed():
-        result = mr.request("GET", "/server/flowloop/reports")[1]["result"]
-        return next((r for r in result["reports"]
-                     if r["job_id"] == job["job_id"]), None)
-    summary = _wait("the job's flow report", listed, 15)
+    summary = job_report(mr, job)
     status, page = mr.request("GET", f"/server/flowloop/report?job_id={job['job_id']}")
     assert status == 200, page
     assert "flowloop: the flow report" not in mr.log_path.read_text()
@@ -168,7 +151,7 @@ def test_a_report_that_cannot_be_stored_is_one_line_and_the_history_is_kept(mr):
 
         def logged():
             return [x for x in mr.log_path.read_text().splitlines() if said in x]
-        (line,) = _wait("the line in moonraker.log", logged, 10)
+        (line,) = wait_for("the line in moonraker.log", logged, 10)
         after = mr.log_path.read_text().split(line, 1)[1]
         assert "Traceback" not in after[:300], after[:300]
         assert mr.request("GET", "/server/info")[0] == 200
@@ -184,7 +167,7 @@ def test_only_the_newest_reports_are_kept_and_an_unknown_job_is_404(mr):
         listed = mr.request("GET", "/server/flowloop/reports")[1]["result"]
         names = [r["filename"] for r in listed["reports"]]
         return names if names[:1] == ["newest.gcode"] else None
-    names = _wait("the newest job's report", pruned, 15)
+    names = wait_for("the newest job's report", pruned, 15)
     # the completed and cancelled jobs of the tests above, and this one:
     # number_of_reports_to_keep 2 keeps the newest two
     assert names == ["newest.gcode", "cancelled_job.gcode"], names

@@ -10,7 +10,6 @@ status, and slows the rest of the job to it."""
 from __future__ import annotations
 
 import math
-import time
 
 import pytest
 
@@ -27,7 +26,10 @@ from tests.fil.conftest import (
     MICROSTEPS,
     ROTATION_DISTANCE,
     activate,
+    ended_job,
     fil_moonraker,
+    job_report,
+    start_job,
 )
 
 HOTEND_C = 215.0  # the harness holds the thermistor pin here
@@ -75,36 +77,25 @@ def worn(fil_build, moonraker_venv):
             yield printer, server
 
 
+def _set_limiter(server, on: bool) -> None:
+    status, body = server.request(
+        "POST", "/printer/gcode/script",
+        {"script": f"SET_FLOWRATE_LIMIT ENABLE={int(on)}"})
+    assert status == 200, body
+
+
 def _job(printer, server, name: str, limiter_on: bool) -> dict:
     """Print the file as job `name` with a fresh grip model (the profile
     activated again) and the limiter on or off; its flow report's summary,
     what the harness's model fed against what the steps commanded, and the
     limiter's status at the end."""
     activate(server, WEAK_PROFILE)
-    server.request("POST", "/printer/gcode/script",
-                   {"script": f"SET_FLOWRATE_LIMIT ENABLE={int(limiter_on)}"})
+    _set_limiter(server, limiter_on)
     before = printer.sim.status()
-    server.upload(name, gcode_file().encode())
-    status, body = server.request("POST", f"/printer/print/start?filename={name}")
-    assert status == 200, body
-    deadline = time.monotonic() + 120
-    job = None
-    while job is None and time.monotonic() < deadline:
-        jobs = server.request("GET", "/server/history/list?limit=3")[1][
-            "result"]["jobs"]
-        job = next((j for j in jobs if j["filename"] == name
-                    and j["status"] == "completed"), None)
-        time.sleep(0.5)
-    assert job is not None, f"{name} did not complete in 120 s"
+    start_job(server, name, gcode_file())
+    job = ended_job(server, name, ("completed",), timeout=120)
     limiter = printer.query("flowrate_limiter")
-    summary = None
-    while summary is None and time.monotonic() < deadline:
-        reports = server.request("GET", "/server/flowloop/reports")[1][
-            "result"]["reports"]
-        summary = next((r for r in reports if r["job_id"] == job["job_id"]),
-                       None)
-        time.sleep(0.25)
-    assert summary is not None, f"no flow report for {name}"
+    summary = job_report(server, job)
     after = printer.sim.status()
     commanded = (int(after["steps"]) - int(before["steps"])) * MM_PER_STEP
     fed = float(after["filament_mm"]) - float(before["filament_mm"])
@@ -116,8 +107,7 @@ def test_the_limiter_learns_a_worn_nozzle_and_prevents_its_slip(worn):
     printer, server = worn
     on = _job(printer, server, "worn_on.gcode", limiter_on=True)
     off = _job(printer, server, "worn_off.gcode", limiter_on=False)
-    server.request("POST", "/printer/gcode/script",
-                   {"script": "SET_FLOWRATE_LIMIT ENABLE=1"})
+    _set_limiter(server, True)
     under_on = on["summary"]["under_extruded_mm"]
     under_off = off["summary"]["under_extruded_mm"]
     believed = on["limiter"]["caps"]["model"]
