@@ -18,6 +18,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from devtools import stack
 from devtools.klippy_api import KlippyApi
+from flowloop.control import nozzle_health as nh
 from flowloop.control import rule_plot
 from flowloop.gcode.annotate import AnnotateSettings, quantise_flow
 from flowloop.gcode.bake import plan_announcements
@@ -84,10 +85,14 @@ def print_in_chunks(api, lines: List[str],
 def print_closed_loop(enable: int, build=None, venv=None,
                       profile: Dict[str, Any] = WEAK_PROFILE,
                       config: Path = CONFIG, mode: str = "predictive",
-                      gcode: Path = GCODE) -> Tuple[Dict[str, Any], float]:
+                      gcode: Path = GCODE, melt_ratio: Optional[float] = None
+                      ) -> Tuple[Dict[str, Any], float]:
     """Print the slicer excerpt (or `gcode`) on the twin with the limiter on
-    (1) or off (0) in `mode`, after warming the nozzle up; the limiter's
-    status (with the toolhead's final `print_time` added) and the filament
+    (1) or off (0) in `mode`, after warming the nozzle up, the profile
+    activated with `melt_ratio` (as Moonraker sends nozzle health's newest);
+    the limiter's status (with the toolhead's final `print_time` and the
+    print's nozzle health estimate as Moonraker stores it, `nozzle_health`,
+    added) and the filament
     the twin really moved while printing the file (sent by print_in_chunks)."""
     workdir = stack.short_tempdir("fl-limiter-")
     klippy = stack.Klippy(build or stack.build_klipper(),
@@ -98,16 +103,23 @@ def print_closed_loop(enable: int, build=None, venv=None,
         api = KlippyApi(klippy.api_socket)
         try:
             stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+            seed = {} if melt_ratio is None else {"melt_ratio": melt_ratio}
             api.call("flowloop/set_active_profile", extruder="extruder",
-                     profile=profile, working_point=0.5)
+                     profile=profile, working_point=0.5, **seed)
             api.gcode(f"SET_FLOWRATE_LIMIT ENABLE={enable} MODE={mode}")
             warm_up(api, WARM_UP_C)
             before = api.query("flow_sensor sim")["filament_position"] or 0.0
             start = api.query("toolhead")["print_time"]
             print_in_chunks(api, gcode.read_text().splitlines())
             moved = api.query("flow_sensor sim")["filament_position"] - before
+            # what Moonraker's nozzle health asks at a job's end
+            answer = api.call("flowrate_limiter/nozzle_evidence",
+                              extruder="extruder")
             status = dict(api.query("flowrate_limiter"),
-                          print_time=api.query("toolhead")["print_time"] - start)
+                          print_time=api.query("toolhead")["print_time"] - start,
+                          nozzle_health=nh.estimate(
+                              nh.PrintEvidence.from_dict(answer["evidence"]),
+                              answer["model_melt_ratio"]))
             return status, moved
         finally:
             api.close()

@@ -32,6 +32,7 @@ if requirements.missing() is not None:
     raise configfile.error(requirements.missing())
 # isort: split
 import flowloop
+from flowloop.control import nozzle_health as fl_nozzle_health
 from flowloop.control.tools import PerTool
 from flowloop.errors import FlowloopError
 from flowloop.host import klipper_config
@@ -108,12 +109,16 @@ class FlowloopHost:
         try:
             wp = working_point_arg(web_request.get(
                 'working_point', fl_profile.DEFAULT_WORKING_POINT))
+            # the hotend's melt ratio from its earlier prints (Moonraker's
+            # nozzle health): the limiter's grip model starts from it
+            ratio = web_request.get('melt_ratio', None)
+            ratio = None if ratio is None else fl_nozzle_health.melt_ratio_arg(ratio)
             # Whatever the profile says, never above the heater's limit.
             profile = fl_profile.capped_to_heater(
                 fl_profile.profile_from_dict(data), heater.max_temp)
         except FlowloopError as e:
             raise web_request.error(f"flowloop: {e}") from None
-        self.active_profiles[extruder] = Activation(profile, wp)
+        self.active_profiles[extruder] = Activation(profile, wp, ratio)
         self._update_status()
         self.printer.send_event('flowloop:profile_activated', extruder,
                                 profile, wp)

@@ -123,7 +123,11 @@ class FlowrateLimiter:
 
     def _handle_profile(self, extruder, profile, working_point):
         if extruder == self.extruder_name and self.limiter is not None:
-            self.limiter.set_profile(profile, working_point)
+            # with the melt ratio the activation brought (the event keeps
+            # the arguments every section takes)
+            active = self.host.get_active_profile(extruder)
+            self.limiter.set_profile(profile, working_point,
+                                     None if active is None else active.melt_ratio)
 
     def _handle_window(self, window):
         # In the reactor, possibly inside a flush: no pauses here. A window
@@ -208,10 +212,14 @@ class FlowrateLimiter:
                 web_request.get_str('extruder', None), self.tools.active_name())
         except FlowloopError as e:
             raise web_request.error(str(e)) from None
-        evidence = None if member.limiter is None else member.limiter.evidence
+        limiter = member.limiter
+        evidence = None if limiter is None else limiter.evidence
+        # and what the grip model believes now (the next print's seed)
         web_request.send({'extruder': member.extruder_name,
                           'evidence': None if evidence is None
-                          else evidence.to_dict()})
+                          else evidence.to_dict(),
+                          'model_melt_ratio': None if limiter is None
+                          else limiter.model_melt_ratio})
 
     def report(self, gcmd):
         s = self.limiter.status()
@@ -222,7 +230,10 @@ class FlowrateLimiter:
         gcmd.respond_info(
             f"{self.section}: {state}, mode {s['mode']}, cap {cap}"
             f" ({s['reason']}); caps: {caps}; slowed {s['slowed_moves']} moves"
-            f" by {s['slowed_time']:.1f} s" + (f"; {s['why']}" if s['why'] else ""))
+            f" by {s['slowed_time']:.1f} s"
+            + (f"; model seeded at melt ratio {s['seed_melt_ratio']:.2f}"
+               if s['seed_melt_ratio'] is not None else "")
+            + (f"; {s['why']}" if s['why'] else ""))
 
 
 def load_config(config):

@@ -65,14 +65,17 @@ class CapacityLine:
                    + self.slope_mm3_s_per_c * (temp_c - self.ref_temp_c))
 
     @classmethod
-    def from_profile_line(cls, line: Line, grip: float,
-                          ref_temp_c: float) -> CapacityLine:
+    def from_profile_line(cls, line: Line, grip: float, ref_temp_c: float,
+                          melt_ratio: float = 1.0) -> CapacityLine:
         """The melt capacity under a profile's line measured at `grip`, as
-        the line's tangent at ref_temp_c (the Line may bend at a ceiling)."""
+        the line's tangent at ref_temp_c (the Line may bend at a ceiling),
+        times melt_ratio: what this hotend melts against the profile
+        (flowloop.control.nozzle_health's ratio, 1: as the profile says)."""
         half = PRIOR_SPAN_C / 2.0
         slope = (line.flow_mm3_s(ref_temp_c + half)
                  - line.flow_mm3_s(ref_temp_c - half)) / (2.0 * half)
-        return cls(ref_temp_c, grip * line.flow_mm3_s(ref_temp_c), grip * slope)
+        scale = grip * melt_ratio
+        return cls(ref_temp_c, scale * line.flow_mm3_s(ref_temp_c), scale * slope)
 
 
 def predicted_grip(capacity: CapacityLine, flow_mm3_s: float,
@@ -196,6 +199,11 @@ class GripModel:
     def cap_mm3_s(self, temp_c: float) -> float:
         """The flow at which the feeder is predicted to start slipping."""
         return self.fitted.at(temp_c)
+
+    def ratio_to(self, line: CapacityLine) -> float:
+        """The fitted capacity against `line` at the seed's temperature."""
+        ref = self.seed.ref_temp_c
+        return self.fitted.at(ref) / line.at(ref)
 
     def status(self) -> Dict[str, Any]:
         f = self.fitted

@@ -49,7 +49,7 @@ from .grip_model import (
     GripModel,
     judged_flow_mm3_s,
 )
-from .nozzle_health import PrintEvidence
+from .nozzle_health import PrintEvidence, melt_ratio_arg
 from .reactive import (
     DEFAULT_HYSTERESIS,
     DEFAULT_MIN_GRIP,
@@ -111,10 +111,15 @@ class FlowLimiter:
         self.profile: Optional[Profile] = None
         self.working_point = DEFAULT_WORKING_POINT
         self.model: Optional[GripModel] = None
+        # what the model was seeded with: this hotend's melt ratio against
+        # the profile from its earlier prints (None: the profile's line)
+        self.seed_melt_ratio: Optional[float] = None
         # what the windows say of the hotend against the active profile
         # (flowloop.control.nozzle_health), summed since it was activated
         self.evidence: Optional[PrintEvidence] = None
         self._line: Optional[Line] = None
+        # the model's seed had the hotend melted what the profile says
+        self._profile_capacity: Optional[CapacityLine] = None
         self.temp_c: Optional[float] = None
         self.sensor_fault: Optional[str] = None
         self.reactive = self._reactive_rule()
@@ -166,23 +171,45 @@ class FlowLimiter:
         self._update()
 
     def set_profile(self, profile: Optional[Profile],
-                    working_point: float = DEFAULT_WORKING_POINT) -> None:
+                    working_point: float = DEFAULT_WORKING_POINT,
+                    melt_ratio: Optional[float] = None) -> None:
         """A newly active profile (None: none) seeds the temperature cap and
-        a fresh grip model."""
+        a fresh grip model: the profile's melt line, times melt_ratio when
+        given (what this hotend melted against the profile in its earlier
+        prints: nozzle health's newest estimate, which Moonraker sends with
+        the activation). Checks the ratio first: a bad one changes nothing.
+        The temperature cap stays the profile's: the ratio seeds only what
+        the windows correct."""
+        if melt_ratio is not None:
+            melt_ratio = melt_ratio_arg(melt_ratio)
         self.profile = profile
         self.working_point = working_point
         self.model = None
         self.evidence = None
+        self.seed_melt_ratio = None
         if profile is not None:
             line = profile_line(profile, working_point)
             seed_grip = min_grip_of(profile)
             self._line = line
+            self.seed_melt_ratio = melt_ratio
             self.evidence = PrintEvidence(profile.name, working_point, seed_grip)
+            self._profile_capacity = CapacityLine.from_profile_line(
+                line, seed_grip, profile.bounds.recommended_temp_c)
             self.model = GripModel(CapacityLine.from_profile_line(
-                line, seed_grip, profile.bounds.recommended_temp_c),
+                line, seed_grip, profile.bounds.recommended_temp_c,
+                1.0 if melt_ratio is None else melt_ratio),
                 filament_area_mm2=self.filament_area_mm2)
         self.reactive = self._reactive_rule()
         self._update()
+
+    @property
+    def model_melt_ratio(self) -> Optional[float]:
+        """What the grip model believes the hotend melts against the
+        profile (nozzle health's ratio: its capacity over the profile's
+        line at min_grip), None without a profile."""
+        if self.model is None:
+            return None
+        return self.model.ratio_to(self._profile_capacity)
 
     def set_temperature(self, temp_c: Optional[float]) -> None:
         temp_c = None if temp_c is None else float(temp_c)
@@ -286,7 +313,10 @@ class FlowLimiter:
             "profile": None if self.profile is None else self.profile.name,
             "slowed_time": round(self.slowed_time_s, 3),
             "slowed_moves": self.slowed_moves,
-            "model": None if self.model is None else self.model.status(),
+            "model": None if self.model is None else {
+                **self.model.status(),
+                "melt_ratio": round(self.model_melt_ratio, 4)},
+            "seed_melt_ratio": self.seed_melt_ratio,
             "grip_windows": self._grip_windows(),
             "host": self.host,
         }

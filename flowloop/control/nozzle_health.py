@@ -53,13 +53,14 @@ import json
 import math
 import re
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Collection, Dict, List, Mapping, Optional, Sequence, Tuple
 from urllib.parse import urlencode
 
 import numpy as np
 
 from ..errors import FlowloopError
+from ..material.active import number_arg
 from ..material.profile import (
     Line,
     Profile,
@@ -109,6 +110,11 @@ MAX_SUM = 1e15
 EPOCH = re.compile(r"[0-9A-Za-z_-]{1,32}")
 # The prints kept per hotend and profile (the verdict needs TREND_PRINTS)
 MAX_PRINTS_KEPT = 50
+# What an activation may seed the limiter's grip model with (the ratios a
+# print can be judged at)
+MIN_MELT_RATIO, MAX_MELT_RATIO = float(RATIO_GRID[0]), float(RATIO_GRID[-1])
+MELT_RATIO_ACCEPTS = (f"a number from {MIN_MELT_RATIO:g} to {MAX_MELT_RATIO:g}"
+                      f" (the hotend's melt capacity against its profile's)")
 
 
 def _grid_zeros() -> np.ndarray:
@@ -319,6 +325,10 @@ class PrintEstimate:
     windows: int = 0
     min_grip: float = 0.9
     reason: str = ""                         # why no estimate ("" : one)
+    # what the limiter's grip model believed at the print's end, against
+    # the profile (None: not known); an estimate or not, the next print's
+    # model starts from it (carried_ratio)
+    model_ratio: Optional[float] = None
 
     @property
     def known(self) -> bool:
@@ -338,7 +348,8 @@ class PrintEstimate:
                 "standard_error": rounded(self.standard_error, 5),
                 "grip_noise": rounded(self.grip_noise, 5),
                 "at_least": rounded(self.at_least), "windows": self.windows,
-                "min_grip": self.min_grip, "reason": self.reason}
+                "min_grip": self.min_grip, "reason": self.reason,
+                "model_ratio": rounded(self.model_ratio)}
 
     @classmethod
     def from_dict(cls, data: Any) -> PrintEstimate:
@@ -355,7 +366,8 @@ class PrintEstimate:
                       at_least=_opt(data.get("at_least"), "at_least"),
                       windows=_count(data.get("windows", 0), "windows"),
                       min_grip=_number(data.get("min_grip", 0.9), "min_grip"),
-                      reason=data.get("reason", ""))
+                      reason=data.get("reason", ""),
+                      model_ratio=_opt(data.get("model_ratio"), "model_ratio"))
         except KeyError as e:
             raise FlowloopError(f"not a nozzle health estimate: {e} is "
                                 f"missing") from None
@@ -371,20 +383,69 @@ def _opt(value: Any, name: str) -> Optional[float]:
     return None if value is None else _number(value, name)
 
 
-def estimate(evidence: Optional[PrintEvidence]) -> PrintEstimate:
-    """The print's ratio and its standard error, or the reason there is none."""
+def melt_ratio_arg(value: Any, parameter: str = "melt_ratio") -> float:
+    """A melt ratio a request gives (an activation's seed for the grip
+    model), refused in one line unless a print could have measured it."""
+    return number_arg(parameter, value, MELT_RATIO_ACCEPTS, MIN_MELT_RATIO,
+                      MAX_MELT_RATIO)
+
+
+def _measurable(ratio: Optional[float]) -> bool:
+    return ratio is not None and MIN_MELT_RATIO <= ratio <= MAX_MELT_RATIO
+
+
+def newest_ratio(estimates: Sequence[PrintEstimate]) -> Optional[float]:
+    """The ratio of the newest print (oldest first) that gave an estimate a
+    print can give, or None: what a job's history entry shows."""
+    for e in reversed(estimates):
+        if e.known and _measurable(e.ratio):
+            return e.ratio
+    return None
+
+
+def carried_ratio(estimates: Sequence[PrintEstimate]) -> Optional[float]:
+    """What the next activation seeds the limiter's grip model with (None:
+    the profile's line): from the newest print (oldest first) that knew
+    anything, what the model believed at its end (the latest knowledge, and
+    there whether or not the print gave an estimate: a print with too few
+    easy windows to measure the noise still taught the model), else its
+    estimate."""
+    for e in reversed(estimates):
+        if _measurable(e.model_ratio):
+            return e.model_ratio
+        if e.known and _measurable(e.ratio):
+            return e.ratio
+    return None
+
+
+def estimate(evidence: Optional[PrintEvidence],
+             model_ratio: Optional[float] = None) -> PrintEstimate:
+    """The print's ratio and its standard error, or the reason there is
+    none; with model_ratio (what the limiter's model believed at the print's
+    end) beside, when the print had a profile."""
     if evidence is None:
         return PrintEstimate("", reason="no active profile during the print: "
                              "nothing to compare the hotend with")
     with np.errstate(all="ignore"):
         found = _estimate(evidence)
     numbers = (found.ratio, found.standard_error, found.grip_noise)
-    if all(v is None or math.isfinite(v) for v in numbers):
-        return found
-    # sums no print gives (each finite, together out of any sensor's range)
-    return PrintEstimate(evidence.profile, windows=evidence.windows,
-                         min_grip=evidence.min_grip,
-                         reason="the evidence's sums give no finite estimate")
+    if not all(v is None or math.isfinite(v) for v in numbers):
+        # sums no print gives (each finite, together out of any sensor's range)
+        found = PrintEstimate(evidence.profile, windows=evidence.windows,
+                              min_grip=evidence.min_grip,
+                              reason="the evidence's sums give no finite estimate")
+    return replace(found, model_ratio=model_ratio_of(model_ratio))
+
+
+def model_ratio_of(value: Any) -> Optional[float]:
+    """The melt ratio klippy's limiter says its model believes
+    (`model_melt_ratio` of flowrate_limiter/nozzle_evidence), None for
+    anything but a finite number: it is kept beside the estimate, never in
+    place of one."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not math.isfinite(value):
+        return None
+    return float(value)
 
 
 def _estimate(ev: PrintEvidence) -> PrintEstimate:

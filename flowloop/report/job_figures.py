@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence, Union
+from typing import Dict, List, Optional, Union
 
 from .recorder import Recorder
 
@@ -104,8 +104,9 @@ def recorded(rec: Recorder) -> Dict[str, Figure]:
     }
 
 
-def melt_ratio(ratios: Sequence[Optional[float]]) -> Figure:
-    """The newest judged melt ratio (capacity against the profile, oldest
-    first, None where a print gave no estimate) in percent."""
-    known = [r for r in ratios if r is not None and math.isfinite(r)]
-    return _number(100.0 * known[-1] if known else None, MELT_RATIO)
+def melt_ratio(ratio: Optional[float]) -> Figure:
+    """The newest judged melt ratio (capacity against the profile,
+    flowloop.control.nozzle_health.newest_ratio; None: no print judged) in
+    percent."""
+    known = ratio is not None and math.isfinite(ratio)
+    return _number(100.0 * ratio if known else None, MELT_RATIO)

@@ -92,6 +92,9 @@ class Flowloop:
         self.nozzle_health = NozzleHealth(self.server, self.store,
                                           self.health_store, hotend,
                                           self.job_history)
+        # an activation starts the limiter's grip model from the hotend's
+        # newest melt ratio for the profile
+        self.klippy.melt_ratio_of = self.nozzle_health.carried_ratio
 
     async def component_init(self) -> None:
         # first: an older database's histories leave the profiles' namespace

@@ -3,14 +3,17 @@
 # klippy holds the active profile itself (its [flowloop] object answers the
 # flowloop/set_active_profile endpoint). An activation stands only while
 # klippy accepts it; Profiles decides what happens on a refusal, this part
-# only sends and tells a refusal (klippy's 400) from klippy being away.
+# only sends and tells a refusal (klippy's 400) from klippy being away. An
+# activation carries the hotend's newest melt ratio for the profile (nozzle
+# health): the limiter's grip model starts from what this hotend melted in
+# its earlier prints.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, Dict, Optional
+from typing import TYPE_CHECKING, Any, Awaitable, Callable, Dict, Optional
 
 from flowloop.material.active import ActiveProfile
 
@@ -34,6 +37,9 @@ class KlippySync:
         self.server = server
         self.store = store
         self.klippy: KlippyConnection = server.lookup_component("klippy_connection")
+        # (extruder, profile name) -> the melt ratio to send, or None
+        self.melt_ratio_of: Optional[Callable[[str, str],
+                                              Awaitable[Optional[float]]]] = None
 
     async def send(self, extruder: str, entry: Optional[ActiveProfile]) -> bool:
         """Send an extruder's activation (None clears it) to klippy: True
@@ -45,6 +51,10 @@ class KlippySync:
         if entry is not None:
             params["profile"] = self.store.profile_dicts[entry.name]
             params["working_point"] = entry.working_point
+            if self.melt_ratio_of is not None:
+                ratio = await self.melt_ratio_of(extruder, entry.name)
+                if ratio is not None:
+                    params["melt_ratio"] = ratio
         try:
             await self.klippy.request(WebRequest(KLIPPY_ENDPOINT, params))
         except self.server.error as e:

@@ -13,7 +13,9 @@
 # nh.label shows them (one line, no markup). A POST (a print from elsewhere)
 # is checked whole before anything is stored; a DELETE removes one profile's
 # history. The melt ratio last judged for the profile a job starts with goes
-# to the job's history entry (job_history.py). Everything that decides is in
+# to the job's history entry (job_history.py), and goes with an activation of
+# the profile to klippy (melt_ratio: klippy_sync.py), where the limiter's grip
+# model starts from it. Everything that decides is in
 # flowloop.control.nozzle_health.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
@@ -70,13 +72,14 @@ class NozzleHealth:
     def tool_hotend(self, extruder: str) -> str:
         return nh.tool_hotend(self.hotend, extruder)
 
-    async def _evidence(self) -> Dict[str, Optional[Dict[str, Any]]]:
-        """Every tool's evidence (tools without a limiter are left out)."""
+    async def _evidence(self) -> Dict[str, Dict[str, Any]]:
+        """Every tool's answer: its `evidence` and `model_melt_ratio`
+        (tools without a limiter are left out)."""
         if not self.klippy.is_ready():
             return {}
         kapis = self.server.lookup_component("klippy_apis")
         objects = await kapis.get_object_list(default=[])
-        out: Dict[str, Optional[Dict[str, Any]]] = {}
+        out: Dict[str, Dict[str, Any]] = {}
         problem = None
         for extruder in sorted(filter(is_extruder_name, objects)):
             try:
@@ -85,8 +88,7 @@ class NozzleHealth:
             except self.server.error as e:  # no [flowrate_limiter] on it
                 problem = e
                 continue
-            out[extruder] = (answer.get("evidence") if isinstance(answer, dict)
-                             else None)
+            out[extruder] = answer if isinstance(answer, dict) else {}
         if not out and problem is not None:
             logging.info(f"flowloop: no nozzle evidence from klippy: "
                          f"{one_line(problem)}")
@@ -107,35 +109,47 @@ class NozzleHealth:
                 logging.exception(f"flowloop: nozzle health of job "
                                   f"{job.get('job_id')} failed: {one_line(e)}")
                 return
-            for extruder, evidence in end.items():
+            for extruder, answer in end.items():
                 await self._record_tool(job.get("job_id"), extruder,
-                                        start.get(extruder), evidence)
+                                        start.get(extruder, {}).get("evidence"),
+                                        answer.get("evidence"),
+                                        answer.get("model_melt_ratio"))
 
-    async def _history_melt_ratio(
-            self, evidence: Dict[str, Optional[Dict[str, Any]]]) -> None:
+    async def _history_melt_ratio(self, answers: Dict[str, Dict[str, Any]]
+                                  ) -> None:
         """The melt ratio last judged for the profile the job starts with
         (the first tool that has one), into the job's history entry."""
-        for extruder, found in evidence.items():
+        for extruder, answer in answers.items():
+            found = answer.get("evidence")
             profile = found.get("profile") if isinstance(found, dict) else None
             if not isinstance(profile, str) or not profile:
                 continue
-            hotend = self.tool_hotend(extruder)
-            _, estimates = self._loaded(hotend, profile,
-                                        await self.health.get(hotend, profile))
             self.job_history.update({job_figures.MELT_RATIO.name: job_figures.
-                                     melt_ratio([e.ratio for e in estimates
-                                                 if e.known])})
+                                     melt_ratio(nh.newest_ratio(await self._estimates(
+                                         extruder, profile)))})
             return
 
+    async def _estimates(self, extruder: str, profile: str
+                         ) -> List[nh.PrintEstimate]:
+        hotend = self.tool_hotend(extruder)
+        return self._loaded(hotend, profile,
+                            await self.health.get(hotend, profile))[1]
+
+    async def carried_ratio(self, extruder: str, profile: str) -> Optional[float]:
+        """What an activation of a profile on this tool seeds its limiter's
+        grip model with (nh.carried_ratio; None: the profile's line)."""
+        return nh.carried_ratio(await self._estimates(extruder, profile))
+
     async def _record_tool(self, job_id: str, extruder: str, before: Any,
-                           after: Any) -> None:
+                           after: Any, model_ratio: Any = None) -> None:
         """One tool's part of a job; a tool whose evidence does not read is
         one line in the log, the other tools are judged all the same."""
         try:
             if not (isinstance(after, dict) and (before is None or isinstance(
                     before, dict)) and nh.printed_between(before, after)):
                 return   # a tool that did not print this job
-            await self.record(job_id, before, after, self.tool_hotend(extruder))
+            await self.record(job_id, before, after, self.tool_hotend(extruder),
+                              model_ratio)
         except FlowloopError as e:
             logging.info(f"flowloop: nozzle health of job {job_id}, {extruder}: "
                          f"{one_line(e)}")
@@ -145,21 +159,26 @@ class NozzleHealth:
 
     async def record(self, job_id: str, start: Optional[Dict[str, Any]],
                      end: Optional[Dict[str, Any]],
-                     hotend: Optional[str] = None) -> Dict[str, Any]:
-        """A job's estimate from klippy's snapshots (FlowloopError: evidence
-        that does not read)."""
+                     hotend: Optional[str] = None,
+                     model_ratio: Any = None) -> Dict[str, Any]:
+        """A job's estimate from klippy's snapshots, with what the limiter's
+        model believed at its end (FlowloopError: evidence or a ratio that
+        does not read)."""
         return await self.record_evidence(
             job_id, None if start is None else nh.PrintEvidence.from_dict(start),
-            None if end is None else nh.PrintEvidence.from_dict(end), hotend)
+            None if end is None else nh.PrintEvidence.from_dict(end), hotend,
+            nh.model_ratio_of(model_ratio))
 
     async def record_evidence(self, job_id: str,
                               start: Optional[nh.PrintEvidence],
                               end: Optional[nh.PrintEvidence],
-                              hotend: Optional[str] = None) -> Dict[str, Any]:
+                              hotend: Optional[str] = None,
+                              model_ratio: Optional[float] = None
+                              ) -> Dict[str, Any]:
         """A job's estimate stored under its hotend and profile (the job's
         earlier record replaced); the verdict."""
         hotend = hotend or self.hotend
-        found = nh.estimate(nh.evidence_between(start, end))
+        found = nh.estimate(nh.evidence_between(start, end), model_ratio)
         entry = {"job_id": job_id, "time": time.time(), **found.to_dict()}
         if not found.profile:
             logging.info(f"flowloop: nozzle health of job {job_id}: {found.reason}")

@@ -12,7 +12,11 @@
   run has (issue 41: asserted on the worn nozzle, where it is met; printed
   elsewhere, where issue 30's 90 % is asserted) at a print time within the
   slip-free bound's (asserted), and on the bench's hotend at a print-time
-  cost below the reactive mode's (not met). The same run gives the same
+  cost below the reactive mode's (not met). Each hotend's next print, the
+  profile activated with the ratio carried from the predictive run (what
+  Moonraker sends after a restart): >= 98 % prevented on every hotend
+  (asserted), its print time 1.0x the bound's (within 0.2 %; guarded at
+  SEEDED_TIME_GUARD). The same run gives the same
   figures (the twin is seeded and
   devtools.demo_flowrate_limiter.print_closed_loop syncs the sensor at each
   chunk); besides the goals' ratios, the time each mode adds per mm of
@@ -55,8 +59,10 @@ from devtools.demo_flowrate_limiter import (
     print_closed_loop,
 )
 from devtools.klippy_api import KlippyApi
+from flowloop.control import nozzle_health as nh
 from flowloop.control import rule_plot
 from flowloop.control.hotend import HotendParams
+from flowloop.material.profile import min_grip_of, profile_from_dict
 from flowloop.sensor.twin import DEFAULT_MELT_TIME_S, DEFAULT_NOISE_COUNTS
 from tests.bench.size import FULL, pick
 from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps
@@ -145,6 +151,11 @@ HOTENDS = (
 SMOKE_LINES = 400
 SMOKE_HOTENDS = HOTENDS[1:2]
 RUN_NAMES = ("off", "reactive", "predictive", "knowing the capacity")
+# predictive again, the profile activated with the melt ratio carried from
+# the predictive run (nozzle_health.carried_ratio of what Moonraker stores
+# of it: what Moonraker sends at the next activation, the same hotend's next
+# print after a restart)
+SEEDED = "predictive, seeded"
 
 
 def _print_hotend(hotend, gcode, build, venv, tmp_path):
@@ -160,13 +171,23 @@ def _print_hotend(hotend, gcode, build, venv, tmp_path):
             (1, hotend.profile, given, "reactive"),
             (1, hotend.profile, given, "predictive"),
             (1, hotend.true_profile, hotend.config(tmp_path, 1.0), "temperature"))
-    results = {}
+    # the twin's melt against the model's seed (the profile's line at its
+    # min_grip): what a carried ratio would be, were the model exact
+    results = {"true_ratio": hotend.melt_scale / min_grip_of(
+        profile_from_dict(hotend.profile))}
     for name, (enable, profile, cfg, mode) in zip(RUN_NAMES, runs):
         status, moved = print_closed_loop(enable, build, venv, profile, cfg,
                                           mode, gcode)
         results[name] = (commanded - moved, status["print_time"])
         if name == "predictive":
             results["model"] = status["model"]
+            results["estimate"] = status["nozzle_health"]
+    ratio = nh.carried_ratio([results["estimate"]])
+    results["seed"] = ratio
+    status, moved = print_closed_loop(1, build, venv, hotend.profile, given,
+                                      "predictive", gcode, melt_ratio=ratio)
+    assert status["seed_melt_ratio"] == ratio, status
+    results[SEEDED] = (commanded - moved, status["print_time"])
     return results
 
 
@@ -180,7 +201,14 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
     for hotend in pick(HOTENDS, SMOKE_HOTENDS):
         results = table[hotend.name] = _print_hotend(
             hotend, gcode, klipper_build, klippy_venv, tmp_path)
-        for name in RUN_NAMES:
+        estimate = results["estimate"]
+        bench.figure(f"{hotend.name}: predictive's nozzle health estimate"
+                     f" ({estimate.reason or 'known'})",
+                     math.nan if estimate.ratio is None else estimate.ratio,
+                     f" of the profile, the twin melts {results['true_ratio']:.3f}")
+        bench.figure(f"{hotend.name}: carried to '{SEEDED}' (its model's ratio"
+                     " at the end)", results["seed"], "")
+        for name in RUN_NAMES + (SEEDED,):
             lost, took = results[name]
             bench.figure(f"{hotend.name}: limiter {name}: under-extruded",
                          lost, " mm")
@@ -197,6 +225,12 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
         bench.ratio(f"{name}: predictive print time vs the slip-free bound",
                     r["predictive"][1], r["knowing the capacity"][1], " s",
                     goal="<= 1.0x")
+        bench.ratio(f"{name}: predictive seeded by its last print, under-extrusion"
+                    " vs limiter off", r[SEEDED][0], r["off"][0], " mm",
+                    goal="<= 0.02x")
+        bench.ratio(f"{name}: predictive seeded by its last print, print time vs"
+                    " the slip-free bound", r[SEEDED][1],
+                    r["knowing the capacity"][1], " s", goal="<= 1.0x")
     for line in _table(table):
         bench.terminal.write_line(line)
     if FULL:
@@ -242,6 +276,17 @@ def _table(table):
         time_share = r["predictive"][1] / r["knowing the capacity"][1]
         yield (f"| {name} | " + " | ".join(f"{v:.2f} mm" for v in lost)
                + f" | {share:.3f}x | {time_share:.3f}x |")
+    yield ""
+    yield ("| hotend | carried ratio (the twin's true one) | seeded: under-extruded"
+           " | seeded / off | seeded time / bound |")
+    yield "| --- | --- | --- | --- | --- |"
+    for name, r in table.items():
+        ratio = r["seed"]
+        lost, took = r[SEEDED]
+        yield (f"| {name} | {'none' if ratio is None else f'{ratio:.3f}'}"
+               f" ({r['true_ratio']:.3f}) | {lost:.2f} mm"
+               f" | {lost / r['off'][0]:.3f}x"
+               f" | {took / r['knowing the capacity'][1]:.3f}x |")
 
 
 # Where issue 41's under-extrusion goal (<= 0.02x of limiter-off) is met
@@ -250,15 +295,26 @@ def _table(table):
 GOAL_MET_TODAY = ("worn nozzle",)
 
 
+# The seeded run's print time against the slip-free bound's: 0.9999-1.0020x
+# on 2026-11-29 (issue 41's goal of 1.0x met on one hotend, within 0.2 % on
+# the others), guarded at this
+SEEDED_TIME_GUARD = 1.005
+
+
 def _assert_goals_met_today(table):
     """Asserted where it was met on 2026-11-29: predictive's print time
     within the slip-free bound's on every hotend (issue 41's goal,
-    0.993-0.999x), its under-extrusion <= 0.10x of limiter-off (issue 30's,
-    0.015-0.032x), and <= 0.02x (issue 41's) on GOAL_MET_TODAY."""
+    0.991-0.999x), its under-extrusion <= 0.10x of limiter-off (issue 30's,
+    0.015-0.032x), and <= 0.02x (issue 41's) on GOAL_MET_TODAY; seeded by
+    its last print, <= 0.02x on every hotend (0.005-0.008x) at a print time
+    within SEEDED_TIME_GUARD of the bound's."""
     for name, r in table.items():
-        assert r["predictive"][1] <= r["knowing the capacity"][1], (name, r)
+        bound = r["knowing the capacity"][1]
+        assert r["predictive"][1] <= bound, (name, r)
         goal = 0.02 if name in GOAL_MET_TODAY else 0.10
         assert r["predictive"][0] <= goal * r["off"][0], (name, r)
+        assert r[SEEDED][0] <= 0.02 * r["off"][0], (name, r)
+        assert r[SEEDED][1] <= SEEDED_TIME_GUARD * bound, (name, r)
 
 
 def test_reactive_rule_against_ddprint_s(bench):

@@ -137,6 +137,24 @@ def test_each_job_is_judged_for_nozzle_health(mr):
     for p in prints:
         assert p["ratio"] is not None or p["reason"], p
     assert not histories[0]["verdict"]["warn"]
+    # beside each, what the limiter's model believed at the job's end: these
+    # jobs kept up below the profile's capacity, so what it was seeded with
+    limiter = _limiter(mr)
+    assert limiter["seed_melt_ratio"] is None, limiter
+    for p in prints:
+        assert p["model_ratio"] == pytest.approx(
+            limiter["model"]["melt_ratio"], abs=1e-4), p
+    # the next activation carries it to klippy: the model starts from it
+    status, body = mr.request("POST", "/server/flowloop/profile/activate",
+                              {"name": "weak"})
+    assert status == 200 and body["result"]["sent_to_klippy"], body
+    assert _limiter(mr)["seed_melt_ratio"] == prints[-1]["model_ratio"]
+
+
+def _limiter(mr):
+    status, body = mr.request("GET", "/printer/objects/query?flowrate_limiter")
+    assert status == 200, body
+    return body["result"]["status"]["flowrate_limiter"]
 
 
 def test_a_report_that_cannot_be_stored_is_one_line_and_the_history_is_kept(mr):

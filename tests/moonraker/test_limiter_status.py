@@ -3,7 +3,13 @@ Fluidd read), and a change made with SET_FLOWRATE_LIMIT shows in it."""
 
 from __future__ import annotations
 
+from urllib.parse import quote
+
 import pytest
+
+from flowloop.control import nozzle_health as nh
+from tests.nozzle_prints import PROFILE, simulate_print
+from tests.samples import twin_known
 
 # klippy's config in the printer fixture (tests/moonraker/conftest.py)
 PRINTER_CFG = """\
@@ -43,3 +49,39 @@ def test_bad_input_through_moonraker_changes_nothing(printer):
     assert status == 400, body
     assert "MAX_FLOW" in str(body) or "max_flow" in str(body)
     assert printer.query("flowrate_limiter")["cap"] == pytest.approx(6.0)
+
+
+def test_an_activation_seeds_the_model_with_the_hotends_newest_melt_ratio(
+        printer):
+    # issue 41's carry-over: what nozzle health judged of this hotend and
+    # profile in its last print goes with the next activation to klippy
+    data = twin_known()
+    status, body = printer.moonraker.request("POST", "/server/flowloop/profile",
+                                             {"profile": data})
+    assert status == 200, body
+    name = data["identity"]["name"]
+
+    def activated():
+        status, body = printer.moonraker.request(
+            "POST", "/server/flowloop/profile/activate", {"name": name})
+        assert status == 200 and body["result"]["sent_to_klippy"], body
+        return printer.query("flowrate_limiter")
+
+    fresh = activated()
+    assert fresh["seed_melt_ratio"] is None and fresh["profile"] == name
+    evidence = nh.evidence_of(simulate_print(0.8, seed=3), PROFILE).to_dict()
+    status, body = printer.moonraker.request(
+        "POST", "/server/flowloop/nozzle_health",
+        {"job_id": "00000A", "evidence": {**evidence, "profile": name}})
+    assert status == 200, body
+    ratio = body["result"]["entry"]["ratio"]
+    assert ratio == pytest.approx(0.8, abs=0.03)
+    seeded = activated()
+    assert seeded["seed_melt_ratio"] == pytest.approx(ratio, abs=1e-4)
+    assert seeded["model"]["capacity_mm3_s"] == pytest.approx(
+        ratio * fresh["model"]["capacity_mm3_s"], rel=1e-3)
+    # a new nozzle: its profile's history deleted, the profile's line again
+    status, body = printer.moonraker.request(
+        "DELETE", f"/server/flowloop/nozzle_health?profile={quote(name)}")
+    assert status == 200, body
+    assert activated()["seed_melt_ratio"] is None

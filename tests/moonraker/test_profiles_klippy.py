@@ -305,18 +305,26 @@ def klippy_api(ps, method, params):
     return json.loads(data[:-1])
 
 
-@pytest.mark.parametrize("value, shown", [("abc", "'abc'"), (1.5, "1.5"),
-                                          (True, "true"), ([0.5], "[0.5]")])
-def test_klippy_names_a_bad_working_point_and_keeps_the_active_profile(printer,
-                                                                       value,
-                                                                       shown):
+ACCEPTS = {
+    "working_point": "a number from 0 (real print) to 1 (into air)",
+    "melt_ratio": ("a number from 0.3 to 1.5 (the hotend's melt capacity "
+                   "against its profile's)"),
+}
+
+
+@pytest.mark.parametrize("parameter, value, shown", [
+    ("working_point", "abc", "'abc'"), ("working_point", 1.5, "1.5"),
+    ("working_point", True, "true"), ("working_point", [0.5], "[0.5]"),
+    ("melt_ratio", "abc", "'abc'"), ("melt_ratio", 1.6, "1.6"),
+    ("melt_ratio", 0.2, "0.2"), ("melt_ratio", True, "true")])
+def test_klippy_names_a_bad_activation_value_and_keeps_the_active_profile(
+        printer, parameter, value, shown):
     store(printer, name="kept")
     assert activate(printer, "kept", working_point=0.4)[0] == 200
     answer = klippy_api(printer, "flowloop/set_active_profile", {
         "extruder": "extruder", "profile": make(name="other"),
-        "working_point": value})
+        "working_point": 0.5, parameter: value})
     assert answer["error"]["message"] == (
-        f"flowloop: working_point: got {shown}; accepts a number from 0 (real "
-        f"print) to 1 (into air)")
+        f"flowloop: {parameter}: got {shown}; accepts {ACCEPTS[parameter]}")
     shown_status = klippy_profiles(printer)["extruder"]
     assert shown_status["name"] == "kept" and shown_status["working_point"] == 0.4

@@ -72,9 +72,9 @@ def test_the_figures_follow_the_recording():
 
 
 def test_the_melt_ratio_is_the_newest_judged_in_percent():
-    assert job_figures.melt_ratio([0.97, None, 0.912]) == 91.2
-    assert job_figures.melt_ratio([None, float("nan")]) == []
-    assert job_figures.melt_ratio([]) == []
+    assert job_figures.melt_ratio(0.912) == 91.2
+    assert job_figures.melt_ratio(float("nan")) == []
+    assert job_figures.melt_ratio(None) == []
 
 
 def test_no_figure_has_a_maximum_mainsail_would_show_as_a_total():
