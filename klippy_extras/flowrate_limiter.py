@@ -233,6 +233,8 @@ class FlowrateLimiter:
             f" by {s['slowed_time']:.1f} s"
             + (f"; model seeded at melt ratio {s['seed_melt_ratio']:.2f}"
                if s['seed_melt_ratio'] is not None else "")
+            + (f"; carried melt ratio {s['dropped_melt_ratio']:.2f} dropped"
+               " unconfirmed" if s['dropped_melt_ratio'] is not None else "")
             + (f"; {s['why']}" if s['why'] else ""))
 
 

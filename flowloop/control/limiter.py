@@ -45,6 +45,7 @@ from ..window import Window
 from . import caps as fl_caps
 from .grip_model import (
     DEFAULT_FILAMENT_AREA_MM2,
+    SLIP_TOLERANCE,
     CapacityLine,
     GripModel,
     judged_flow_mm3_s,
@@ -65,6 +66,19 @@ DEFAULT_MODE = "predictive"
 MODE_CAPS = {mode: fl_caps.CAP_NAMES[:i + 1] for i, mode in enumerate(MODES)}
 # A temperature change smaller than this does not recompute the caps.
 TEMP_RESOLUTION_C = 0.1
+# A carried seed (set_profile's melt_ratio) no window has confirmed (by a
+# slip beyond SLIP_TOLERANCE) after moves ran this long under the model's
+# cap is dropped: capped there they never slip, so a seed too low (a new
+# nozzle after a worn one) would otherwise never show the hotend melts more.
+# A seed at or a little above the hotend's capacity is confirmed within
+# seconds (the model's belief sits 1-5 % above it).
+CONFIRM_SEED_S = 30.0
+# A carried seed starts this far above the ratio given: a model's belief at
+# a print's end may sit within the noise band above the hotend, where no
+# capped window slips enough to confirm it (the bench's worn nozzle, 0.6 %
+# above, was dropped); a little higher, the first capped windows slip just
+# beyond the band and confirm or correct it.
+SEED_PROBE = SLIP_TOLERANCE
 
 
 def check_mode(value: str) -> str:
@@ -114,6 +128,11 @@ class FlowLimiter:
         # what the model was seeded with: this hotend's melt ratio against
         # the profile from its earlier prints (None: the profile's line)
         self.seed_melt_ratio: Optional[float] = None
+        # the carried ratio dropped unconfirmed (None: none dropped), and
+        # the time moves ran under the model's cap while a carried seed was
+        # unconfirmed (None: no such seed)
+        self.dropped_melt_ratio: Optional[float] = None
+        self._unconfirmed_s: Optional[float] = None
         # what the windows say of the hotend against the active profile
         # (flowloop.control.nozzle_health), summed since it was activated
         self.evidence: Optional[PrintEvidence] = None
@@ -186,20 +205,34 @@ class FlowLimiter:
         self.working_point = working_point
         self.model = None
         self.evidence = None
-        self.seed_melt_ratio = None
+        self.seed_melt_ratio = self.dropped_melt_ratio = None
+        self._unconfirmed_s = None
         if profile is not None:
             line = profile_line(profile, working_point)
             seed_grip = min_grip_of(profile)
             self._line = line
             self.seed_melt_ratio = melt_ratio
+            self._unconfirmed_s = None if melt_ratio is None else 0.0
             self.evidence = PrintEvidence(profile.name, working_point, seed_grip)
             self._profile_capacity = CapacityLine.from_profile_line(
                 line, seed_grip, profile.bounds.recommended_temp_c)
             self.model = GripModel(CapacityLine.from_profile_line(
                 line, seed_grip, profile.bounds.recommended_temp_c,
-                1.0 if melt_ratio is None else melt_ratio),
+                1.0 if melt_ratio is None
+                else melt_ratio * (1.0 + SEED_PROBE)),
                 filament_area_mm2=self.filament_area_mm2)
         self.reactive = self._reactive_rule()
+        self._update()
+
+    def _drop_seed(self) -> None:
+        """The carried seed went unconfirmed: the model starts again from
+        the profile's line (its windows decide from here, as on a first
+        print). The move being capped keeps its speed; later ones get the
+        new caps."""
+        self.dropped_melt_ratio, self.seed_melt_ratio = self.seed_melt_ratio, None
+        self._unconfirmed_s = None
+        self.model = GripModel(self._profile_capacity,
+                               filament_area_mm2=self.filament_area_mm2)
         self._update()
 
     @property
@@ -240,6 +273,12 @@ class FlowLimiter:
         before = self.reactive.cap_mm3_s
         self.reactive.on_window(window)
         learned = self.model is not None and self.model.learn(window)
+        if learned and float(window.grip) < 1.0 - SLIP_TOLERANCE:
+            # a real slip: the hotend melts no more than about the seed (a
+            # window that slipped within the noise confirms nothing: at a
+            # seed too low they come too, from the nozzle's temperature
+            # moving under the cap)
+            self._unconfirmed_s = None
         if learned or self.reactive.cap_mm3_s != before:
             self._update()
 
@@ -290,6 +329,10 @@ class FlowLimiter:
                 shape, speed, cap, self.filament_area_mm2,
                 floor_mm_s=self.settings.min_speed_factor * speed)
         if speed < speed_mm_s:
+            if self._unconfirmed_s is not None and self.active.reason == "model":
+                self._unconfirmed_s += shape.duration_s(speed)
+                if self._unconfirmed_s >= CONFIRM_SEED_S:
+                    self._drop_seed()
             self.slowed_moves += 1
             self.slowed_time_s += shape.duration_s(speed) - shape.duration_s(
                 speed_mm_s)
@@ -317,6 +360,7 @@ class FlowLimiter:
                 **self.model.status(),
                 "melt_ratio": round(self.model_melt_ratio, 4)},
             "seed_melt_ratio": self.seed_melt_ratio,
+            "dropped_melt_ratio": self.dropped_melt_ratio,
             "grip_windows": self._grip_windows(),
             "host": self.host,
         }

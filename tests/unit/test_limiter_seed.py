@@ -10,7 +10,12 @@ import pytest
 
 from flowloop.control import nozzle_health as nh
 from flowloop.control.grip_model import CapacityLine
-from flowloop.control.limiter import FlowLimiter, LimiterSettings
+from flowloop.control.limiter import (
+    CONFIRM_SEED_S,
+    SEED_PROBE,
+    FlowLimiter,
+    LimiterSettings,
+)
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import profile_line
 from flowloop.window import JUDGED, Window
@@ -58,31 +63,61 @@ def lost_over_first_moves(melt_ratio, melts_mm3_s, moves=20):
 
 
 def test_a_limiter_seeded_from_the_last_print_does_not_slip_at_its_start():
-    # a worn hotend: 70 % of what the profile's seed says it melts
-    melts = 0.7 * profile_capacity()
+    # a worn hotend: 69 % of what the profile's seed says it melts, seeded
+    # with 0.7 (a model's belief sits a little above the hotend: a window
+    # that slips under 2 % counts as kept up), so it starts at 0.714
+    # (SEED_PROBE): its first windows slip 3 %, not 31 %
+    melts = 0.69 * profile_capacity()
     fresh, _ = lost_over_first_moves(None, melts)
     carried, status = lost_over_first_moves(0.7, melts)
     assert fresh > 0.2            # the fresh model learns by slipping
-    assert carried < 0.05 * fresh
+    assert carried < 0.5 * fresh  # 0.085 against 0.31 mm
     assert status["seed_melt_ratio"] == 0.7
     # the status says the ratio it was seeded with and what it believes
     assert status["caps"]["model"] == pytest.approx(melts, rel=0.03)
 
 
-def test_a_seed_too_low_stays_low_in_closed_loop_and_says_so():
+SEEDED_07 = 0.7 * (1.0 + SEED_PROBE)    # where a seed of 0.7 starts
+
+
+def capped_seconds(moves):
+    """Print time of `moves` of FAST capped where a seed of 0.7 starts."""
+    speed = SEEDED_07 * profile_capacity() / FAST.flow_mm3_s(1.0, AREA)
+    return moves * FAST.duration_s(speed)
+
+
+@pytest.mark.parametrize("melts", [1.0, 0.9])
+def test_a_seed_too_low_is_dropped_unconfirmed_and_the_model_starts_afresh(
+        melts):
     # a new nozzle after a worn one: seeded at 0.7 on a hotend that melts
-    # what the profile says. Capped at the seed it never slips, so nothing
-    # shows it more (as with a profile 30 % low, test_limiter_bad_input):
-    # slower than it could be, never faster than asked, and said
-    lost, status = lost_over_first_moves(0.7, profile_capacity(), moves=200)
-    assert lost == 0.0
-    assert status["seed_melt_ratio"] == 0.7 and status["reason"] == "model"
-    assert status["caps"]["model"] == pytest.approx(0.7 * profile_capacity(),
-                                                    rel=1e-3)
-    # forgotten (its history deleted: an activation without a ratio), the
-    # model starts from the profile's line again
-    assert seeded_limiter(None).status()["caps"]["model"] == pytest.approx(
-        profile_capacity(), rel=1e-3)
+    # what the profile says (or 0.9 of it). Capped at the seed it never
+    # slips, so its windows never show it melts more: once moves ran
+    # CONFIRM_SEED_S under that cap with nothing learned, the seed is
+    # dropped and the model starts from the profile's line
+    moves = 1
+    while capped_seconds(moves) < CONFIRM_SEED_S:
+        moves += 1
+    lost, status = lost_over_first_moves(0.7, melts * profile_capacity(),
+                                         moves=moves - 1)
+    assert lost == 0.0 and status["seed_melt_ratio"] == 0.7
+    assert status["caps"]["model"] == pytest.approx(
+        SEEDED_07 * profile_capacity(), rel=1e-3)
+    lost, status = lost_over_first_moves(0.7, melts * profile_capacity(),
+                                         moves=moves + 200)
+    assert status["seed_melt_ratio"] is None
+    assert status["dropped_melt_ratio"] == 0.7
+    # from the profile's line: kept up at 1.0, learned 0.9 by slipping
+    assert status["caps"]["model"] == pytest.approx(melts * profile_capacity(),
+                                                    rel=0.03)
+
+
+def test_a_seed_confirmed_by_a_window_is_kept():
+    # seeded right (0.7 on a hotend melting 0.7), the first slips teach the
+    # model: the seed stays however long the print runs
+    lost, status = lost_over_first_moves(0.7, 0.68 * profile_capacity(),
+                                         moves=2000)
+    assert status["seed_melt_ratio"] == 0.7
+    assert status["dropped_melt_ratio"] is None
 
 
 def test_windows_that_keep_up_above_a_low_seed_raise_it():
@@ -90,7 +125,8 @@ def test_windows_that_keep_up_above_a_low_seed_raise_it():
     # off: windows that kept up above its line
     lim = seeded_limiter(0.6)
     seed_cap = lim.status()["caps"]["model"]
-    assert seed_cap == pytest.approx(0.6 * profile_capacity(), rel=1e-3)
+    assert seed_cap == pytest.approx(0.6 * (1.0 + SEED_PROBE)
+                                     * profile_capacity(), rel=1e-3)
     flow = 0.95 * profile_capacity()
     for _ in range(10):
         lim.on_window(Window(0.0, 1.0, flow / AREA, flow / AREA, 1.0, JUDGED,
