@@ -89,7 +89,7 @@ def print_closed_loop(enable: int, build=None, venv=None,
                       ) -> Tuple[Dict[str, Any], float]:
     """Print the slicer excerpt (or `gcode`) on the twin with the limiter on
     (1) or off (0) in `mode`, after warming the nozzle up, the profile
-    activated with `melt_ratio` (as Moonraker sends nozzle health's newest);
+    activated with `melt_ratio` (as Moonraker sends the carried ratio);
     the limiter's status (with the toolhead's final `print_time` and the
     print's nozzle health estimate as Moonraker stores it, `nozzle_health`,
     added) and the filament

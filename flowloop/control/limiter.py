@@ -195,8 +195,9 @@ class FlowLimiter:
         """A newly active profile (None: none) seeds the temperature cap and
         a fresh grip model: the profile's melt line, times melt_ratio when
         given (what this hotend melted against the profile in its earlier
-        prints: nozzle health's newest estimate, which Moonraker sends with
-        the activation). Checks the ratio first: a bad one changes nothing.
+        prints: nozzle_health.carried_ratio, which Moonraker sends with the
+        activation), SEED_PROBE above it, until the windows confirm it
+        (CONFIRM_SEED_S). Checks the ratio first: a bad one changes nothing.
         The temperature cap stays the profile's: the ratio seeds only what
         the windows correct."""
         if melt_ratio is not None:

@@ -47,7 +47,7 @@ class ActiveProfile(msgspec.Struct, frozen=True, kw_only=True,
 class Activation(NamedTuple):
     """What klippy keeps for one extruder: the profile (capped to the heater),
     the working point, and the hotend's melt ratio against the profile that
-    came with it (flowloop.control.nozzle_health.newest_ratio; None: none)."""
+    came with it (flowloop.control.nozzle_health.carried_ratio; None: none)."""
 
     profile: Profile
     working_point: float

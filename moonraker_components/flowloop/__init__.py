@@ -93,7 +93,7 @@ class Flowloop:
                                           self.health_store, hotend,
                                           self.job_history)
         # an activation starts the limiter's grip model from the hotend's
-        # newest melt ratio for the profile
+        # melt ratio for the profile from its last print
         self.klippy.melt_ratio_of = self.nozzle_health.carried_ratio
 
     async def component_init(self) -> None:

@@ -4,9 +4,9 @@
 # flowloop/set_active_profile endpoint). An activation stands only while
 # klippy accepts it; Profiles decides what happens on a refusal, this part
 # only sends and tells a refusal (klippy's 400) from klippy being away. An
-# activation carries the hotend's newest melt ratio for the profile (nozzle
-# health): the limiter's grip model starts from what this hotend melted in
-# its earlier prints.
+# activation carries the hotend's melt ratio for the profile from its last
+# print (nozzle health's carried ratio): the limiter's grip model starts from
+# what this hotend melted in its earlier prints.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 

@@ -162,19 +162,18 @@ class NozzleHealth:
                      hotend: Optional[str] = None,
                      model_ratio: Any = None) -> Dict[str, Any]:
         """A job's estimate from klippy's snapshots, with what the limiter's
-        model believed at its end (FlowloopError: evidence or a ratio that
-        does not read)."""
+        model believed at its end (FlowloopError: evidence that does not
+        read; a ratio that is not a finite number is left out)."""
         return await self.record_evidence(
             job_id, None if start is None else nh.PrintEvidence.from_dict(start),
             None if end is None else nh.PrintEvidence.from_dict(end), hotend,
-            nh.model_ratio_of(model_ratio))
+            model_ratio)
 
     async def record_evidence(self, job_id: str,
                               start: Optional[nh.PrintEvidence],
                               end: Optional[nh.PrintEvidence],
                               hotend: Optional[str] = None,
-                              model_ratio: Optional[float] = None
-                              ) -> Dict[str, Any]:
+                              model_ratio: Any = None) -> Dict[str, Any]:
         """A job's estimate stored under its hotend and profile (the job's
         earlier record replaced); the verdict."""
         hotend = hotend or self.hotend

@@ -19,6 +19,8 @@ from flowloop.control.limiter import (
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import profile_line
 from flowloop.window import JUDGED, Window
+from tests.nozzle_prints import PROFILE as NH_PROFILE
+from tests.nozzle_prints import simulate_print
 from tests.unit.test_limiter_bad_input import (
     AREA,
     FAST,
@@ -158,3 +160,17 @@ def test_the_newest_ratio_is_the_newest_print_that_gave_one():
     assert nh.newest_ratio([est(0.9), est(2.0)]) == 0.9
     assert nh.newest_ratio([]) is None
     assert nh.newest_ratio([est(None, "no profile")]) is None
+
+
+@pytest.mark.parametrize("said, kept", [(0.8, 0.8), (1, 1.0), (math.nan, None),
+                                        (math.inf, None), ("0.8", None),
+                                        (True, None), (None, None)])
+def test_what_klippy_says_its_model_believes_is_kept_beside_the_estimate(said,
+                                                                         kept):
+    # (Moonraker stores it with the job: only a finite number, and a bad
+    # one never costs the job's estimate)
+    evidence = nh.evidence_of(simulate_print(0.8, seed=1), NH_PROFILE)
+    found = nh.estimate(evidence, said)
+    assert found.model_ratio == kept
+    assert found.known and found.ratio == nh.estimate(evidence).ratio
+    assert nh.PrintEstimate.from_dict(found.to_dict()).model_ratio == kept
