@@ -41,6 +41,11 @@ class Profiles:
         # stored, each raising its refusal: the Spoolman link's
         self.before_store: List[Callable[[fl_profile.Profile, str],
                                          Awaitable[None]]] = []
+        # async work a stored profile (and its source) gets before the store
+        # is answered: the Spoolman link's write, so that a store answered
+        # is a store shared (or listed unwritten while Spoolman is away)
+        self.after_store: List[Callable[[fl_profile.Profile, str],
+                                        Awaitable[None]]] = []
         server.register_notification(NOTIFICATION, "flowloop_profile_changed")
         server.register_event_handler("server:klippy_ready", self._on_klippy_ready)
 
@@ -56,6 +61,8 @@ class Profiles:
                     profile=fl_profile.summary(profile))
         dropped = [extruder for extruder in self.store.active_for(profile.name)
                    if await self._confirm(extruder)]
+        for share in self.after_store:
+            await share(profile, source)
         return {"name": profile.name, "action": action, "deactivated": dropped}
 
     async def delete_profile(self, name: str) -> Dict[str, Any]:

@@ -46,7 +46,7 @@ from flowloop.nesting import check_json_depth
 from ...utils import json_wrapper as jsonw
 from .args import refusal
 from .errors import one_line, quoted
-from .profiles import NOTIFICATION, Profiles
+from .profiles import Profiles
 from .store import ProfileStore
 
 if TYPE_CHECKING:
@@ -85,8 +85,8 @@ class SpoolmanLink:
         server.register_event_handler("spoolman:spoolman_status_changed",
                                       self._on_spoolman_status)
         if hotend is not None:
-            server.register_event_handler(NOTIFICATION, self._on_profile_changed)
             profiles.before_store.append(self._check_filament)
+            profiles.after_store.append(self._share)
 
     def check_spoolman(self) -> None:
         if self.server.lookup_component("spoolman", None) is None:
@@ -236,12 +236,12 @@ class SpoolmanLink:
             raise refusal(f"profile {quoted(profile.name)}: Spoolman has no"
                           f" filament {fid} (identity.spoolman_filament_id)")
 
-    async def _on_profile_changed(self, data: Dict[str, Any]) -> None:
-        if not isinstance(data, dict) or data.get("source") == "spoolman" \
-                or data.get("action") not in ("created", "updated"):
-            return
-        profile = self.store.profiles.get(data.get("name"))
-        if profile is not None and sf.filament_id_of(profile) is not None:
+    async def _share(self, profile: Profile, source: str) -> None:
+        """After a profile is stored, before the store is answered: onto its
+        filament (one that came from Spoolman is there already). Awaited, so
+        that two printers' stores both answered have both written: a spool
+        loaded after them finds what the race left and mends it."""
+        if source != "spoolman" and sf.filament_id_of(profile) is not None:
             await self._write(profile)
 
     async def _write(self, profile: Profile) -> None:

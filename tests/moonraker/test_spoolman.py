@@ -219,8 +219,8 @@ def test_a_profile_stored_on_one_printer_follows_the_spool_to_its_twin(printers)
     green = sm.add_filament("PLA green")
     assert _store(mr["a"], name="green pla",
                   identity={"spoolman_filament_id": green["id"]})[0] == 200
-    assert stack.wait_until(lambda: _shared(sm, green["id"]), 10.0) == {
-        "revo_0.4": "green pla"}
+    # a store answered is a store shared: on the filament already
+    assert _shared(sm, green["id"]) == {"revo_0.4": "green pla"}
     # b (same hotend) has never seen it: loading a spool fetches and uses it
     assert "green pla" not in _names(mr["b"])
     _load_spool(mr["b"], sm.add_spool(green["id"])["id"])
@@ -276,8 +276,9 @@ def test_two_printers_storing_at_once_converge_on_the_later_measurement(printers
                             {"profile": p})
                 for m, p in ((mr["a"], older), (mr["b"], newer))]
         assert [f.result()[0] for f in done] == [200, 200]
-    # Spoolman has no conditional write: a write from an older read can have
-    # won the race; b puts its later one back at its next spool of it
+    # both stores answered, both writes are done; Spoolman has no conditional
+    # write, so one from an older read can have won the race: b puts its
+    # later one back at its next spool of it
     _load_spool(mr["b"], sm.add_spool(white["id"])["id"])
     assert stack.wait_until(
         lambda: _shared(sm, white["id"]) == {"revo_0.4": "white pla b"}, 10.0)
