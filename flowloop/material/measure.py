@@ -22,6 +22,7 @@ from typing import Iterator, Optional, Sequence, Tuple
 
 from ..errors import FlowloopError
 from ..window import Window
+from .fit import MIN_TEMP_SPREAD_C
 from .profile import MeasuredPoint
 
 DEFAULT_START_FLOW_MM3_S = 2.0
@@ -34,6 +35,12 @@ START_SHARE = 0.8
 MIN_LEVELS = 2
 MAX_LEVELS = 10
 MAX_STEPS = 200
+# TEMPS= levels span at least this: a level's point is read where its grip
+# falls, and the heater sags there under the level's flow, the hotter level
+# (more flow) further. The fit needs MIN_TEMP_SPREAD_C between the points;
+# levels 7 C apart gave points 4.99 apart on the simulated firmware's hotend
+# (stop 45's CI), after a run of minutes that then stored nothing.
+MIN_LEVEL_SPREAD_C = 2.0 * MIN_TEMP_SPREAD_C
 # [measure_profile] options and their limits: the adapter reads them here
 DEFAULT_STEP_TIME_S = 2.0
 STEP_TIME_RANGE_S = (1.0, 30.0)
@@ -146,6 +153,12 @@ def make_plan(temps: Optional[Sequence[float]], powers: Optional[Sequence[float]
         if powers is not None and not 0.0 < level <= 1.0:
             raise FlowloopError(f"POWERS: {level:g} must be in 0..1 (share of "
                                 f"the heater's max_power)")
+    if temps is not None and max(levels) - min(levels) < MIN_LEVEL_SPREAD_C:
+        raise FlowloopError(
+            f"TEMPS: the levels span {max(levels) - min(levels):g} degC; at "
+            f"least {MIN_LEVEL_SPREAD_C:g} is needed (the heater sags under a "
+            f"level's flow, and the fit needs {MIN_TEMP_SPREAD_C:g} between "
+            f"the points)")
     _positive("START_FLOW", start_flow)
     _positive("STEP", step)
     _positive("MAX_FLOW", max_flow)

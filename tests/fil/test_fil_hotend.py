@@ -85,7 +85,7 @@ def test_a_short_measure_material_profile_stores_a_profile(hot):
                    remote_method="flowloop_store_profile")
         store.call("flowloop/set_active_profile", extruder="extruder",
                    profile=KNOWN, working_point=0.5)
-        printer.gcode("MEASURE_MATERIAL_PROFILE NAME=fil TEMPS=205,212"
+        printer.gcode("MEASURE_MATERIAL_PROFILE NAME=fil TEMPS=205,215"
                       " STEP=0.5 MAX_FLOW=10")
         status = stack.wait_until(
             lambda: (s := printer.query("measure_profile"))["state"]

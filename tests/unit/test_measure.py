@@ -37,6 +37,9 @@ def test_a_plan_runs_its_levels_in_order_and_flows_up_to_max_flow():
     ({"temps": (200.0, 200.0)}, "TEMPS: each level once"),
     ({"temps": (180.0, 220.0)}, "TEMPS: 180 degC is outside the profile's 190..260"),
     ({"temps": (200.0, 270.0)}, "outside"),
+    ({"temps": (205.0, 212.0)}, "TEMPS: the levels span 7 degC; at least 10"
+                                " is needed"),
+    ({"temps": (200.0, 209.9, 205.0)}, "TEMPS: the levels span 9.9 degC"),
     ({"temps": None, "powers": (0.3, 1.2)}, "POWERS: 1.2 must be in 0..1"),
     ({"temps": None, "powers": (0.0, 0.5)}, "POWERS: 0 must be in 0..1"),
     ({"start_flow": 0.0}, "START_FLOW: must be a number above 0"),
