@@ -26,8 +26,9 @@ Barriers cut the average: no flow is counted across a wait the file does not
 time.
 
 It costs a few array passes per cell: the moves' trapezoids become pieces of
-constant slope, each grid time is given its piece by a repeat (no search per
-cell), and each centred mean is the difference of two volumes.
+constant slope, each piece's values are repeated over its grid times (no
+search and no gather per cell), and each centred mean is the difference of
+two volumes.
 """
 
 from __future__ import annotations
@@ -119,10 +120,28 @@ def volume_at(pieces: _Pieces, times: np.ndarray) -> np.ndarray:
     first = np.maximum.accumulate(_search_grid(times, start[kept]))
     first[0] = 0
     counts = np.diff(np.append(first, len(times)))
-    i = np.repeat(kept, counts)
-    u = np.clip(times - start[i], 0.0, length[i])
-    return pieces.volume_mm3[i] + u * (pieces.flow_mm3_s[i]
-                                       + 0.5 * pieces.slope_mm3_s2[i] * u)
+    # each piece's value repeated over its times (a copy in order, not a
+    # gather), then volume + u * (flow + 0.5 * slope * u) in place, u the
+    # time into the piece within its length
+    u = times - np.repeat(start[kept], counts)
+    np.maximum(u, 0.0, out=u)
+    np.minimum(u, np.repeat(length[kept], counts), out=u)
+    out = np.repeat(0.5 * pieces.slope_mm3_s2[kept], counts)
+    out *= u
+    out += np.repeat(pieces.flow_mm3_s[kept], counts)
+    out *= u
+    out += np.repeat(pieces.volume_mm3[kept], counts)
+    return out
+
+
+def _grid_times(origin_s: float, first: int, stop: int,
+                cell_s: float) -> np.ndarray:
+    """origin_s + k * cell_s for k in first..stop-1, in place (no
+    temporaries: the grid is millions of points on a long print)."""
+    times = np.arange(first, stop, dtype=float)
+    times *= cell_s
+    times += origin_s
+    return times
 
 
 def _search_grid(times: np.ndarray, keys: np.ndarray) -> np.ndarray:
@@ -205,9 +224,10 @@ class _Grid:
         v = self.volume
         # the mean centred on grid points k0..last
         lo, hi = k0 - h - self.first, last + h + 1 - self.first
-        mean = (v[lo + 2 * h:hi] - v[lo:hi - 2 * h]) / (2 * h * self.cell_s)
+        mean = np.subtract(v[lo + 2 * h:hi], v[lo:hi - 2 * h])
+        mean /= 2 * h * self.cell_s
         flow = np.maximum(mean[:-1], mean[1:])
-        start = self.origin_s + np.arange(k0, last) * self.cell_s
+        start = _grid_times(self.origin_s, k0, last, self.cell_s)
         self.next_cell = last
         keep = last - h - self.first                  # what later cells still need
         self.volume = v[keep:]
@@ -237,7 +257,7 @@ def melt_events(events: Iterable, melt_s: float = MELT_TIME_S,
         first = grid.count
         last = int(np.floor((end_s - grid.origin_s) / cell_s))
         if last >= first:
-            times = grid.origin_s + np.arange(first, last + 1) * cell_s
+            times = _grid_times(grid.origin_s, first, last + 1, cell_s)
             grid.extend(volume_at(pieces, times))
         volume = pieces.end_volume_mm3
         cells = grid.cells(grid.count)
