@@ -22,7 +22,7 @@ from typing import Iterator, Optional, Sequence, Tuple
 
 from ..errors import FlowloopError
 from ..window import Window
-from .fit import MIN_TEMP_SPREAD_C
+from .fit import MIN_PWM_SPREAD, MIN_TEMP_SPREAD_C
 from .profile import MeasuredPoint
 
 DEFAULT_START_FLOW_MM3_S = 2.0
@@ -127,10 +127,12 @@ def _positive(name: str, value: float) -> float:
 
 def make_plan(temps: Optional[Sequence[float]], powers: Optional[Sequence[float]],
               start_flow: Optional[float], step: float, max_flow: float,
-              min_grip: float, min_temp_c: float, max_temp_c: float) -> Plan:
+              min_grip: float, min_temp_c: float, max_temp_c: float,
+              max_power: float = 1.0) -> Plan:
     """The plan, or FlowloopError naming the parameter. Temperatures must lie
     within the profile's bounds (min_temp_c..max_temp_c, the heater's
-    max_temp already applied), powers within 0..1 (share of max_power).
+    max_temp already applied), powers within 0..1 (share of max_power, the
+    heater's: their points' PWM is the share of it).
     start_flow None: DEFAULT_START_FLOW_MM3_S, and each level may start
     nearer its expected limit (Plan.ramp_start)."""
     start_given = start_flow is not None
@@ -159,6 +161,14 @@ def make_plan(temps: Optional[Sequence[float]], powers: Optional[Sequence[float]
             f"least {MIN_LEVEL_SPREAD_C:g} is needed (the heater sags under a "
             f"level's flow, and the fit needs {MIN_TEMP_SPREAD_C:g} between "
             f"the points)")
+    if powers is not None and \
+            (max(levels) - min(levels)) * max_power < MIN_PWM_SPREAD:
+        # a fixed power's point is read at that power: no sag, but the fit
+        # needs MIN_PWM_SPREAD of full power between them
+        raise FlowloopError(
+            f"POWERS: the levels span {max(levels) - min(levels):g} of "
+            f"max_power {max_power:g}; at least {MIN_PWM_SPREAD:.0%} of full "
+            f"power is needed between them for the fit")
     _positive("START_FLOW", start_flow)
     _positive("STEP", step)
     _positive("MAX_FLOW", max_flow)

@@ -221,7 +221,7 @@ class MeasureProfile:
                 self._levels(gcmd.get('POWERS', None), 'POWERS'),
                 start_flow, step, max_flow,
                 fl_profile.min_grip_of(base, min_grip),
-                bounds.min_temp_c, bounds.max_temp_c)
+                bounds.min_temp_c, bounds.max_temp_c, heater.get_max_power())
             limits, rules = watchdog.for_measurement(bounds, self.host_timeout)
             toolhead = self.printer.lookup_object('toolhead')
             fl_proc.check_active(extruder_name,

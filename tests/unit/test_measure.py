@@ -40,6 +40,11 @@ def test_a_plan_runs_its_levels_in_order_and_flows_up_to_max_flow():
     ({"temps": (205.0, 212.0)}, "TEMPS: the levels span 7 degC; at least 10"
                                 " is needed"),
     ({"temps": (200.0, 209.9, 205.0)}, "TEMPS: the levels span 9.9 degC"),
+    ({"temps": None, "powers": (0.30, 0.34)}, "POWERS: the levels span 0.04 of"
+                                              " max_power 1; at least 5% of full"
+                                              " power is needed"),
+    ({"temps": None, "powers": (0.30, 0.38), "max_power": 0.5},
+     "POWERS: the levels span 0.08 of max_power 0.5"),
     ({"temps": None, "powers": (0.3, 1.2)}, "POWERS: 1.2 must be in 0..1"),
     ({"temps": None, "powers": (0.0, 0.5)}, "POWERS: 0 must be in 0..1"),
     ({"start_flow": 0.0}, "START_FLOW: must be a number above 0"),
