@@ -214,10 +214,30 @@ def details(driver, row, filename: str) -> str:
     return text[0]
 
 
+def _at_rest_under_the_pointer(driver, element) -> bool:
+    """The element has not moved for 0.1 s and is what a click at its centre
+    reaches (a dialog still scaling in has its toolbar there instead)."""
+    script = ("const r = arguments[0].getBoundingClientRect();"
+              "const e = document.elementFromPoint(r.left + r.width / 2,"
+              " r.top + r.height / 2);"
+              "return [r.left, r.top, r.width, r.height,"
+              " e !== null && arguments[0].contains(e)];")
+    first = driver.execute_script(script, element)
+    time.sleep(0.1)
+    second = driver.execute_script(script, element)
+    return first == second and second[-1]
+
+
 def close_dialog(driver) -> None:
     """Close the details dialog and wait until it is gone: it fades out, and
-    the next job's dialog read while it still shows read the old job's."""
-    _dialogs(driver)[0].find_element("css selector", "button").click()
+    the next job's dialog read while it still shows read the old job's. Its
+    text shows before its opening transition ends: the close button is
+    clicked once it is at rest (under load a click mid-transition once
+    landed on the dialog's toolbar)."""
+    button = _dialogs(driver)[0].find_element("css selector", "button")
+    assert stack.wait_until(lambda: _at_rest_under_the_pointer(driver, button),
+                            5, 0.05), "the details dialog's close button never settled"
+    button.click()
     assert stack.wait_until(lambda: not driver.find_elements(
         "css selector", ".v-overlay--active") and not _dialogs(driver), 5)
 
