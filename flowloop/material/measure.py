@@ -41,6 +41,9 @@ MAX_STEPS = 200
 # levels 7 C apart gave points 4.99 apart on the simulated firmware's hotend
 # (stop 45's CI), after a run of minutes that then stored nothing.
 MIN_LEVEL_SPREAD_C = 2.0 * MIN_TEMP_SPREAD_C
+# levels typed as decimals differ by a hair from their span (210.1 - 200.1
+# is 9.99999...): a span this close to its least counts as that least
+_SPREAD_SLACK = 1e-9
 # [measure_profile] options and their limits: the adapter reads them here
 DEFAULT_STEP_TIME_S = 2.0
 STEP_TIME_RANGE_S = (1.0, 30.0)
@@ -155,18 +158,18 @@ def make_plan(temps: Optional[Sequence[float]], powers: Optional[Sequence[float]
         if powers is not None and not 0.0 < level <= 1.0:
             raise FlowloopError(f"POWERS: {level:g} must be in 0..1 (share of "
                                 f"the heater's max_power)")
-    if temps is not None and max(levels) - min(levels) < MIN_LEVEL_SPREAD_C:
+    spread = max(levels) - min(levels)
+    if temps is not None and spread < MIN_LEVEL_SPREAD_C - _SPREAD_SLACK:
         raise FlowloopError(
-            f"TEMPS: the levels span {max(levels) - min(levels):g} degC; at "
+            f"TEMPS: the levels span {spread:g} degC; at "
             f"least {MIN_LEVEL_SPREAD_C:g} is needed (the heater sags under a "
             f"level's flow, and the fit needs {MIN_TEMP_SPREAD_C:g} between "
             f"the points)")
-    if powers is not None and \
-            (max(levels) - min(levels)) * max_power < MIN_PWM_SPREAD:
+    if powers is not None and spread * max_power < MIN_PWM_SPREAD - _SPREAD_SLACK:
         # a fixed power's point is read at that power: no sag, but the fit
         # needs MIN_PWM_SPREAD of full power between them
         raise FlowloopError(
-            f"POWERS: the levels span {max(levels) - min(levels):g} of "
+            f"POWERS: the levels span {spread:g} of "
             f"max_power {max_power:g}; at least {MIN_PWM_SPREAD:.0%} of full "
             f"power is needed between them for the fit")
     _positive("START_FLOW", start_flow)

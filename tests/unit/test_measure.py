@@ -59,6 +59,16 @@ def test_a_bad_plan_is_refused_naming_the_parameter(kw, message):
         plan(**kw)
 
 
+@pytest.mark.parametrize("kw", [
+    {"temps": (200.1, 210.1)},                       # 9.99999... apart
+    {"temps": (200.0, 210.0)},
+    {"temps": None, "powers": (0.30, 0.35)},         # 0.04999... apart
+    {"temps": None, "powers": (0.30, 0.40), "max_power": 0.5},
+])
+def test_levels_just_far_enough_apart_are_planned(kw):
+    assert len(plan(**kw).levels) == 2
+
+
 def test_settled_needs_the_whole_hold_time_within_the_band():
     steady = [(float(t), 200.0 + 0.1 * (t % 2)) for t in range(12)]
     assert measure.settled(steady, hold_s=10.0)
