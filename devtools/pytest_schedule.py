@@ -42,6 +42,8 @@ ALONE = "alone:"
 # (the firmware-in-the-loop tier: its simulated MCU lost the clock beside
 # idle-class tests, "Timer too close", where the paced klippy tests did not)
 QUIET = "quiet:"
+# at most this many quiet groups run at once, side by side
+QUIET_RUNNERS = 2
 
 
 def is_alone(scope: str) -> bool:
@@ -247,18 +249,90 @@ class AloneBesideScheduling(AloneLastScheduling):
     the minutes the paced tests take (they wait on the clock, not the CPU).
 
     The runner takes the next alone group whenever it asks for work, and
-    the rest once none is left; the others never get an alone group. The
-    ``quiet:`` groups come last, as AloneLastScheduling runs its groups:
-    on one worker once every other test has finished. Where idle classes
-    are not to be had, AloneLastScheduling's order holds for both.
+    the rest once none is left; the others never get an alone group.
+
+    The ``quiet:`` groups come last, once every other test has finished,
+    on up to quiet_runners() workers side by side (each runs one simulated
+    printer, under half a core: two on two cores never met a stall in the
+    runs that measured it, where one beside idle-class tests did), and
+    never beside any other test. A worker keeps the last test it was given
+    until it gets more (see AloneLastScheduling), so a worker that joins
+    the quiet phase still holds one test of the earlier phase: it is given
+    its first quiet group (the shortest left) only while every other quiet
+    worker waits too, one such worker at a time, and that held test runs
+    alone. Where idle classes are not to be had, AloneLastScheduling's
+    order holds for alone and quiet groups alike.
     """
 
     def __init__(self, config, log=None) -> None:
         super().__init__(config, log)
         self.beside = None   # the worker the alone groups run on
+        self.quiet_runners: list = []   # the workers kept for the quiet phase
+        self.quiet_phase = False        # only quiet groups were left
 
     def _alone_next(self) -> bool:   # the quiet phase: only quiet groups left
         return bool(self.workqueue) and all(is_quiet(s) for s in self.workqueue)
+
+    # -- the quiet phase
+    def _pending(self, node) -> int:
+        return self._pending_of(self.assigned_work.get(node, {}))
+
+    def _holds_earlier_test(self, node) -> bool:
+        """Whether node still has a test of the earlier phase to run."""
+        return any(not done for scope, unit in self.assigned_work.get(node, {}).items()
+                   if not is_quiet(scope) for done in unit.values())
+
+    def _running(self, node) -> bool:
+        """Whether node runs a test now (or will without being given more:
+        a worker told to stop runs every test it holds)."""
+        pending = self._pending(node)
+        return pending > 1 or (pending > 0 and node.shutting_down)
+
+    def _keep_for_quiet(self, node) -> bool:
+        if node in self.quiet_runners:
+            return True
+        if node.shutting_down or len(self.quiet_runners) >= quiet_runners():
+            return False
+        self.quiet_runners.append(node)
+        return True
+
+    def _join_quiet(self, node) -> None:
+        self.quiet_phase = True
+        if not self._keep_for_quiet(node) and not node.shutting_down:
+            node.shutdown()
+        self._feed_quiet()
+
+    def _give(self, node, shortest: bool = False) -> None:
+        if shortest:   # the queue is longest first
+            self.workqueue.move_to_end(next(reversed(self.workqueue)), last=False)
+        LoadScopeScheduling._assign_work_unit(self, node)
+
+    def _feed_quiet(self) -> None:
+        runners = [n for n in self.quiet_runners
+                   if n in self.assigned_work and not n.shutting_down]
+        if not self.quiet_phase or not runners:
+            return
+        others = [n for n in self.assigned_work if n not in runners]
+        if any(self._pending(n) for n in others):
+            return                    # they finish what they hold first
+        if any(self._running(n) and self._holds_earlier_test(n) for n in runners):
+            return                    # an earlier phase's test runs alone
+        held = [n for n in runners if self._holds_earlier_test(n)]
+        if held:
+            if any(self._running(n) for n in runners):
+                return                # ... with no quiet test beside it
+            if not self.workqueue:
+                held[0].shutdown()    # it runs that test, and stops
+            else:
+                self._give(held[0], shortest=True)   # it runs, then quiet ones
+            return
+        for node in runners:
+            if self._running(node):
+                continue
+            if not self.workqueue:
+                node.shutdown()
+            else:
+                self._give(node)
 
     def _next_scope(self, node) -> Optional[str]:
         if self.beside is None or self.beside not in self.assigned_work:
@@ -276,7 +350,7 @@ class AloneBesideScheduling(AloneLastScheduling):
 
     def _assign_work_unit(self, node) -> None:
         if self._alone_next():
-            super()._assign_work_unit(node)
+            self._join_quiet(node)
             return
         scope = self._next_scope(node)
         if scope is None:
@@ -285,17 +359,42 @@ class AloneBesideScheduling(AloneLastScheduling):
         LoadScopeScheduling._assign_work_unit(self, node)
 
     def _reschedule(self, node) -> None:
-        if node.shutting_down or not self.workqueue or self._alone_next():
+        if self.quiet_phase or (self._alone_next() and not node.shutting_down):
+            self._join_quiet(node)
+            return
+        if node.shutting_down or not self.workqueue:
             super()._reschedule(node)
             return
         if self._next_scope(node) is None:
             # nothing left this worker may run: what remains are the alone
-            # groups (another worker's) and the quiet ones (the last
-            # worker's); it finishes what it holds (it keeps its last test
-            # until told)
-            node.shutdown()
+            # groups (another worker's) and the quiet ones. It waits for
+            # the quiet phase holding its last test, or finishes what it
+            # holds (it keeps its last test until told) and stops
+            if not (any(is_quiet(s) for s in self.workqueue)
+                    and self._keep_for_quiet(node)):
+                node.shutdown()
             return
         LoadScopeScheduling._reschedule(self, node)
+
+    def _hand_alone_to_runner(self) -> None:
+        self._feed_quiet()
+
+    def remove_node(self, node):
+        crashed = LoadScopeScheduling.remove_node(self, node)
+        if node in self.quiet_runners:
+            self.quiet_runners.remove(node)
+        if self.quiet_phase and not self.quiet_runners:
+            for other in self.nodes:   # the quiet workers went away
+                self._join_quiet(other)
+        self._feed_quiet()
+        return crashed
+
+
+def quiet_runners() -> int:
+    """Workers of the quiet phase: one simulated printer per core, at most
+    QUIET_RUNNERS (FLOWLOOP_QUIET_RUNNERS sets it; 1 runs them one at a time)."""
+    wanted = int(os.environ.get("FLOWLOOP_QUIET_RUNNERS", QUIET_RUNNERS))
+    return max(1, min(wanted, os.cpu_count() or 1))
 
 
 def idle_class_available() -> bool:

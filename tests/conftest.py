@@ -27,8 +27,8 @@ stack.cache_bytecode()
 TIERS = ("unit", "c", "klippy", "moonraker", "ui", "bench", "fil")
 
 
-# Tiers that run with no other test beside them under `make test`'s scheduler
-# (its quiet groups), last: they run paced to
+# Tiers that run beside no test but each other under `make test`'s scheduler
+# (its quiet groups, two modules at a time), last: they run paced to
 # the wall clock from start to end (devtools/pytest_schedule.py).
 ALONE_TIERS = ("fil",)
 # The order groups are handed to workers in when the last run's durations
@@ -78,7 +78,8 @@ FIL_FIXTURE = "fil_build"
 
 
 def _quiet(item, tier: str) -> bool:
-    """With nothing beside it, not even idle-class tests: the fil tier and
+    """With nothing beside it, not even idle-class tests, but another module's
+    simulated printer (one per core): the fil tier and
     every test that runs its simulated MCU (bench_fil's smoke runs ran
     beside idle-class tests, and once the harness stood still for 319 ms of
     wall clock, its own share 1 ms, and klippy shut down)."""
@@ -90,8 +91,8 @@ def _alone(item, tier: str) -> bool:
 
 
 def _prefix(item, tier: str) -> str:
-    """The group's kind for the scheduler: the fil tier runs with nothing
-    beside it (quiet), other alone tests beside idle-class ones (alone)."""
+    """The group's kind for the scheduler: the fil tier runs beside nothing
+    but itself (quiet), other alone tests beside idle-class ones (alone)."""
     if _quiet(item, tier):
         return pytest_schedule.QUIET
     return pytest_schedule.ALONE if _alone(item, tier) else ""

@@ -74,6 +74,11 @@ def test_alone_too(n):
 @pytest.mark.group("quiet:fil")
 def test_quiet(n):
     time.sleep(0.3)
+
+@pytest.mark.parametrize("n", range({quiet}))
+@pytest.mark.group("quiet:fil_other")
+def test_quiet_too(n):
+    time.sleep(0.3)
 """
 
 
@@ -88,7 +93,7 @@ LAST, BESIDE = "AloneLastScheduling", "AloneBesideScheduling"
 
 
 def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=False,
-              scheduler=LAST, quiet: int = 0):
+              scheduler=LAST, quiet: int = 0, quiet_runners: int = 2):
     (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers = group\n")
     (tmp_path / "conftest.py").write_text(CONFTEST)
     # ungrouped, each test its own unit (the klippy .test files), or one group
@@ -100,7 +105,8 @@ def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=Fa
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
          "-n", str(workers), "test_suite.py"],
         cwd=tmp_path, capture_output=True, text=True, timeout=120,
-        env={**BARE_ENV, "RUNS": str(runs), "SCHEDULER": scheduler})
+        env={**BARE_ENV, "RUNS": str(runs), "SCHEDULER": scheduler,
+             "FLOWLOOP_QUIET_RUNNERS": str(quiet_runners)})
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return [json.loads(line) for line in runs.read_text().splitlines()]
 
@@ -125,19 +131,33 @@ def test_alone_groups_run_after_the_rest_with_nothing_beside_them(
     assert min(a[1] for a in alone) >= max(n[2] for n in normal)
 
 
-@pytest.mark.skipif(not pytest_schedule.idle_class_available(),
-                    reason="no SCHED_IDLE on this system")
-def test_alone_groups_run_on_one_worker_with_the_rest_beside_them_idle(tmp_path):
-    runs = run_suite(tmp_path, normal=9, alone=2, workers=3, per_test_group=True,
-                     scheduler=BESIDE, quiet=2)
+IDLE_CLASS = pytest.mark.skipif(not pytest_schedule.idle_class_available(),
+                                reason="no SCHED_IDLE on this system")
+
+
+@IDLE_CLASS
+@pytest.mark.parametrize("per_test_group", [True, False])
+def test_alone_groups_run_on_one_worker_with_the_rest_beside_them_idle(
+        tmp_path, per_test_group):
+    runs = run_suite(tmp_path, normal=9, alone=2, workers=3,
+                     per_test_group=per_test_group, scheduler=BESIDE, quiet=2)
     alone = [r for r in runs if r[0].startswith("test_alone")]
     normal = [r for r in runs if r[0].startswith("test_normal")]
     quiet = [r for r in runs if r[0].startswith("test_quiet")]
-    assert len(alone) == 4 and len(normal) == 9 and len(quiet) == 2
-    # the quiet groups: last, with nothing beside them, not even idle
+    assert len(alone) == 4 and len(normal) == 9 and len(quiet) == 4
+    # the quiet groups: last, two side by side (one worker each), and
+    # beside no other test, not even an idle one (a worker's last test of
+    # the earlier phase, held until it is given more, runs with nothing
+    # beside it)
     for q in quiet:
-        assert not [r[0] for r in runs if r is not q and overlaps(q, r)], q
-    assert min(q[1] for q in quiet) >= max(r[2] for r in alone + normal)
+        assert not [r[0] for r in runs
+                    if not r[0].startswith("test_quiet") and overlaps(q, r)], q
+    assert any(overlaps(a, b) for a in quiet for b in quiet if a[0] != b[0])
+    for group in ("test_quiet[", "test_quiet_too["):
+        assert len({q[3] for q in quiet if q[0].startswith(group)}) == 1
+    # most of the rest ran before them (all but held tests)
+    first_quiet = min(q[1] for q in quiet)
+    assert sum(r[2] > first_quiet for r in alone + normal) <= 2
     # one runner, one alone test at a time, at the normal policy
     assert len({a[3] for a in alone}) == 1
     assert not any(overlaps(a, b) for a in alone for b in alone if a is not b)
@@ -156,6 +176,17 @@ def test_a_run_of_alone_tests_only_runs_them_one_at_a_time(tmp_path, scheduler):
     runs = run_suite(tmp_path, normal=0, alone=3, workers=3, scheduler=scheduler)
     assert len(runs) == 6
     assert not any(overlaps(a, b) for a in runs for b in runs if a is not b)
+
+
+@IDLE_CLASS
+@pytest.mark.parametrize("quiet_runners", [1, 2])
+def test_quiet_groups_alone_run_side_by_side_up_to_the_quiet_runners(
+        tmp_path, quiet_runners):
+    runs = run_suite(tmp_path, normal=0, alone=0, workers=3, scheduler=BESIDE,
+                     quiet=3, quiet_runners=quiet_runners)
+    assert len(runs) == 6
+    side_by_side = any(overlaps(a, b) for a in runs for b in runs if a is not b)
+    assert side_by_side == (quiet_runners == 2)
 
 
 @pytest.mark.parametrize("scheduler", [LAST, BESIDE])
