@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import codecs
 import io
+import itertools
 import os
 import re
 from pathlib import Path
@@ -105,7 +106,22 @@ def melt_peak_between(events, t0: float, t1: float, step: float = 0.0005) -> flo
     h = MELT_TIME_S / 2
     times = [t0 - h + i * step for i in range(int((t1 - t0 + 2 * h) / step) + 2)]
     near = [s for s in segs if s.start_s < t1 + h and s.start_s + s.duration_s > t0 - h]
-    flows = [max((flow_at(s, t) for s in near), default=0.0) for t in times]
+    # the moves follow one another (each ends no earlier than the one
+    # before), so the ones a time falls in are found walking both in order
+    ends = [s.start_s + s.duration_s for s in near]
+    assert ends == sorted(ends)
+    flows, first = [], 0
+    for t in times:
+        while first < len(near) and ends[first] < t:
+            first += 1          # over before t: flow_at would give 0
+        flow, k = 0.0, first
+        while k < len(near) and near[k].start_s <= t:
+            flow = max(flow, flow_at(near[k], t))
+            k += 1
+        flows.append(flow)
+    # sum(flows[i:i + n]) as a difference of running sums (one pass, not
+    # one sum per centre)
+    total = [0.0, *itertools.accumulate(flows)]
     best = 0.0
     n = int(round(2 * h / step))
     for i in range(len(times) - n):
@@ -114,7 +130,7 @@ def melt_peak_between(events, t0: float, t1: float, step: float = 0.0005) -> flo
             continue
         if any(times[i] < c < times[i + n] for c in cuts):
             continue      # the mean across a wait is not the melt's
-        best = max(best, sum(flows[i:i + n]) * step / (2 * h))
+        best = max(best, (total[i + n] - total[i]) * step / (2 * h))
     return best
 
 

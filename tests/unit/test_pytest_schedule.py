@@ -90,6 +90,9 @@ if sys.pycache_prefix:
 
 
 LAST, BESIDE = "AloneLastScheduling", "AloneBesideScheduling"
+# the inner suites use no Hypothesis: its plugin's import cost each of
+# their processes 0.4 s of CPU
+NO_HYPOTHESIS = "no:hypothesispytest"
 
 
 def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=False,
@@ -103,7 +106,7 @@ def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=Fa
     runs = tmp_path / "runs.jsonl"
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-         "-n", str(workers), "test_suite.py"],
+         "-p", NO_HYPOTHESIS, "-n", str(workers), "test_suite.py"],
         cwd=tmp_path, capture_output=True, text=True, timeout=120,
         env={**BARE_ENV, "RUNS": str(runs), "SCHEDULER": scheduler,
              "FLOWLOOP_QUIET_RUNNERS": str(quiet_runners)})
@@ -225,14 +228,16 @@ def test_the_next_run_starts_with_what_took_longest_in_the_last(tmp_path):
 
     def collected():
         proc = subprocess.run(
-            [sys.executable, "-m", "pytest", "-q", "--collect-only", "test_order.py"],
+            [sys.executable, "-m", "pytest", "-q", "-p", NO_HYPOTHESIS,
+             "--collect-only", "test_order.py"],
             cwd=tmp_path, capture_output=True, text=True, timeout=60,
             env=BARE_ENV)
         return [line.split("::")[1] for line in proc.stdout.splitlines()
                 if "::" in line]
     # never timed: the file's order
     assert collected() == ["test_quick", "test_slow", "test_also_quick"]
-    subprocess.run([sys.executable, "-m", "pytest", "-q", "test_order.py"],
+    subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", NO_HYPOTHESIS,
+                    "test_order.py"],
                    cwd=tmp_path, check=True, capture_output=True, timeout=60,
                    env=BARE_ENV)
     assert collected()[0] == "test_slow"

@@ -561,6 +561,7 @@ def macro_problems(doc: str, found: Dict[str, Set[str]]) -> List[str]:
 
 def link_problems(doc: str) -> List[str]:
     problems = []
+    headings: Dict[Path, Set[str]] = {}   # each page's anchors, read once
     for target in re.findall(r"\]\(([^)\s]+)\)", doc):
         if re.match(r"[a-z]+:", target):
             continue
@@ -568,8 +569,12 @@ def link_problems(doc: str) -> List[str]:
         path = (DOCS / file).resolve() if file else REFERENCE
         if not path.exists():
             problems.append(f"link to missing file {target}")
-        elif anchor and path.suffix == ".md" and anchor not in anchors(
-                doc if path == REFERENCE else path.read_text()):
+            continue
+        if not anchor or path.suffix != ".md":
+            continue
+        if path not in headings:
+            headings[path] = anchors(doc if path == REFERENCE else path.read_text())
+        if anchor not in headings[path]:
             problems.append(f"link to missing heading {target}")
     return problems
 
@@ -654,6 +659,16 @@ def test_deleting_any_row_of_the_reference_is_caught(facts):
         if not problems("\n".join(lines[:i] + lines[i + 1:]), facts):
             uncaught.append(lines[i])
     assert not uncaught, "rows whose loss the test misses:\n" + "\n".join(uncaught)
+
+
+def test_a_link_to_a_missing_heading_is_caught(facts):
+    doc = REFERENCE.read_text()
+    assert problems(doc, facts) == []
+    for link, broken in (("](#flowloop-info)", "](#flowloop-inf)"),
+                         ("](install.md#firmware)", "](install.md#firmwar)")):
+        assert link in doc
+        found = problems(doc.replace(link, broken, 1), facts)
+        assert found == [f"link to missing heading {broken[2:-1]}"]
 
 
 def test_a_new_config_option_in_the_code_is_caught(facts):
