@@ -28,8 +28,9 @@ TIERS = ("unit", "c", "klippy", "moonraker", "ui", "bench", "fil")
 
 
 # Tiers that run beside no test but each other under `make test`'s scheduler
-# (its quiet groups, two modules at a time), last: they run paced to
-# the wall clock from start to end (devtools/pytest_schedule.py).
+# (its quiet groups, two modules at a time on four cores or more), last:
+# they run paced to the wall clock from start to end
+# (devtools/pytest_schedule.py).
 ALONE_TIERS = ("fil",)
 # The order groups are handed to workers in when the last run's durations
 # are not in pytest's cache (a fresh clone): the slowest tiers first.
@@ -79,7 +80,7 @@ FIL_FIXTURE = "fil_build"
 
 def _quiet(item, tier: str) -> bool:
     """With nothing beside it, not even idle-class tests, but another module's
-    simulated printer (one per core): the fil tier and
+    simulated printer (one per two cores): the fil tier and
     every test that runs its simulated MCU (bench_fil's smoke runs ran
     beside idle-class tests, and once the harness stood still for 319 ms of
     wall clock, its own share 1 ms, and klippy shut down)."""

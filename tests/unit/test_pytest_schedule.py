@@ -192,6 +192,15 @@ def test_quiet_groups_alone_run_side_by_side_up_to_the_quiet_runners(
     assert side_by_side == (quiet_runners == 2)
 
 
+@pytest.mark.parametrize("cores, runners", [(1, 1), (2, 1), (3, 1), (4, 2), (16, 2)])
+def test_one_simulated_printer_per_two_cores(monkeypatch, cores, runners):
+    monkeypatch.delenv("FLOWLOOP_QUIET_RUNNERS", raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: cores)
+    assert pytest_schedule.quiet_runners() == runners
+    monkeypatch.setenv("FLOWLOOP_QUIET_RUNNERS", "3")
+    assert pytest_schedule.quiet_runners() == 3
+
+
 @pytest.mark.parametrize("scheduler", [LAST, BESIDE])
 def test_without_alone_tests_the_run_ends(tmp_path, scheduler):
     assert len(run_suite(tmp_path, normal=5, alone=0, workers=2,
