@@ -90,6 +90,11 @@ if sys.pycache_prefix:
 
 
 LAST, BESIDE = "AloneLastScheduling", "AloneBesideScheduling"
+# A bound that catches a hung run, not a slow one: under `make test` these
+# runs are idle-class (SCHED_IDLE, as every test that is not alone) and get
+# only the CPU nothing else wants; beside a busy process at normal priority
+# one took over 120 s (it takes 5 s alone)
+HUNG_S = 900
 # the inner suites use no Hypothesis: its plugin's import cost each of
 # their processes 0.4 s of CPU
 NO_HYPOTHESIS = "no:hypothesispytest"
@@ -107,7 +112,7 @@ def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=Fa
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
          "-p", NO_HYPOTHESIS, "-n", str(workers), "test_suite.py"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+        cwd=tmp_path, capture_output=True, text=True, timeout=HUNG_S,
         env={**BARE_ENV, "RUNS": str(runs), "SCHEDULER": scheduler,
              "FLOWLOOP_QUIET_RUNNERS": str(quiet_runners)})
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -239,7 +244,7 @@ def test_the_next_run_starts_with_what_took_longest_in_the_last(tmp_path):
         proc = subprocess.run(
             [sys.executable, "-m", "pytest", "-q", "-p", NO_HYPOTHESIS,
              "--collect-only", "test_order.py"],
-            cwd=tmp_path, capture_output=True, text=True, timeout=60,
+            cwd=tmp_path, capture_output=True, text=True, timeout=HUNG_S,
             env=BARE_ENV)
         return [line.split("::")[1] for line in proc.stdout.splitlines()
                 if "::" in line]
@@ -247,7 +252,7 @@ def test_the_next_run_starts_with_what_took_longest_in_the_last(tmp_path):
     assert collected() == ["test_quick", "test_slow", "test_also_quick"]
     subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", NO_HYPOTHESIS,
                     "test_order.py"],
-                   cwd=tmp_path, check=True, capture_output=True, timeout=60,
+                   cwd=tmp_path, check=True, capture_output=True, timeout=HUNG_S,
                    env=BARE_ENV)
     assert collected()[0] == "test_slow"
 
@@ -269,6 +274,7 @@ def test_a_python_the_run_starts_keeps_bytecode_in_the_cache_not_beside_sources(
               "subprocess.run([sys.executable, '-c', 'import mod'],"
               f" cwd={str(source)!r}, check=True,"
               f" env={{**os.environ, 'PYTHONPATH': {str(source)!r}}})\n")
-    subprocess.run([sys.executable, "-c", script], check=True, env=env, timeout=60)
+    subprocess.run([sys.executable, "-c", script], check=True, env=env,
+                   timeout=HUNG_S)
     assert not (source / "__pycache__").exists()
     assert list((tmp_path / "cache" / "pycache").rglob("mod.*.pyc"))
