@@ -319,12 +319,11 @@ class AloneBesideScheduling(AloneLastScheduling):
         others = [n for n in self.assigned_work if n not in runners]
         if any(self._pending(n) for n in others):
             return                    # they finish what they hold first
-        if any(self._running(n) and self._holds_earlier_test(n) for n in runners):
-            return                    # an earlier phase's test runs alone
         held = [n for n in runners if self._holds_earlier_test(n)]
         if held:
+            # an earlier phase's test runs alone: once every runner waits
             if any(self._running(n) for n in runners):
-                return                # ... with no quiet test beside it
+                return
             if not self.workqueue:
                 held[0].shutdown()    # it runs that test, and stops
             else:
