@@ -44,11 +44,18 @@ ALONE = "alone:"
 QUIET = "quiet:"
 # at most this many quiet groups run at once, side by side
 QUIET_RUNNERS = 2
-# cores per simulated printer: each takes under half a core on average,
-# but two on two cores lost the clock once in three runs of `make test`
-# ("Timer too close" in test_fil_closed_loop: a klippy or its simulator
-# starved for longer than klippy schedules ahead), one on two never has
+# cores per simulated printer: two side by side on two cores lost the clock
+# once in three runs of `make test` on a machine where a printer (its
+# simulator, klippy and test) took 0.45 of a core ("Timer too close" in
+# test_fil_closed_loop: a klippy or its simulator starved for longer than
+# klippy schedules ahead); one on two never has
 CORES_PER_QUIET_RUNNER = 2
+# ... unless the last run's record says a printer takes at most this much of
+# a core (its tests' CPU seconds over their wall seconds): two then take at
+# most half of one of the two, where the machine above gave them 0.9 (on a
+# machine at 0.19, two side by side passed four runs of the quiet phase
+# alone and two beside a busy process)
+QUIET_LOAD_FOR_TWO = 0.25
 
 
 def is_alone(scope: str) -> bool:
@@ -258,7 +265,8 @@ class AloneBesideScheduling(AloneLastScheduling):
 
     The ``quiet:`` groups come last, once every other test has finished,
     on up to quiet_runners() workers side by side (each runs one simulated
-    printer: one per two cores), and never beside any other test. A
+    printer: one per two cores, or two where the last run's record says a
+    printer takes little of a core), and never beside any other test. A
     worker keeps the last test it was given until it gets more (see
     AloneLastScheduling), so a worker that joins
     the quiet phase still holds one test of the earlier phase: it is given
@@ -273,6 +281,16 @@ class AloneBesideScheduling(AloneLastScheduling):
         self.beside = None   # the worker the alone groups run on
         self.quiet_runners: list = []   # the workers kept for the quiet phase
         self.quiet_phase = False        # only quiet groups were left
+        self._wanted: Optional[int] = None
+
+    def _runners_wanted(self) -> int:
+        """quiet_runners() at the quiet phase's load in the last run
+        (decided once: the groups are known by the quiet phase)."""
+        if self._wanted is None:
+            quiet = [i for i, g in (self._groups or {}).items() if is_quiet(g)]
+            self._wanted = quiet_runners(quiet_load(
+                getattr(self.config, "cache", None), quiet))
+        return self._wanted
 
     def _alone_next(self) -> bool:   # the quiet phase: only quiet groups left
         return bool(self.workqueue) and all(is_quiet(s) for s in self.workqueue)
@@ -295,7 +313,7 @@ class AloneBesideScheduling(AloneLastScheduling):
     def _keep_for_quiet(self, node) -> bool:
         if node in self.quiet_runners:
             return True
-        if node.shutting_down or len(self.quiet_runners) >= quiet_runners():
+        if node.shutting_down or len(self.quiet_runners) >= self._runners_wanted():
             return False
         self.quiet_runners.append(node)
         return True
@@ -393,15 +411,36 @@ class AloneBesideScheduling(AloneLastScheduling):
         return crashed
 
 
-def quiet_runners() -> int:
+def quiet_runners(load: Optional[float] = None) -> int:
     """Workers of the quiet phase: one simulated printer per
-    CORES_PER_QUIET_RUNNER cores, at most QUIET_RUNNERS; FLOWLOOP_QUIET_RUNNERS
+    CORES_PER_QUIET_RUNNER cores, at most QUIET_RUNNERS, or two on two or
+    three cores where the quiet phase's load in the last run (quiet_load,
+    cores per printer) was at most QUIET_LOAD_FOR_TWO; FLOWLOOP_QUIET_RUNNERS
     sets the number (1 runs them one at a time)."""
     wanted = os.environ.get("FLOWLOOP_QUIET_RUNNERS")
     if wanted is not None:
         return max(1, int(wanted))
     cores = os.cpu_count() or 1
-    return max(1, min(QUIET_RUNNERS, cores // CORES_PER_QUIET_RUNNER))
+    runners = max(1, min(QUIET_RUNNERS, cores // CORES_PER_QUIET_RUNNER))
+    if runners < 2 <= cores and load is not None and load <= QUIET_LOAD_FOR_TWO:
+        runners = 2
+    return runners
+
+
+def quiet_load(cache, quiet_ids) -> Optional[float]:
+    """The cores a quiet group's printer took in the last run: its tests'
+    CPU seconds (each test's process and every child it reaped: the
+    printer's simulator and klippy at the module's teardown) over their
+    wall seconds, over every quiet test; None unless the record has them
+    all (a fresh clone, or tests new since)."""
+    if cache is None or not quiet_ids:
+        return None
+    took = cache.get(DURATIONS_KEY, {})
+    cpu = cache.get(CPU_KEY, {})
+    if any(i not in took or i not in cpu for i in quiet_ids):
+        return None
+    wall = sum(took[i] for i in quiet_ids)
+    return sum(cpu[i] for i in quiet_ids) / wall if wall > 0 else None
 
 
 def idle_class_available() -> bool:

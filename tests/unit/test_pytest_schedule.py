@@ -197,13 +197,57 @@ def test_quiet_groups_alone_run_side_by_side_up_to_the_quiet_runners(
     assert side_by_side == (quiet_runners == 2)
 
 
-@pytest.mark.parametrize("cores, runners", [(1, 1), (2, 1), (3, 1), (4, 2), (16, 2)])
-def test_one_simulated_printer_per_two_cores(monkeypatch, cores, runners):
+@pytest.mark.parametrize("cores, load, runners", [
+    (1, None, 1), (2, None, 1), (3, None, 1), (4, None, 2), (16, None, 2),
+    # two on two cores only where a printer took little of a core
+    (1, 0.1, 1), (2, 0.19, 2), (3, 0.25, 2), (2, 0.26, 1), (2, 0.45, 1),
+    (4, 0.45, 2)])
+def test_one_simulated_printer_per_two_cores_or_two_that_take_little(
+        monkeypatch, cores, load, runners):
     monkeypatch.delenv("FLOWLOOP_QUIET_RUNNERS", raising=False)
     monkeypatch.setattr(os, "cpu_count", lambda: cores)
-    assert pytest_schedule.quiet_runners() == runners
+    assert pytest_schedule.quiet_runners(load) == runners
     monkeypatch.setenv("FLOWLOOP_QUIET_RUNNERS", "3")
-    assert pytest_schedule.quiet_runners() == 3
+    assert pytest_schedule.quiet_runners(load) == 3
+
+
+class Cache:
+    """pytest's cache as the scheduler reads it."""
+
+    def __init__(self, values):
+        self.values = values
+
+    def get(self, key, default):
+        return self.values.get(key, default)
+
+
+RECORD = Cache({pytest_schedule.DURATIONS_KEY: {"q1": 10.0, "q2": 30.0, "n": 5.0},
+                pytest_schedule.CPU_KEY: {"q1": 2.0, "q2": 6.0, "n": 5.0}})
+
+
+def test_the_quiet_load_is_the_quiet_tests_cpu_over_their_wall_time():
+    assert pytest_schedule.quiet_load(RECORD, ["q1", "q2"]) == pytest.approx(0.2)
+    assert pytest_schedule.quiet_load(RECORD, ["n"]) == pytest.approx(1.0)
+    # a quiet test the record lacks (new since, or a fresh clone): unknown
+    assert pytest_schedule.quiet_load(RECORD, ["q1", "new"]) is None
+    assert pytest_schedule.quiet_load(Cache({}), ["q1"]) is None
+    assert pytest_schedule.quiet_load(None, ["q1"]) is None
+    assert pytest_schedule.quiet_load(RECORD, []) is None
+
+
+@pytest.mark.parametrize("groups, runners", [
+    ({"q1": "quiet:m1", "q2": "quiet:m2", "n": "m3"}, 2),   # load 0.2
+    ({"q1": "quiet:m1", "n": "quiet:m3"}, 1),               # load 0.47
+    ({"q1": "quiet:m1", "new": "quiet:m2"}, 1)])            # not recorded
+def test_the_scheduler_reads_the_quiet_groups_load_from_the_record(
+        monkeypatch, groups, runners):
+    monkeypatch.delenv("FLOWLOOP_QUIET_RUNNERS", raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    sched = pytest_schedule.AloneBesideScheduling.__new__(
+        pytest_schedule.AloneBesideScheduling)
+    sched.config = type("Config", (), {"cache": RECORD})()
+    sched._groups, sched._wanted = groups, None
+    assert sched._runners_wanted() == runners
 
 
 @pytest.mark.parametrize("scheduler", [LAST, BESIDE])
