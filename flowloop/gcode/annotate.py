@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import bisect
 import codecs
+import contextlib
 import math
 import os
 import re
@@ -40,6 +41,7 @@ import numpy as np
 
 from .. import files
 from ..errors import FlowloopError
+from .ahead import ahead
 from .bulk_planner import Segments, plan_batches
 from .melt import MELT_TIME_S, Cells, Lines, melt_events
 from .melt_window import check_melt_window
@@ -260,11 +262,10 @@ class Annotator:
     def cells(self, cells: Cells) -> None:
         """Consecutive cells of constant flow (the flow to melt), at once: the
         peak of each window they overlap, then the windows closed in order."""
-        start, flow = cells.start_s, cells.flow_mm3_s
-        n = len(start)
-        if not n:
+        flow = cells.flow_mm3_s
+        if not len(flow):
             return
-        self._advance_to(float(start[0]))
+        self._advance_to(cells.begin_s)
         window = self.settings.window_s
         last_end = cells.end_s
         count = int((last_end - self.bin_start) / window) + 3
@@ -278,9 +279,10 @@ class Annotator:
         # window m holds the cells that overlap it: from the first that ends
         # after its start to the last that starts before its end
         # (cell k ends where k + 1 starts, the last at last_end)
-        lo = np.searchsorted(start[1:], edges[:-1], "right")
+        lo = cells.search(edges[:-1], "right")
+        lo -= lo > 0                    # among the starts but the first
         lo += edges[:-1] >= last_end
-        hi = np.searchsorted(start, edges[1:], "left")
+        hi = cells.search(edges[1:], "left")
         bounds = np.stack((lo, np.maximum(hi, lo)), axis=1).ravel()
         peaks = np.maximum.reduceat(np.append(flow, 0.0), bounds)[::2]
         raw = np.where(hi > lo, peaks, 0.0)
@@ -653,10 +655,12 @@ def annotate_file(src: Path, dst: Optional[Path] = None,
 
     def write(out: BinaryIO) -> None:
         nonlocal summary
-        with open(src, "rb") as lines, open(src, "rb") as copy:
+        # the planner runs ahead in a thread of its own (flowloop.gcode.ahead),
+        # stopped before the files close, whatever happens
+        with open(src, "rb") as lines, open(src, "rb") as copy, \
+                contextlib.closing(ahead(plan_batches(lines, limits))) as events:
             try:
-                summary = annotate_stream(plan_batches(lines, limits), copy, out,
-                                          settings, newline)
+                summary = annotate_stream(events, copy, out, settings, newline)
             except FlowloopError as e:
                 raise FlowloopError(f"{src}: {e}") from None
     files.replace_atomically(dst, write, src)

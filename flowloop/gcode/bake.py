@@ -34,6 +34,7 @@ capacity there) is kept for `--plot` (timeline_svg).
 from __future__ import annotations
 
 import codecs
+import contextlib
 import math
 import re
 from dataclasses import dataclass, field, replace
@@ -47,6 +48,7 @@ from ..control.autotemp import DEFAULT_PARAMS, GRID_S, Autotemp, flat_line_note
 from ..control.hotend import HotendModel, HotendParams
 from ..errors import FlowloopError
 from ..material.profile import Profile
+from .ahead import ahead
 from .annotate import (
     COMMAND,
     FORMAT_VERSION,
@@ -321,8 +323,11 @@ def plan_announcements(src: Path, limits: PrinterLimits,
     `.end_s`."""
     rec = _Recorder(settings, newline)
     try:
-        with open(src, "rb") as lines:
-            feed(rec, plan_batches(lines, limits))
+        # the planner ahead in a thread (flowloop.gcode.ahead), stopped
+        # before the file closes
+        with open(src, "rb") as lines, \
+                contextlib.closing(ahead(plan_batches(lines, limits))) as events:
+            feed(rec, events)
     except FlowloopError as e:
         raise FlowloopError(f"{src}: {e}") from None
     return rec

@@ -26,9 +26,12 @@ Barriers cut the average: no flow is counted across a wait the file does not
 time.
 
 It costs a few array passes per cell: the moves' trapezoids become pieces of
-constant slope, each piece's values are repeated over its grid times (no
-search and no gather per cell), and each centred mean is the difference of
-two volumes.
+constant slope, each grid point's volume is its piece's polynomial in the
+point's steps from the piece's first one (the coefficients gathered by each
+point's piece, found by a running sum, not np.repeat, which copies each
+point on its own), and each centred mean is the difference of two volumes.
+The cells' start times are not stored: they are grid points, computed when
+asked for (Cells.start_s, Cells.search).
 """
 
 from __future__ import annotations
@@ -50,15 +53,39 @@ class Lines(NamedTuple):
     moves: Segments
 
 
-class Cells(NamedTuple):
+class Cells:
     """Consecutive cells of the flow to melt: cell k runs from start_s[k] to
-    the next cell's start (the last one to end_s) at flow_mm3_s[k]."""
-    start_s: np.ndarray
-    end_s: float
-    flow_mm3_s: np.ndarray
+    the next cell's start (the last one to end_s) at flow_mm3_s[k]. They
+    are grid points first.. of a grid from origin_s (grid_time); the start
+    times are computed when asked for, and search() finds places among them
+    without them (a long print has millions)."""
+    __slots__ = ("origin_s", "first", "cell_s", "end_s", "flow_mm3_s")
 
-    def __len__(self) -> int:        # NamedTuple's would count the fields
-        return len(self.start_s)
+    def __init__(self, origin_s: float, first: int, cell_s: float, end_s: float,
+                 flow_mm3_s: np.ndarray):
+        self.origin_s = origin_s
+        self.first = first
+        self.cell_s = cell_s
+        self.end_s = end_s
+        self.flow_mm3_s = flow_mm3_s
+
+    def __len__(self) -> int:
+        return len(self.flow_mm3_s)
+
+    @property
+    def begin_s(self) -> float:
+        """The first cell's start."""
+        return float(grid_time(self.origin_s, self.first, self.cell_s))
+
+    @property
+    def start_s(self) -> np.ndarray:
+        return grid_time(self.origin_s, np.arange(self.first, self.first + len(self)),
+                         self.cell_s)
+
+    def search(self, keys: np.ndarray, side: str = "left") -> np.ndarray:
+        """np.searchsorted(self.start_s, keys, side)."""
+        return grid_search(keys, self.origin_s, self.first,
+                           self.first + len(self), self.cell_s, side)
 
 
 MeltEvent = Union[Lines, Cells, Barrier]
@@ -104,70 +131,97 @@ def _pieces(batch: Segments, volume_before: float) -> _Pieces:
                    volume_before + float(total[-1]))
 
 
-def volume_at(pieces: _Pieces, times: np.ndarray) -> np.ndarray:
-    """Plastic (mm^3) left through the nozzle by each of times (increasing,
-    within the batch or after it; one before it counts as at its start)."""
-    # times[first[p]:first[p + 1]] fall in piece p. A piece of no length
-    # that the next one starts with gets none (nor does it change where the
-    # others start): only the others are searched for (the first and last
-    # are kept: one before the batch counts as at its start)
+def grid_time(origin_s: float, k, cell_s: float):
+    """The time of grid point k (an index or an array of them): k * cell_s
+    from origin_s, rounded as every grid time here is."""
+    return np.multiply(k, cell_s, dtype=float) + origin_s
+
+
+def grid_search(keys: np.ndarray, origin_s: float, first: int, stop: int,
+                cell_s: float, side: str = "left") -> np.ndarray:
+    """np.searchsorted(grid_time(origin_s, range(first, stop), cell_s), keys,
+    side) without the grid: each place computed, then moved while a
+    neighbour shows it wrong (rounding moves it by one at most)."""
+    n = stop - first
+    at = np.ceil((np.asarray(keys, float) - origin_s) / cell_s) - first
+    np.clip(at, 0, n, out=at)
+    at = at.astype(np.intp)
+    right = side == "right"
+    for _ in range(4):
+        # too far: the point before is not below (left) / above (right) the key
+        before = grid_time(origin_s, at - 1 + first, cell_s)
+        back = (before > keys) if right else (before >= keys)
+        back &= at > 0
+        # not far enough: the point at is below (left) / not above (right)
+        here = grid_time(origin_s, at + first, cell_s)
+        on = (here <= keys) if right else (here < keys)
+        on &= at < n
+        if not (back.any() or on.any()):
+            return at
+        at -= back
+        at += on
+    raise AssertionError("grid_search did not settle")
+
+
+def volume_on_grid(pieces: _Pieces, origin_s: float, first: int, stop: int,
+                   cell_s: float) -> np.ndarray:
+    """Plastic (mm^3) left through the nozzle at grid points first..stop-1
+    (grid_time; one before the batch counts as at its start, one after it
+    or between two moves as at the last move's end)."""
+    n = stop - first
     start, length = pieces.start_s, pieces.length_s
-    keep = np.empty(len(start), bool)
-    keep[0] = keep[-1] = True
-    np.not_equal(length[1:-1], 0.0, out=keep[1:-1])
-    keep[1:-1] |= start[2:] != start[1:-1]
-    kept = np.flatnonzero(keep)
-    first = np.maximum.accumulate(_search_grid(times, start[kept]))
-    first[0] = 0
-    counts = np.diff(np.append(first, len(times)))
-    # each piece's value repeated over its times (a copy in order, not a
-    # gather), then volume + u * (flow + 0.5 * slope * u) in place, u the
-    # time into the piece within its length
-    u = times - np.repeat(start[kept], counts)
-    np.maximum(u, 0.0, out=u)
-    np.minimum(u, np.repeat(length[kept], counts), out=u)
-    out = np.repeat(0.5 * pieces.slope_mm3_s2[kept], counts)
-    out *= u
-    out += np.repeat(pieces.flow_mm3_s[kept], counts)
-    out *= u
-    out += np.repeat(pieces.volume_mm3[kept], counts)
+    count = len(start)
+    # segments of the grid: before the batch, then each piece and the gap
+    # after it (none, mostly: a move starts where the last one ends);
+    # the grid points from bound[s] on are in segment s + 1
+    bound = np.empty(2 * count)
+    bound[0::2] = start
+    bound[1::2] = start + length
+    seg_first = np.empty(2 * count + 1, np.intp)
+    seg_first[0] = 0
+    seg_first[1:] = grid_search(bound, origin_s, first, stop, cell_s)
+    np.maximum.accumulate(seg_first, out=seg_first)
+    counts = np.diff(np.append(seg_first, n))
+    # each segment's volume in its own grid steps j: A + j * (B + C * j)
+    # (a piece's volume + u * (flow + slope / 2 * u) at u = e + j * cell_s,
+    # e from the piece's start to its first grid point; a gap's is flat)
+    vol, flow = pieces.volume_mm3, pieces.flow_mm3_s
+    half_slope = 0.5 * pieces.slope_mm3_s2
+    e = grid_time(origin_s, seg_first[1::2] + first, cell_s) - start
+    a = np.empty(2 * count + 1)
+    b = np.zeros(2 * count + 1)
+    c = np.zeros(2 * count + 1)
+    a[0] = vol[0]
+    a[1::2] = vol + e * (flow + half_slope * e)
+    b[1::2] = cell_s * (flow + 2.0 * half_slope * e)
+    c[1::2] = half_slope * (cell_s * cell_s)
+    a[2:-1:2] = vol[1:]
+    a[-1] = pieces.end_volume_mm3
+    seg = _segment_of_each(seg_first, counts, n)
+    j = np.arange(n, dtype=float)
+    j -= seg_first.astype(float).take(seg)
+    out = c.take(seg)
+    out *= j
+    out += b.take(seg)
+    out *= j
+    out += a.take(seg)
     return out
 
 
-def _grid_times(origin_s: float, first: int, stop: int,
-                cell_s: float) -> np.ndarray:
-    """origin_s + k * cell_s for k in first..stop-1, in place (no
-    temporaries: the grid is millions of points on a long print)."""
-    times = np.arange(first, stop, dtype=float)
-    times *= cell_s
-    times += origin_s
-    return times
-
-
-def _search_grid(times: np.ndarray, keys: np.ndarray) -> np.ndarray:
-    """np.searchsorted(times, keys, "left") for times evenly spaced (the
-    grid): each place computed, then checked against its neighbours (a
-    search only where that fails)."""
-    m = len(times)
-    if m < 2:
-        return np.searchsorted(times, keys, "left")
-    step = (times[-1] - times[0]) / (m - 1)
-    at = np.ceil((keys - times[0]) / step)
-    np.clip(at, 0, m, out=at)
-    at = at.astype(np.intp)
-    # the first time at or after each key: the one before is earlier
-    before = at - 1
-    np.maximum(before, 0, out=before)
-    right = times[before] < keys
-    right |= at == 0
-    after = np.minimum(at, m - 1)
-    later = times[after] >= keys
-    later |= at == m
-    right &= later
-    if not right.all():
-        wrong = np.flatnonzero(~right)
-        at[wrong] = np.searchsorted(times, keys[wrong], "left")
-    return at
+def _segment_of_each(seg_first: np.ndarray, counts: np.ndarray, n: int
+                     ) -> np.ndarray:
+    """np.repeat(np.arange(len(counts)), counts) for segments in order that
+    hold n points from seg_first on: each segment's index added where it
+    starts, less the last one's, then summed up (np.repeat copies each
+    point on its own, five times slower on a batch of short moves)."""
+    held = np.flatnonzero(counts)
+    seg = np.zeros(n, np.intp)
+    if not len(held):
+        return seg
+    seg[0] = held[0]
+    seg[seg_first[held[1:]]] = np.diff(held)
+    np.cumsum(seg, out=seg)
+    return seg
 
 
 def _batches(events: Iterable) -> Iterator[Union[Segments, Barrier]]:
@@ -219,7 +273,7 @@ class _Grid:
         h = self.half
         last = min(until_cell, self.count - 1 - h)     # cell k needs V[k+1+h]
         if last <= self.next_cell:
-            return Cells(np.empty(0), 0.0, np.empty(0))
+            return Cells(self.origin_s, self.next_cell, self.cell_s, 0.0, np.empty(0))
         k0 = self.next_cell
         v = self.volume
         # the mean centred on grid points k0..last
@@ -227,13 +281,13 @@ class _Grid:
         mean = np.subtract(v[lo + 2 * h:hi], v[lo:hi - 2 * h])
         mean /= 2 * h * self.cell_s
         flow = np.maximum(mean[:-1], mean[1:])
-        start = _grid_times(self.origin_s, k0, last, self.cell_s)
         self.next_cell = last
         keep = last - h - self.first                  # what later cells still need
         self.volume = v[keep:]
         self.first += keep
         # the last cell ends where the next one starts, on the same grid
-        return Cells(start, min(self.origin_s + last * self.cell_s, end_s), flow)
+        return Cells(self.origin_s, k0, self.cell_s,
+                     min(grid_time(self.origin_s, last, self.cell_s), end_s), flow)
 
 
 def melt_events(events: Iterable, melt_s: float = MELT_TIME_S,
@@ -257,8 +311,8 @@ def melt_events(events: Iterable, melt_s: float = MELT_TIME_S,
         first = grid.count
         last = int(np.floor((end_s - grid.origin_s) / cell_s))
         if last >= first:
-            times = _grid_times(grid.origin_s, first, last + 1, cell_s)
-            grid.extend(volume_at(pieces, times))
+            grid.extend(volume_on_grid(pieces, grid.origin_s, first, last + 1,
+                                       cell_s))
         volume = pieces.end_volume_mm3
         cells = grid.cells(grid.count)
         if len(cells):

@@ -1,5 +1,5 @@
-"""flowloop.gcode.melt.volume_at: the plastic through the nozzle at given
-times, against each move's trapezoid integrated here on its own."""
+"""flowloop.gcode.melt.volume_on_grid: the plastic through the nozzle at the
+grid's times, against each move's trapezoid integrated here on its own."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flowloop.gcode.bulk_planner import Segments
-from flowloop.gcode.melt import _pieces, volume_at
+from flowloop.gcode.melt import _pieces, grid_time, volume_on_grid
 
 # a phase lasts none or at least a nanosecond, as the planner's do
 seconds = st.one_of(st.just(0.0), st.floats(1e-9, 2.0))
@@ -60,8 +60,9 @@ def test_the_volume_at_each_time_is_the_moves_integral(moves, before, step):
     pieces = _pieces(b, before)
     end = float(b.start_s[-1] + b.duration_s[-1])
     # from before the batch (counted as at its start) to after it
-    times = 4.0 + np.arange(int((end + 1.0 - 4.0) / step)) * step
-    got = volume_at(pieces, times)
+    count = int((end + 1.0 - 4.0) / step)
+    times = grid_time(4.0, np.arange(count), step)
+    got = volume_on_grid(pieces, 4.0, 0, count, step)
     want = np.array([trapezoid_volume(b, before, float(t)) for t in times])
     assert np.allclose(got, want, rtol=1e-12, atol=1e-9 * (1.0 + before)), \
         np.max(np.abs(got - want))
