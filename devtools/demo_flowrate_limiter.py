@@ -12,9 +12,12 @@ reactive rule against ddPrint's on the scenario of docs/flowrate_limiter.md.
 
 from __future__ import annotations
 
+import io
 import shutil
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Tuple
+
+import numpy as np
 
 from devtools import stack
 from devtools.klippy_api import KlippyApi
@@ -22,7 +25,8 @@ from flowloop.control import nozzle_health as nh
 from flowloop.control import rule_plot
 from flowloop.gcode.annotate import AnnotateSettings, quantise_flow
 from flowloop.gcode.bake import plan_announcements
-from flowloop.gcode.reference_planner import limits_from_config
+from flowloop.gcode.bulk_planner import plan_file
+from flowloop.gcode.reference_planner import Segment, limits_from_config
 from flowloop.host.klipper_config import read_config
 
 GCODE = stack.PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
@@ -48,7 +52,10 @@ OPTIMISTIC_PROFILE = {
               "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
                              "flow_mm3_s": 5.5}},
 }
-CHUNK_LINES = 10
+# How far G-code runs ahead of the steps the twin has seen, in planned print
+# time (print_in_chunks): about what a printer's toolhead holds
+# (BUFFER_TIME_HIGH, 1 s)
+CHUNK_S = 1.0
 WARM_UP_C = 200.0
 
 
@@ -62,11 +69,33 @@ def warm_up(api, target_c: float, seconds: float = 100.0) -> None:
                           f" TARGET={target_c:g}"] + moves + ["M400"]))
 
 
+def chunks(lines: List[str], chunk_s: float = CHUNK_S) -> List[List[str]]:
+    """lines cut where the planned print time (flowloop's planner, at the
+    bench printer's limits: where to cut, not a figure) passes each
+    multiple of chunk_s; a line that moves longer than that is a chunk of
+    its own, as a printer queues a move whole."""
+    data = "".join(line + "\n" for line in lines).encode()
+    first_byte = np.cumsum([0] + [len(line) + 1 for line in lines[:-1]])
+    limits = limits_from_config(read_config(CONFIG))
+    starts = {}
+    for event in plan_file(io.BytesIO(data), limits):
+        if isinstance(event, Segment):
+            starts.setdefault(event.offset, event.start_s)
+    cut_at, next_cut = [0], chunk_s
+    for k, offset in enumerate(first_byte.tolist()):
+        start_s = starts.get(offset)
+        if start_s is not None and start_s >= next_cut and k > cut_at[-1]:
+            cut_at.append(k)
+            next_cut = (int(start_s / chunk_s) + 1) * chunk_s
+    return [lines[a:b] for a, b in zip(cut_at, cut_at[1:] + [len(lines)])]
+
+
 def print_in_chunks(api, lines: List[str],
                     after_chunk: Optional[Callable[[List[str]], None]] = None
                     ) -> None:
-    """Send G-code lines CHUNK_LINES at a time, each chunk followed by M400
-    and QUERY_FLOW_SENSOR (below), then after_chunk(chunk) if given.
+    """Send G-code lines a chunk (chunks(): about CHUNK_S of planned print
+    time) at a time, each followed by M400 and QUERY_FLOW_SENSOR (below),
+    then after_chunk(chunk) if given.
 
     Batch mode never holds the G-code reader back as a printer does (about
     1 s of moves ahead), so feedback would arrive only after the whole file:
@@ -74,9 +103,10 @@ def print_in_chunks(api, lines: List[str],
     seen, and QUERY_FLOW_SENSOR after it generates those steps and hands the
     twin's samples to the sensor there and then (left to klippy's flush
     timer, how much of it is done before the next lines run depends on how
-    busy the machine is)."""
-    for i in range(0, len(lines), CHUNK_LINES):
-        chunk = lines[i:i + CHUNK_LINES]
+    busy the machine is). Cut every 10 lines instead (until 2026-11-30),
+    a chunk of the bench print's long lines lasted up to 12 s planned (p90
+    4 s), and feedback came that much later than on a printer."""
+    for chunk in chunks(lines):
         api.gcode("\n".join(chunk + ["M400", "QUERY_FLOW_SENSOR"]))
         if after_chunk is not None:
             after_chunk(chunk)
