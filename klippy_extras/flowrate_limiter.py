@@ -34,7 +34,8 @@ from flowloop.host.klipper_config import (
 
 SETTING_FIELDS = {'max_flow': 'max_flow_mm3_s', 'mode': 'mode',
                   'min_grip': 'min_grip', 'min_speed_factor': 'min_speed_factor',
-                  'hysteresis': 'hysteresis', 'recovery_rate': 'recovery_per_s'}
+                  'hysteresis': 'hysteresis', 'recovery_rate': 'recovery_per_s',
+                  'climb_from': 'climb_from'}
 
 
 
@@ -55,7 +56,8 @@ class FlowrateLimiter:
                   'min_grip': config.getfloat('min_grip', None),
                   'min_speed_factor': config.getfloat('min_speed_factor', None),
                   'hysteresis': config.getfloat('hysteresis', None),
-                  'recovery_rate': config.getfloat('recovery_rate', None)}
+                  'recovery_rate': config.getfloat('recovery_rate', None),
+                  'climb_from': config.getfloat('climb_from', None)}
         settings = {}
         for option, value in values.items():
             if value is None:
@@ -219,7 +221,7 @@ class FlowrateLimiter:
                           'evidence': None if evidence is None
                           else evidence.to_dict(),
                           'model_melt_ratio': None if limiter is None
-                          else limiter.model_melt_ratio})
+                          else limiter.measured_melt_ratio})
 
     def report(self, gcmd):
         s = self.limiter.status()
@@ -233,6 +235,9 @@ class FlowrateLimiter:
             f" by {s['slowed_time']:.1f} s"
             + (f"; model seeded at melt ratio {s['seed_melt_ratio']:.2f}"
                if s['seed_melt_ratio'] is not None else "")
+            + (f"; model climbing, at {s['model']['climb_ratio']:.2f} of the"
+               " profile's capacity"
+               if s['model'] and s['model']['climb_ratio'] is not None else "")
             + (f"; carried melt ratio {s['dropped_melt_ratio']:.2f} dropped"
                " unconfirmed" if s['dropped_melt_ratio'] is not None else "")
             + (f"; {s['why']}" if s['why'] else ""))

@@ -50,6 +50,18 @@ DEFAULT_CAPACITY_PRIOR_WINDOWS = 0.5
 PRIOR_SPAN_C = 20.0
 # 1.75 mm filament (mm^2): the area a rule assumes when it is given none
 DEFAULT_FILAMENT_AREA_MM2 = 2.405
+# A model that knows nothing of its hotend but the profile (a first print)
+# starts at CLIMB_FROM of the profile's capacity, as if the profile were
+# 30 % high (the envelope a profile measured on another hotend or day is
+# held to), and climbs from there: each window that kept up raises the
+# seed to CLIMB_STEP times what that window asked for (its peak), up to the
+# profile's line; the first window that slips beyond SLIP_TOLERANCE ends
+# the climb (it measured the capacity, and the fit takes over from the seed
+# where the climb left it). A step of 5 %: the overshoot a climb can cause
+# is at most 5 % above a flow the hotend kept up with, 2.5 times the noise
+# band.
+CLIMB_FROM = 1.0 / 1.3
+CLIMB_STEP = 1.05
 
 
 @dataclass(frozen=True)
@@ -63,6 +75,10 @@ class CapacityLine:
     def at(self, temp_c: float) -> float:
         return max(0.0, self.capacity_mm3_s
                    + self.slope_mm3_s_per_c * (temp_c - self.ref_temp_c))
+
+    def scaled(self, ratio: float) -> CapacityLine:
+        return CapacityLine(self.ref_temp_c, ratio * self.capacity_mm3_s,
+                            ratio * self.slope_mm3_s_per_c)
 
     @classmethod
     def from_profile_line(cls, line: Line, grip: float, ref_temp_c: float,
@@ -164,13 +180,26 @@ class GripModel:
     def __init__(self, seed: CapacityLine,
                  prior_windows: float = DEFAULT_PRIOR_WINDOWS,
                  filament_area_mm2: float = DEFAULT_FILAMENT_AREA_MM2,
-                 capacity_prior_windows: float = DEFAULT_CAPACITY_PRIOR_WINDOWS):
+                 capacity_prior_windows: float = DEFAULT_CAPACITY_PRIOR_WINDOWS,
+                 climb_from: Optional[float] = None):
+        """climb_from: climb to seed from this share of it (CLIMB_FROM: a
+        model that knows nothing of its hotend but the profile; 1: none)."""
         for name, value in (("prior_windows", prior_windows),
                             ("capacity_prior_windows", capacity_prior_windows)):
             if not value > 0:
                 raise FlowloopError(f"{name} must be above 0, not {value}")
+        if climb_from is not None and not 0.0 < climb_from <= 1.0:
+            raise FlowloopError(f"climb_from must be above 0 and at most 1,"
+                                f" not {climb_from}")
         self.capacity_prior_windows = capacity_prior_windows
         self.filament_area_mm2 = filament_area_mm2
+        # the line climbed to, and how far up it the climb is (None: not
+        # climbing; the seed is then where it stopped)
+        self.line = seed
+        self.climb_ratio = climb_from if climb_from is not None \
+            and climb_from < 1.0 else None
+        if self.climb_ratio is not None:
+            seed = seed.scaled(self.climb_ratio)
         self.seed = seed
         self.fitted = seed
         self.prior_windows = prior_windows
@@ -187,11 +216,31 @@ class GripModel:
         if flow is None:
             return False
         temp_c = float(window.temp_c)
-        if flow.grip >= 1.0 - SLIP_TOLERANCE \
-                and flow.peak_mm3_s <= self.fitted.at(temp_c):
+        kept_up = flow.grip >= 1.0 - SLIP_TOLERANCE
+        if self.climb_ratio is not None and kept_up:
+            # climbing: a window that kept up is a step, not a measurement
+            # (kept as one, its peak would hold the fit down after the climb)
+            return self._climb(flow.peak_mm3_s, temp_c)
+        self.climb_ratio = None       # (a slip measured the hotend: no more climb)
+        if kept_up and flow.peak_mm3_s <= self.fitted.at(temp_c):
             return False  # kept up where the fit said it would: nothing new
         # what it melted when asked for more (its peak if it kept up whole)
         self.observations.append((float(temp_c), float(flow.melted_mm3_s)))
+        self.fitted = fit_capacity(self.seed, self.observations,
+                                   self.prior_windows, self.capacity_prior_windows)
+        return True
+
+    def _climb(self, peak_mm3_s: float, temp_c: float) -> bool:
+        """A climb's step for a window that kept up (CLIMB_FROM); True if
+        the seed rose."""
+        line = self.line.at(temp_c)
+        if line <= 0.0:
+            return False
+        ratio = min(1.0, peak_mm3_s / line * CLIMB_STEP)
+        if ratio <= self.climb_ratio:
+            return False
+        self.climb_ratio = None if ratio >= 1.0 else ratio
+        self.seed = self.line.scaled(ratio)
         self.fitted = fit_capacity(self.seed, self.observations,
                                    self.prior_windows, self.capacity_prior_windows)
         return True
@@ -210,7 +259,9 @@ class GripModel:
         return {"ref_temp_c": round(f.ref_temp_c, 2),
                 "capacity_mm3_s": round(f.capacity_mm3_s, 4),
                 "slope_mm3_s_per_c": round(f.slope_mm3_s_per_c, 5),
-                "windows": len(self.observations)}
+                "windows": len(self.observations),
+                "climb_ratio": None if self.climb_ratio is None
+                else round(self.climb_ratio, 4)}
 
 
 def fit_capacity(seed: CapacityLine, observations, prior_windows: float

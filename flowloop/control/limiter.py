@@ -44,6 +44,7 @@ from ..material.profile import (
 from ..window import Window
 from . import caps as fl_caps
 from .grip_model import (
+    CLIMB_FROM,
     DEFAULT_FILAMENT_AREA_MM2,
     SLIP_TOLERANCE,
     CapacityLine,
@@ -88,6 +89,13 @@ def check_mode(value: str) -> str:
     return mode
 
 
+def check_climb_from(value: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not 0.0 < value <= 1.0:
+        raise FlowloopError(f"climb_from must be in (0, 1], not {value!r}")
+    return float(value)
+
+
 def check_min_speed_factor(value: float) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) \
             or not 0.0 < value <= 1.0:
@@ -103,6 +111,9 @@ class LimiterSettings:
     min_speed_factor: float = DEFAULT_MIN_SPEED_FACTOR
     hysteresis: float = DEFAULT_HYSTERESIS
     recovery_per_s: float = DEFAULT_RECOVERY_PER_S
+    # a first print's model climbs from this share of the profile's capacity
+    # (flowloop.control.grip_model.CLIMB_FROM; 1: it starts at the line)
+    climb_from: float = CLIMB_FROM
 
     def __post_init__(self):
         if self.max_flow_mm3_s is not None:
@@ -111,6 +122,7 @@ class LimiterSettings:
         if self.min_grip is not None:
             check_min_grip(self.min_grip)
         check_min_speed_factor(self.min_speed_factor)
+        check_climb_from(self.climb_from)
         ReactiveSettings(DEFAULT_MIN_GRIP, self.hysteresis, self.recovery_per_s)
 
 
@@ -221,19 +233,24 @@ class FlowLimiter:
                 line, seed_grip, profile.bounds.recommended_temp_c,
                 1.0 if melt_ratio is None
                 else melt_ratio * (1.0 + SEED_PROBE)),
-                filament_area_mm2=self.filament_area_mm2)
+                filament_area_mm2=self.filament_area_mm2,
+                climb_from=self.settings.climb_from if melt_ratio is None
+                else None)
         self.reactive = self._reactive_rule()
         self._update()
 
     def _drop_seed(self) -> None:
-        """The carried seed went unconfirmed: the model starts again from
-        the profile's line (its windows decide from here, as on a first
-        print). The move being capped keeps its speed; later ones get the
-        new caps."""
+        """The carried seed went unconfirmed: capped there nothing slipped,
+        so the hotend melts at least that much. The model climbs from it to
+        the profile's line, as a first print climbs from climb_from (its
+        windows decide from here). The move being capped keeps its speed;
+        later ones get the new caps."""
+        below = min(1.0, self.model.ratio_to(self._profile_capacity))
         self.dropped_melt_ratio, self.seed_melt_ratio = self.seed_melt_ratio, None
         self._unconfirmed_s = None
         self.model = GripModel(self._profile_capacity,
-                               filament_area_mm2=self.filament_area_mm2)
+                               filament_area_mm2=self.filament_area_mm2,
+                               climb_from=below)
         self._update()
 
     @property
@@ -244,6 +261,17 @@ class FlowLimiter:
         if self.model is None:
             return None
         return self.model.ratio_to(self._profile_capacity)
+
+    @property
+    def measured_melt_ratio(self) -> Optional[float]:
+        """model_melt_ratio once the windows have measured the hotend: None
+        while a first print's model still climbs (it knows only that the
+        hotend melts at least that much), which is what the next print is
+        seeded with (flowrate_limiter/nozzle_evidence: nozzle health carries
+        it)."""
+        if self.model is None or self.model.climb_ratio is not None:
+            return None
+        return self.model_melt_ratio
 
     def set_temperature(self, temp_c: Optional[float]) -> None:
         temp_c = None if temp_c is None else float(temp_c)

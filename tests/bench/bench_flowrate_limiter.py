@@ -2,25 +2,25 @@
 
 - Under-extrusion and print time: the block excerpt (tests/data/gcode) on the
   simulated sensor and hotend, limiter off, reactive, predictive, and the
-  slip-free bound (a limiter told the twin's true capacity), on five
+  slip-free bound (a limiter told the twin's true capacity), on six
   hotends (HOTENDS): the bench's own (a twin melting 70 % of what its
-  optimistic profile says, as tests/klippy/flowrate_limiter_bench.cfg) and
+  optimistic profile says, as tests/klippy/flowrate_limiter_bench.cfg),
   four the limiter was not tuned on, fixed before any tuning (issue 41): a
   high-flow hotend, a worn nozzle, a noisy sensor, a slow high-mass one
-  (heater time constant, heat capacity and melt lag twice the bench's).
-  Goals: predictive prevents >= 98 % of the under-extrusion the uncapped
-  run has (issue 41: asserted on the worn nozzle, where it is met; printed
-  elsewhere, where issue 30's 90 % is asserted) at a print time within the
-  slip-free bound's (asserted), and on the bench's hotend at a print-time
-  cost below the reactive mode's (not met). Each hotend's next print, the
-  profile activated with the ratio carried from the predictive run (what
-  Moonraker sends after a restart): >= 98 % prevented on every hotend
-  (asserted), its print time 1.0x the bound's (within 0.6 %; guarded at
-  SEEDED_TIME_GUARD). The same run gives the same
-  figures (the twin is seeded and
-  devtools.demo_flowrate_limiter.print_closed_loop syncs the sensor at each
-  chunk); besides the goals' ratios, the time each mode adds per mm of
-  under-extrusion it prevents (reactive is faster partly because it lets the
+  (heater time constant, heat capacity and melt lag twice the bench's),
+  and one true to its profile (added with the first print's climb, to show
+  what the climb costs where nothing needs it). Goals (issue 41):
+  predictive prevents >= 98 % of the under-extrusion the uncapped run has
+  (asserted on every hotend) at a print time within the slip-free bound's
+  (printed; guarded at TIME_GUARD), and on the bench's hotend at a
+  print-time cost below the reactive mode's (not met). Each hotend's next
+  print, the profile activated with the ratio carried from the predictive
+  run (what Moonraker sends after a restart): the same goals, asserted and
+  guarded the same way. The same run gives the same figures (the twin is
+  seeded and devtools.demo_flowrate_limiter.print_closed_loop syncs the
+  sensor at each chunk, about a second of print time); besides the goals'
+  ratios, the time each mode adds per mm of under-extrusion it prevents
+  (reactive is faster partly because it lets the
   feeder slip, and a slipping print runs at full speed). The table of
   docs/flowrate_limiter.md is printed at the end.
 - The reactive rule against ddPrint's (linear in grip, no hysteresis) on the
@@ -141,6 +141,11 @@ HOTENDS = (
         ("heater_time_constant", f"{2 * HotendParams.time_constant_s:g}"),
         ("heater_heat_capacity", f"{2 * HotendParams.heat_capacity_j_per_c:g}"),
         ("melt_time", f"{2 * DEFAULT_MELT_TIME_S:g}"))),
+    # added 2026-11-30, after the first print's climb (grip_model.CLIMB_FROM)
+    # was chosen, to show what it costs where nothing needs it: a hotend
+    # that melts exactly what its profile says (the model's seed, the line
+    # at the profile's min_grip 0.9, is its capacity)
+    Hotend("true to its profile", melt_scale=0.9),
 )
 
 # The smoke run's print: the excerpt's first lines (homing and the start of
@@ -293,32 +298,24 @@ def _table(table):
                f" | {took / r['knowing the capacity'][1]:.3f}x |")
 
 
-# Where issue 41's under-extrusion goal (<= 0.02x of limiter-off) is met
-# today; elsewhere it is printed, not asserted (docs/flowrate_limiter.md
-# says what it would take)
-GOAL_MET_TODAY = ("worn nozzle",)
-
-
-# The seeded run's print time against the slip-free bound's: 0.998-1.006x
-# on 2026-11-29 (issue 41's goal of 1.0x met on two hotends, within 0.6 %
-# on the others), guarded at this
-SEEDED_TIME_GUARD = 1.01
+# Print time against the slip-free bound's, first print and seeded by the
+# last: issue 41's goal is 1.0x. Measured 2026-11-30 (the first print
+# climbing from CLIMB_FROM): first prints 0.998-1.006x on the five hotends
+# and 1.012x true to its profile, seeded 1.000-1.003x; guarded at this
+TIME_GUARD = 1.02
 
 
 def _assert_goals_met_today(table):
-    """Asserted where it was met on 2026-11-29: predictive's print time
-    within the slip-free bound's on every hotend (issue 41's goal,
-    0.991-0.999x), its under-extrusion <= 0.10x of limiter-off (issue 30's,
-    0.015-0.032x), and <= 0.02x (issue 41's) on GOAL_MET_TODAY; seeded by
-    its last print, <= 0.02x on every hotend (0.006-0.012x) at a print time
-    within SEEDED_TIME_GUARD of the bound's."""
+    """Asserted where it was met on 2026-11-30: predictive's under-extrusion
+    <= 0.02x of limiter-off (issue 41's goal) on a first print and seeded by
+    the last, on every hotend; its print time within TIME_GUARD of the
+    slip-free bound's (the goal, 1.0x, is printed: the climb costs a first
+    print up to 1.2 %, docs/flowrate_limiter.md)."""
     for name, r in table.items():
         bound = r["knowing the capacity"][1]
-        assert r["predictive"][1] <= bound, (name, r)
-        goal = 0.02 if name in GOAL_MET_TODAY else 0.10
-        assert r["predictive"][0] <= goal * r["off"][0], (name, r)
-        assert r[SEEDED][0] <= 0.02 * r["off"][0], (name, r)
-        assert r[SEEDED][1] <= SEEDED_TIME_GUARD * bound, (name, r)
+        for run in ("predictive", SEEDED):
+            assert r[run][0] <= 0.02 * r["off"][0], (name, run, r)
+            assert r[run][1] <= TIME_GUARD * bound, (name, run, r)
 
 
 def test_reactive_rule_against_ddprint_s(bench):

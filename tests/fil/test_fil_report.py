@@ -16,6 +16,7 @@ import pytest
 from devtools.demo_flowrate_limiter import WEAK_PROFILE
 from flowloop.report import job_figures
 from tests.fil.conftest import (
+    JOB_SECTIONS,
     ended_job,
     fil_moonraker,
     job_report,
@@ -39,11 +40,20 @@ def gcode_file(layers: int = LAYERS) -> str:
     return "\n".join(out) + "\n"
 
 
+# The model starts at the profile's line (no first print's climb): these
+# jobs are about the report and Moonraker's nozzle health, which stores
+# what the model believes and carries it to the next activation; a
+# climbing model believes only a lower bound, and nozzle health is told
+# none (tests/fil/test_fil_worn_nozzle.py prints with the climb)
+REPORT_SECTIONS = JOB_SECTIONS + "climb_from: 1\n"
+
+
 @pytest.fixture(scope="module")
 def mr(fil_build, moonraker_venv):
     """Moonraker on the fil printer's klippy, its gcodes folder the
     printer's virtual_sdcard, the weak profile active."""
     with fil_moonraker(fil_build, moonraker_venv, WEAK_PROFILE,
+                       sections=REPORT_SECTIONS,
                        extra_conf=f"number_of_reports_to_keep: {KEEP}\n",
                        hotend_temp_c=HOTEND_C) as (_, server):
         yield server

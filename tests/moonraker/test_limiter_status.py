@@ -8,6 +8,7 @@ from urllib.parse import quote
 import pytest
 
 from flowloop.control import nozzle_health as nh
+from flowloop.control.grip_model import CLIMB_FROM
 from flowloop.control.limiter import SEED_PROBE
 from tests.nozzle_prints import PROFILE, simulate_print
 from tests.samples import twin_known
@@ -70,6 +71,9 @@ def test_an_activation_seeds_the_model_with_the_hotends_newest_melt_ratio(
 
     fresh = activated()
     assert fresh["seed_melt_ratio"] is None and fresh["profile"] == name
+    # a first print's model climbs from CLIMB_FROM of the profile's capacity
+    assert fresh["model"]["climb_ratio"] == pytest.approx(CLIMB_FROM, abs=1e-4)
+    line_capacity = fresh["model"]["capacity_mm3_s"] / fresh["model"]["climb_ratio"]
     evidence = nh.evidence_of(simulate_print(0.8, seed=3), PROFILE).to_dict()
     status, body = printer.moonraker.request(
         "POST", "/server/flowloop/nozzle_health",
@@ -79,9 +83,11 @@ def test_an_activation_seeds_the_model_with_the_hotends_newest_melt_ratio(
     assert ratio == pytest.approx(0.8, abs=0.03)
     seeded = activated()
     assert seeded["seed_melt_ratio"] == pytest.approx(ratio, abs=1e-4)
-    # (SEED_PROBE above it, so that its first capped windows can confirm it)
+    # (SEED_PROBE above it, so that its first capped windows can confirm
+    # it; no climb)
     assert seeded["model"]["capacity_mm3_s"] == pytest.approx(
-        ratio * (1.0 + SEED_PROBE) * fresh["model"]["capacity_mm3_s"], rel=1e-3)
+        ratio * (1.0 + SEED_PROBE) * line_capacity, rel=1e-3)
+    assert seeded["model"]["climb_ratio"] is None
     # a new nozzle: its profile's history deleted, the profile's line again
     status, body = printer.moonraker.request(
         "DELETE", f"/server/flowloop/nozzle_health?profile={quote(name)}")

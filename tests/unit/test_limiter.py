@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from flowloop.control.caps import move_shape
+from flowloop.control.grip_model import CLIMB_FROM
 from flowloop.control.limiter import FlowLimiter, LimiterSettings
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import (
@@ -119,10 +120,20 @@ def test_predictive_mode_caps_before_any_slip():
     lim.set_temperature(210.0)
     s = lim.status()
     # seeded from the profile's line, measured where grip fell to 0.9: the
-    # model caps where the slip starts, 0.9 of the line, before any window
+    # slip starts at 0.9 of the line; a first print's model caps below
+    # that, CLIMB_FROM of it, before any window (and climbs from there)
     assert s["reason"] == "model"
-    assert s["caps"]["model"] == pytest.approx(0.9 * s["caps"]["temperature"],
+    assert s["caps"]["model"] == pytest.approx(
+        CLIMB_FROM * 0.9 * s["caps"]["temperature"], rel=1e-3)
+    assert s["model"]["climb_ratio"] == pytest.approx(CLIMB_FROM, abs=1e-4)
+    no_climb = FlowLimiter(LimiterSettings(mode="predictive", min_grip=0.9,
+                                           climb_from=1.0), AREA)
+    no_climb.set_profile(PROFILE, 0.5)
+    no_climb.set_temperature(210.0)
+    t = no_climb.status()
+    assert t["caps"]["model"] == pytest.approx(0.9 * t["caps"]["temperature"],
                                                rel=1e-3)
+    assert t["model"]["climb_ratio"] is None
     # a hotend weaker than its profile: the model learns and caps lower
     weak = 0.6 * LINE.flow_mm3_s(210.0)
     for _ in range(30):

@@ -12,7 +12,7 @@ import random
 import pytest
 
 from flowloop.control.caps import move_shape
-from flowloop.control.grip_model import SLIP_TOLERANCE
+from flowloop.control.grip_model import CLIMB_FROM, SLIP_TOLERANCE
 from flowloop.control.limiter import FlowLimiter, LimiterSettings
 from flowloop.material.profile import profile_from_dict, profile_line
 from flowloop.window import JUDGED, TOO_LITTLE_MOTION, Window
@@ -30,8 +30,9 @@ PIECES = 10
 
 
 def profile_capacity():
-    """What the limiter's seed says the hotend melts at TEMP_C."""
-    lim = FlowLimiter(LimiterSettings(mode="predictive"), AREA)
+    """What the limiter's seed says the hotend melts at TEMP_C (the
+    profile's capacity: where a first print's model climbs to)."""
+    lim = FlowLimiter(LimiterSettings(mode="predictive", climb_from=1.0), AREA)
     lim.set_profile(PROFILE, 0.5)
     lim.set_temperature(TEMP_C)
     return lim.status()["caps"]["model"]
@@ -124,9 +125,12 @@ def test_a_grip_that_never_drops_never_lifts_a_move_above_the_profile_line():
 
 
 def test_a_print_of_short_moves_keeps_the_seed_and_says_so():
-    # no window is long enough to judge: nothing is learned, nothing raised
+    # no window is long enough to judge: nothing is learned, nothing raised;
+    # the model stays where a first print's climb starts, and says so
     status, speeds, floor = print_moves(1.0, judged=False)
     never_faster_never_stopped(speeds, floor)
     assert status["model"]["windows"] == 0
     assert status["grip_windows"]["judged"] == 0
-    assert believed(status) == pytest.approx(profile_capacity(), rel=1e-3)
+    assert believed(status) == pytest.approx(CLIMB_FROM * profile_capacity(),
+                                             rel=1e-3)
+    assert status["model"]["climb_ratio"] == pytest.approx(CLIMB_FROM, abs=1e-4)

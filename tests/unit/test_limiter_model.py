@@ -8,6 +8,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from flowloop.control.grip_model import (
+    CLIMB_FROM,
+    CLIMB_STEP,
     DEFAULT_FILAMENT_AREA_MM2,
     CapacityLine,
     GripModel,
@@ -16,6 +18,8 @@ from flowloop.control.grip_model import (
     melted_capacity,
     predicted_grip,
 )
+from flowloop.control.limiter import LimiterSettings
+from flowloop.errors import FlowloopError
 from flowloop.material.profile import Line, profile_from_dict, profile_line
 from flowloop.window import FAULT, JUDGED, TOO_LITTLE_MOTION, Window
 from tests.samples import make
@@ -175,3 +179,55 @@ def test_mixed_windows_teach_the_true_capacity_not_their_mean():
     assert grip > 0.98
     assert kept.learn(seen(6.0, grip, 210.0, flows))
     assert kept.observations[-1] == (210.0, pytest.approx(9.8))
+
+
+def test_a_first_print_climbs_from_below_the_profile_to_its_line():
+    # a hotend that melts what the profile says: each window that kept up
+    # at the cap raises it CLIMB_STEP times what the window asked for, up
+    # to the profile's line, where the climb ends; no window it kept up in
+    # is taken for a measurement
+    seed = CapacityLine(210.0, 10.0, 0.15)
+    model = GripModel(seed, climb_from=CLIMB_FROM)
+    assert model.cap_mm3_s(210.0) == pytest.approx(CLIMB_FROM * 10.0)
+    assert model.cap_mm3_s(230.0) == pytest.approx(CLIMB_FROM * seed.at(230.0))
+    caps = [model.cap_mm3_s(210.0)]
+    while model.climb_ratio is not None:
+        cap = caps[-1]
+        assert model.learn(seen(cap, 1.0, 210.0, flows=(cap,) * 10))
+        caps.append(model.cap_mm3_s(210.0))
+        assert len(caps) < 20
+    for before, after in zip(caps[:-2], caps[1:-1]):
+        assert after == pytest.approx(before * CLIMB_STEP)
+    assert caps[-1] == pytest.approx(10.0)
+    assert model.status()["windows"] == 0 and model.status()["climb_ratio"] is None
+
+
+def test_a_climb_ends_at_the_first_slip_and_the_fit_takes_it_from_there():
+    seed = CapacityLine(210.0, 10.0, 0.15)
+    model = GripModel(seed, climb_from=0.7)
+    # kept up at 7: the climb steps to 7.35, where a hotend melting 7.2 slips
+    model.learn(seen(7.0, 1.0, 210.0, flows=(7.0,) * 10))
+    assert model.cap_mm3_s(210.0) == pytest.approx(7.0 * CLIMB_STEP)
+    # a window far below the cap that kept up does not raise it
+    assert not model.learn(seen(3.0, 1.0, 210.0, flows=(3.0,) * 10))
+    model.learn(seen(7.35, 7.2 / 7.35, 210.0, flows=(7.35,) * 10))
+    assert model.climb_ratio is None and model.status()["windows"] == 1
+    # the fit: the measurement (7.2) against the seed where the climb left
+    # it (7.35, worth half a window), not the profile's 10
+    assert model.cap_mm3_s(210.0) == pytest.approx((0.5 * 7.35 + 7.2) / 1.5)
+    # after the climb, a window that kept up is no step any more
+    model.learn(seen(7.0, 1.0, 210.0, flows=(7.0,) * 10))
+    assert model.cap_mm3_s(210.0) == pytest.approx((0.5 * 7.35 + 7.2) / 1.5)
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.5, 1.5, float("nan")])
+def test_a_climb_from_outside_0_to_1_is_refused(bad):
+    with pytest.raises(FlowloopError, match="climb_from"):
+        GripModel(CapacityLine(210.0, 10.0, 0.15), climb_from=bad)
+    with pytest.raises(FlowloopError, match="climb_from must be in"):
+        LimiterSettings(climb_from=bad)
+
+
+def test_climbing_from_1_is_no_climb():
+    model = GripModel(CapacityLine(210.0, 10.0, 0.15), climb_from=1.0)
+    assert model.climb_ratio is None and model.cap_mm3_s(210.0) == 10.0

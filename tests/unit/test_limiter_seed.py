@@ -9,7 +9,7 @@ import math
 import pytest
 
 from flowloop.control import nozzle_health as nh
-from flowloop.control.grip_model import CapacityLine
+from flowloop.control.grip_model import CLIMB_FROM, CapacityLine
 from flowloop.control.limiter import (
     CONFIRM_SEED_S,
     SEED_PROBE,
@@ -40,17 +40,19 @@ def test_the_seed_is_the_profile_line_times_the_ratio_at_every_temperature():
         assert seeded.at(temp_c) == pytest.approx(0.8 * plain.at(temp_c))
 
 
-def seeded_limiter(melt_ratio):
-    lim = FlowLimiter(LimiterSettings(mode="predictive"), AREA)
+def seeded_limiter(melt_ratio, climb_from=CLIMB_FROM):
+    lim = FlowLimiter(LimiterSettings(mode="predictive", climb_from=climb_from),
+                      AREA)
     lim.set_profile(PROFILE, 0.5, melt_ratio)
     lim.set_temperature(TEMP_C)
     return lim
 
 
-def lost_over_first_moves(melt_ratio, melts_mm3_s, moves=20):
+def lost_over_first_moves(melt_ratio, melts_mm3_s, moves=20,
+                          climb_from=CLIMB_FROM):
     """Filament (mm) a predictive limiter lets slip over its first moves at
     FAST, the hotend melting melts_mm3_s, each move one judged window."""
-    lim = seeded_limiter(melt_ratio)
+    lim = seeded_limiter(melt_ratio, climb_from)
     lost = 0.0
     for _ in range(moves):
         speed = lim.limit(FAST, 200.0)
@@ -68,12 +70,15 @@ def test_a_limiter_seeded_from_the_last_print_does_not_slip_at_its_start():
     # a worn hotend: 69 % of what the profile's seed says it melts, seeded
     # with 0.7 (a model's belief sits a little above the hotend: a window
     # that slips under 2 % counts as kept up), so it starts at 0.714
-    # (SEED_PROBE): its first windows slip 3 %, not 31 %
+    # (SEED_PROBE): its first windows slip 3 %, not 31 % (a fresh model
+    # starting at the profile's line) or 10 % (one climbing from CLIMB_FROM)
     melts = 0.69 * profile_capacity()
-    fresh, _ = lost_over_first_moves(None, melts)
+    fresh, _ = lost_over_first_moves(None, melts, climb_from=1.0)
+    climbing, _ = lost_over_first_moves(None, melts)
     carried, status = lost_over_first_moves(0.7, melts)
     assert fresh > 0.2            # the fresh model learns by slipping
     assert carried < 0.5 * fresh  # 0.085 against 0.31 mm
+    assert carried < climbing < 0.5 * fresh    # 0.085 < 0.11 < 0.16 mm
     assert status["seed_melt_ratio"] == 0.7
     # the status says the ratio it was seeded with and what it believes
     assert status["caps"]["model"] == pytest.approx(melts, rel=0.03)
