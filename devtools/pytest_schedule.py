@@ -266,7 +266,10 @@ class AloneBesideScheduling(AloneLastScheduling):
     The ``quiet:`` groups come last, once every other test has finished,
     on up to quiet_runners() workers side by side (each runs one simulated
     printer: one per two cores, or two where the last run's record says a
-    printer takes little of a core), and never beside any other test. A
+    printer takes little of a core; without a record, where that would
+    decide, two are kept and the first quiet group runs alone until this
+    run's own figures of it decide: _quiet_width), and never beside any
+    other test. A
     worker keeps the last test it was given until it gets more (see
     AloneLastScheduling), so a worker that joins
     the quiet phase still holds one test of the earlier phase: it is given
@@ -282,14 +285,41 @@ class AloneBesideScheduling(AloneLastScheduling):
         self.quiet_runners: list = []   # the workers kept for the quiet phase
         self.quiet_phase = False        # only quiet groups were left
         self._wanted: Optional[int] = None
+        # the quiet phase's width waits for its first group's load in this
+        # run (measures_in_run): one printer runs until then
+        self._measuring = False
 
     def _runners_wanted(self) -> int:
         """quiet_runners() at the quiet phase's load in the last run
-        (decided once: the groups are known by the quiet phase)."""
+        (decided once: the groups are known by the quiet phase); without
+        one where the load decides (measures_in_run), QUIET_RUNNERS are
+        kept while this run measures it (_quiet_width)."""
         if self._wanted is None:
             quiet = [i for i, g in (self._groups or {}).items() if is_quiet(g)]
-            self._wanted = quiet_runners(quiet_load(
-                getattr(self.config, "cache", None), quiet))
+            load = quiet_load(getattr(self.config, "cache", None), quiet)
+            self._measuring = measures_in_run(load)
+            self._wanted = QUIET_RUNNERS if self._measuring else quiet_runners(load)
+        return self._wanted
+
+    def _quiet_width(self) -> int:
+        """How many quiet groups may run at once now: while measuring, one,
+        until a quiet group has run whole in this run; then quiet_runners()
+        at its load (its tests' CPU over their wall time, as the record
+        keeps them: DurationRecorder's figures of this run)."""
+        wanted = self._runners_wanted()
+        if not self._measuring:
+            return wanted
+        done = [i for work in self.assigned_work.values()
+                for scope, unit in work.items()
+                if is_quiet(scope) and all(unit.values()) for i in unit]
+        recorder = self.config.pluginmanager.get_plugin("flowloop-durations")
+        if not done or recorder is None:
+            return 1
+        load = quiet_load(_Record(recorder), done)
+        if load is None:
+            return 1
+        self._measuring = False
+        self._wanted = quiet_runners(load)
         return self._wanted
 
     def _alone_next(self) -> bool:   # the quiet phase: only quiet groups left
@@ -337,23 +367,34 @@ class AloneBesideScheduling(AloneLastScheduling):
         others = [n for n in self.assigned_work if n not in runners]
         if any(self._pending(n) for n in others):
             return                    # they finish what they hold first
+        width = self._quiet_width()
         held = [n for n in runners if self._holds_earlier_test(n)]
+        busy = [n for n in runners if n not in held]   # in the quiet phase
         if held:
             # an earlier phase's test runs alone: once every runner waits
             if any(self._running(n) for n in runners):
                 return
             if not self.workqueue:
                 held[0].shutdown()    # it runs that test, and stops
-            else:
+                return
+            if len(busy) < width:
                 self._give(held[0], shortest=True)   # it runs, then quiet ones
-            return
-        for node in runners:
+                return
+            if not self._measuring:
+                held[0].shutdown()    # not wanted: it runs that test, and stops
+                return
+            # measuring: the one in the quiet phase goes on alone
+        running = sum(self._running(n) for n in busy)
+        for node in busy:
             if self._running(node):
                 continue
             if not self.workqueue:
                 node.shutdown()
-            else:
+            elif running < width:
                 self._give(node)
+                running += 1
+            elif not self._measuring:
+                node.shutdown()       # not wanted: it stops
 
     def _next_scope(self, node) -> Optional[str]:
         if self.beside is None or self.beside not in self.assigned_work:
@@ -425,6 +466,27 @@ def quiet_runners(load: Optional[float] = None) -> int:
     if runners < 2 <= cores and load is not None and load <= QUIET_LOAD_FOR_TWO:
         runners = 2
     return runners
+
+
+def measures_in_run(load: Optional[float]) -> bool:
+    """Whether the quiet phase's width waits for this run's own measure of
+    the load: where the load decides it (two or three cores) and the last
+    run's record has none (a fresh clone), unless FLOWLOOP_QUIET_RUNNERS
+    sets it."""
+    if load is not None or os.environ.get("FLOWLOOP_QUIET_RUNNERS") is not None:
+        return False
+    return quiet_runners(None) < 2 <= (os.cpu_count() or 1)
+
+
+class _Record:
+    """DurationRecorder's figures of this run, read as quiet_load reads the
+    record (pytest's cache)."""
+
+    def __init__(self, recorder: DurationRecorder) -> None:
+        self.values = {DURATIONS_KEY: recorder.took, CPU_KEY: recorder.cpu}
+
+    def get(self, key, default):
+        return self.values.get(key, default)
 
 
 def quiet_load(cache, quiet_ids) -> Optional[float]:

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from typing import Optional
 
 import pytest
 
@@ -25,6 +26,8 @@ import pytest
 from devtools import pytest_schedule
 
 SCHEDULER = getattr(pytest_schedule, os.environ["SCHEDULER"])
+if os.environ.get("CORES"):   # the machine the scheduler believes it runs on
+    os.cpu_count = lambda: int(os.environ["CORES"])
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
@@ -101,20 +104,23 @@ NO_HYPOTHESIS = "no:hypothesispytest"
 
 
 def run_suite(tmp_path, normal: int, alone: int, workers: int, per_test_group=False,
-              scheduler=LAST, quiet: int = 0, quiet_runners: int = 2):
+              scheduler=LAST, quiet: int = 0, quiet_runners: Optional[int] = 2,
+              suite: str = SUITE, env: Optional[dict] = None):
     (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers = group\n")
     (tmp_path / "conftest.py").write_text(CONFTEST)
     # ungrouped, each test its own unit (the klippy .test files), or one group
     group = "" if per_test_group else '\n@pytest.mark.group("module")'
-    suite = SUITE.format(normal=normal, alone=alone, group=group, quiet=quiet)
+    suite = suite.format(normal=normal, alone=alone, group=group, quiet=quiet)
     (tmp_path / "test_suite.py").write_text(textwrap.dedent(suite))
     runs = tmp_path / "runs.jsonl"
+    runners = {} if quiet_runners is None else {
+        "FLOWLOOP_QUIET_RUNNERS": str(quiet_runners)}
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
          "-p", NO_HYPOTHESIS, "-n", str(workers), "test_suite.py"],
         cwd=tmp_path, capture_output=True, text=True, timeout=HUNG_S,
         env={**BARE_ENV, "RUNS": str(runs), "SCHEDULER": scheduler,
-             "FLOWLOOP_QUIET_RUNNERS": str(quiet_runners)})
+             **runners, **(env or {})})
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return [json.loads(line) for line in runs.read_text().splitlines()]
 
@@ -197,6 +203,64 @@ def test_quiet_groups_alone_run_side_by_side_up_to_the_quiet_runners(
     assert side_by_side == (quiet_runners == 2)
 
 
+MEASURED = """
+import os, time
+import pytest
+
+def work():
+    # a simulated printer's test: waiting (little CPU), or busy
+    if os.environ.get("QUIET_BUSY"):
+        start = time.process_time()
+        while time.process_time() - start < 0.3:
+            pass
+    else:
+        time.sleep(0.3)
+
+@pytest.mark.parametrize("n", range(2))
+@pytest.mark.group("module")
+def test_normal(n):
+    time.sleep(0.3)
+""" + "".join(f"""
+@pytest.mark.parametrize("n", range(2))
+@pytest.mark.group("quiet:{name}")
+def test_quiet_{name}(n):
+    work()
+""" for name in "abcd")
+
+
+@IDLE_CLASS
+@pytest.mark.parametrize("busy", [False, True])
+def test_a_fresh_clone_measures_the_quiet_load_before_two_run_side_by_side(
+        tmp_path, busy):
+    # two cores, no record (a fresh clone), no FLOWLOOP_QUIET_RUNNERS: the
+    # first quiet group runs with nothing beside it; then two side by side
+    # where its tests took little CPU (waiting), one at a time where they
+    # kept a core busy
+    env = {"CORES": "2", **({"QUIET_BUSY": "1"} if busy else {})}
+    runs = run_suite(tmp_path, normal=0, alone=0, workers=3, scheduler=BESIDE,
+                     quiet_runners=None, suite=MEASURED, env=env)
+    assert len(runs) == 10
+    quiet = sorted((r for r in runs if r[0].startswith("test_quiet")),
+                   key=lambda r: r[1])
+    first = [r for r in quiet if r[0].split("[")[0] == quiet[0][0].split("[")[0]]
+    assert not any(overlaps(a, b) for a in first for b in runs if b not in first)
+    side_by_side = any(overlaps(a, b) for a in quiet for b in quiet
+                       if a[0].split("[")[0] != b[0].split("[")[0])
+    assert side_by_side == (not busy)
+
+
+@pytest.mark.parametrize("cores, load, measures", [
+    (2, None, True), (3, None, True), (1, None, False), (4, None, False),
+    (2, 0.19, False), (2, 0.45, False)])
+def test_the_load_is_measured_in_the_run_only_where_it_decides_and_is_unknown(
+        monkeypatch, cores, load, measures):
+    monkeypatch.delenv("FLOWLOOP_QUIET_RUNNERS", raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: cores)
+    assert pytest_schedule.measures_in_run(load) == measures
+    monkeypatch.setenv("FLOWLOOP_QUIET_RUNNERS", "1")
+    assert not pytest_schedule.measures_in_run(load)
+
+
 @pytest.mark.parametrize("cores, load, runners", [
     (1, None, 1), (2, None, 1), (3, None, 1), (4, None, 2), (16, None, 2),
     # two on two cores only where a printer took little of a core
@@ -235,12 +299,13 @@ def test_the_quiet_load_is_the_quiet_tests_cpu_over_their_wall_time():
     assert pytest_schedule.quiet_load(RECORD, []) is None
 
 
-@pytest.mark.parametrize("groups, runners", [
-    ({"q1": "quiet:m1", "q2": "quiet:m2", "n": "m3"}, 2),   # load 0.2
-    ({"q1": "quiet:m1", "n": "quiet:m3"}, 1),               # load 0.47
-    ({"q1": "quiet:m1", "new": "quiet:m2"}, 1)])            # not recorded
+@pytest.mark.parametrize("groups, runners, measuring", [
+    ({"q1": "quiet:m1", "q2": "quiet:m2", "n": "m3"}, 2, False),   # load 0.2
+    ({"q1": "quiet:m1", "n": "quiet:m3"}, 1, False),               # load 0.47
+    # not recorded: two kept while the run measures the load
+    ({"q1": "quiet:m1", "new": "quiet:m2"}, 2, True)])
 def test_the_scheduler_reads_the_quiet_groups_load_from_the_record(
-        monkeypatch, groups, runners):
+        monkeypatch, groups, runners, measuring):
     monkeypatch.delenv("FLOWLOOP_QUIET_RUNNERS", raising=False)
     monkeypatch.setattr(os, "cpu_count", lambda: 2)
     sched = pytest_schedule.AloneBesideScheduling.__new__(
@@ -248,6 +313,7 @@ def test_the_scheduler_reads_the_quiet_groups_load_from_the_record(
     sched.config = type("Config", (), {"cache": RECORD})()
     sched._groups, sched._wanted = groups, None
     assert sched._runners_wanted() == runners
+    assert sched._measuring == measuring
 
 
 @pytest.mark.parametrize("scheduler", [LAST, BESIDE])
