@@ -56,6 +56,11 @@ CORES_PER_QUIET_RUNNER = 2
 # machine at 0.19, two side by side passed four runs of the quiet phase
 # alone and two beside a busy process)
 QUIET_LOAD_FOR_TWO = 0.25
+# Without a record, the quiet groups that ran whole in this run decide it:
+# at once where they took at most QUIET_LOAD_FOR_TWO, one at a time only
+# once they ran this long (a module's share varies: 0.14-0.33 of a core on
+# a machine where the phase took 0.20, the first printer's start the most)
+QUIET_MEASURE_S = 60.0
 
 
 def is_alone(scope: str) -> bool:
@@ -316,7 +321,9 @@ class AloneBesideScheduling(AloneLastScheduling):
         if not done or recorder is None:
             return 1
         load = quiet_load(_Record(recorder), done)
-        if load is None:
+        if load is None or (load > QUIET_LOAD_FOR_TWO
+                            and sum(recorder.took.get(i, 0.0) for i in done)
+                            < QUIET_MEASURE_S):
             return 1
         self._measuring = False
         self._wanted = quiet_runners(load)

@@ -28,6 +28,8 @@ from devtools import pytest_schedule
 SCHEDULER = getattr(pytest_schedule, os.environ["SCHEDULER"])
 if os.environ.get("CORES"):   # the machine the scheduler believes it runs on
     os.cpu_count = lambda: int(os.environ["CORES"])
+if os.environ.get("QUIET_MEASURE_S"):   # how long its own figures must run
+    pytest_schedule.QUIET_MEASURE_S = float(os.environ["QUIET_MEASURE_S"])
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
@@ -235,8 +237,10 @@ def test_a_fresh_clone_measures_the_quiet_load_before_two_run_side_by_side(
     # two cores, no record (a fresh clone), no FLOWLOOP_QUIET_RUNNERS: the
     # first quiet group runs with nothing beside it; then two side by side
     # where its tests took little CPU (waiting), one at a time where they
-    # kept a core busy
-    env = {"CORES": "2", **({"QUIET_BUSY": "1"} if busy else {})}
+    # kept a core busy (decided once they ran QUIET_MEASURE_S: here 0.5 s,
+    # the first group's two tests; the second worker is then stopped)
+    env = {"CORES": "2", "QUIET_MEASURE_S": "0.5",
+           **({"QUIET_BUSY": "1"} if busy else {})}
     runs = run_suite(tmp_path, normal=0, alone=0, workers=3, scheduler=BESIDE,
                      quiet_runners=None, suite=MEASURED, env=env)
     assert len(runs) == 10
