@@ -253,30 +253,22 @@ def test_a_fresh_clone_measures_the_quiet_load_before_two_run_side_by_side(
     assert side_by_side == (not busy)
 
 
-@pytest.mark.parametrize("cores, load, measures", [
-    (2, None, True), (3, None, True), (1, None, False), (4, None, False),
-    (2, 0.19, False), (2, 0.45, False)])
-def test_the_load_is_measured_in_the_run_only_where_it_decides_and_is_unknown(
-        monkeypatch, cores, load, measures):
-    monkeypatch.delenv("FLOWLOOP_QUIET_RUNNERS", raising=False)
-    monkeypatch.setattr(os, "cpu_count", lambda: cores)
-    assert pytest_schedule.measures_in_run(load) == measures
-    monkeypatch.setenv("FLOWLOOP_QUIET_RUNNERS", "1")
-    assert not pytest_schedule.measures_in_run(load)
-
-
-@pytest.mark.parametrize("cores, load, runners", [
-    (1, None, 1), (2, None, 1), (3, None, 1), (4, None, 2), (16, None, 2),
-    # two on two cores only where a printer took little of a core
-    (1, 0.1, 1), (2, 0.19, 2), (3, 0.25, 2), (2, 0.26, 1), (2, 0.45, 1),
-    (4, 0.45, 2)])
+@pytest.mark.parametrize("cores, load, runners, measures", [
+    (1, None, 1, False), (2, None, 1, True), (3, None, 1, True),
+    (4, None, 2, False), (16, None, 2, False),
+    # two on two cores only where a printer took little of a core; without
+    # a record, there, the run measures it (AloneBesideScheduling)
+    (1, 0.1, 1, False), (2, 0.19, 2, False), (3, 0.25, 2, False),
+    (2, 0.26, 1, False), (2, 0.45, 1, False), (4, 0.45, 2, False)])
 def test_one_simulated_printer_per_two_cores_or_two_that_take_little(
-        monkeypatch, cores, load, runners):
+        monkeypatch, cores, load, runners, measures):
     monkeypatch.delenv("FLOWLOOP_QUIET_RUNNERS", raising=False)
     monkeypatch.setattr(os, "cpu_count", lambda: cores)
     assert pytest_schedule.quiet_runners(load) == runners
+    assert pytest_schedule.measures_in_run(load) == measures
     monkeypatch.setenv("FLOWLOOP_QUIET_RUNNERS", "3")
     assert pytest_schedule.quiet_runners(load) == 3
+    assert not pytest_schedule.measures_in_run(load)
 
 
 class Cache:
