@@ -224,23 +224,8 @@ class FlowrateLimiter:
                           else limiter.measured_melt_ratio})
 
     def report(self, gcmd):
-        s = self.limiter.status()
-        cap = "none" if s['cap'] is None else f"{s['cap']:.2f} mm^3/s"
-        caps = ", ".join(f"{name} {'off' if v is None else f'{v:.2f}'}"
-                         for name, v in s['caps'].items())
-        state = "enabled" if s['enabled'] else "disabled"
-        gcmd.respond_info(
-            f"{self.section}: {state}, mode {s['mode']}, cap {cap}"
-            f" ({s['reason']}); caps: {caps}; slowed {s['slowed_moves']} moves"
-            f" by {s['slowed_time']:.1f} s"
-            + (f"; model seeded at melt ratio {s['seed_melt_ratio']:.2f}"
-               if s['seed_melt_ratio'] is not None else "")
-            + (f"; model climbing, at {s['model']['climb_ratio']:.2f} of the"
-               " profile's capacity"
-               if s['model'] and s['model']['climb_ratio'] is not None else "")
-            + (f"; carried melt ratio {s['dropped_melt_ratio']:.2f} dropped"
-               " unconfirmed" if s['dropped_melt_ratio'] is not None else "")
-            + (f"; {s['why']}" if s['why'] else ""))
+        gcmd.respond_info(fl_limiter.status_line(self.section,
+                                                 self.limiter.status()))
 
 
 def load_config(config):

@@ -402,3 +402,24 @@ class FlowLimiter:
         """The held status: a new dict after every change, never changed in
         place (hand it out as it is)."""
         return self._status
+
+
+def status_line(section: str, s: Dict[str, Any]) -> str:
+    """QUERY_FLOWRATE_LIMIT's answer: a limiter's status (FlowLimiter.status)
+    on one line."""
+    cap = "none" if s["cap"] is None else f"{s['cap']:.2f} mm^3/s"
+    caps = ", ".join(f"{name} {'off' if v is None else f'{v:.2f}'}"
+                     for name, v in s["caps"].items())
+    state = "enabled" if s["enabled"] else "disabled"
+    model = s["model"] or {}
+    return (f"{section}: {state}, mode {s['mode']}, cap {cap}"
+            f" ({s['reason']}); caps: {caps}; slowed {s['slowed_moves']} moves"
+            f" by {s['slowed_time']:.1f} s"
+            + (f"; model seeded at melt ratio {s['seed_melt_ratio']:.2f}"
+               if s["seed_melt_ratio"] is not None else "")
+            + (f"; model climbing, at {model['climb_ratio']:.2f} of the"
+               " profile's capacity"
+               if model.get("climb_ratio") is not None else "")
+            + (f"; carried melt ratio {s['dropped_melt_ratio']:.2f} dropped"
+               " unconfirmed" if s["dropped_melt_ratio"] is not None else "")
+            + (f"; {s['why']}" if s["why"] else ""))

@@ -5,7 +5,7 @@
 (or the bake's recorder) consume them. Both stages spend most of their time
 in numpy, which lets go of the GIL while it works on an array, so on a
 machine with a second core the planner runs ahead while the batch before is
-consumed (docs/autotemp.md, "What annotating costs"). On one core it costs
+consumed (docs/autotemp.md, "Speed"). On one core it costs
 a thread switch per batch.
 
 The thread never outlives the consumer's interest: what the iterator raises

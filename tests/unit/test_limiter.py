@@ -7,7 +7,7 @@ import pytest
 
 from flowloop.control.caps import move_shape
 from flowloop.control.grip_model import CLIMB_FROM
-from flowloop.control.limiter import FlowLimiter, LimiterSettings
+from flowloop.control.limiter import FlowLimiter, LimiterSettings, status_line
 from flowloop.errors import FlowloopError
 from flowloop.material.profile import (
     DEFAULT_WORKING_POINT,
@@ -262,3 +262,31 @@ def test_the_working_point_without_an_activation_is_the_one_default(monkeypatch)
     assert default is DEFAULT_WORKING_POINT
     monkeypatch.setattr(L, "DEFAULT_WORKING_POINT", 0.25)
     assert L.FlowLimiter().working_point == 0.25
+
+
+def test_a_climbing_model_tells_nozzle_health_no_ratio_until_a_slip_measures():
+    # a first print: the model believes CLIMB_FROM of the profile (its cap),
+    # but that is only a lower bound, so the next print is not seeded from it
+    lim = FlowLimiter(LimiterSettings(mode="predictive", min_grip=0.9), AREA)
+    lim.set_profile(PROFILE, 0.5)
+    lim.set_temperature(210.0)
+    assert lim.model_melt_ratio == pytest.approx(CLIMB_FROM, abs=1e-4)
+    assert lim.measured_melt_ratio is None
+    line = status_line("flowrate_limiter", lim.status())
+    assert f"model climbing, at {CLIMB_FROM:.2f} of the profile's capacity" in line
+    # a window that slipped beyond the noise band ends the climb: measured
+    lim.on_window(window(0.1, 1.25, 0.8, 210.0))    # 30 mm^3/s asked
+    assert lim.model.climb_ratio is None
+    assert lim.measured_melt_ratio == lim.model_melt_ratio
+    assert "climbing" not in status_line("flowrate_limiter", lim.status())
+
+
+def test_the_query_line_says_the_caps_and_the_seed():
+    lim = FlowLimiter(LimiterSettings(mode="predictive", min_grip=0.9,
+                                      max_flow_mm3_s=12.0), AREA)
+    lim.set_profile(PROFILE, 0.5, melt_ratio=0.8)
+    line = status_line("flowrate_limiter", lim.status())
+    assert line.startswith("flowrate_limiter: enabled, mode predictive, cap 12.00"
+                           " mm^3/s (max_flow); caps: max_flow 12.00,")
+    assert "; model seeded at melt ratio 0.80" in line
+    assert "no hotend temperature" in line and "climbing" not in line
