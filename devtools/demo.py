@@ -63,6 +63,9 @@ class DemoContext:
     def query(self, obj: str) -> dict:
         return self.printer.query(obj)
 
+    def query_many(self, *objects: str) -> dict:
+        return self.printer.query_many(*objects)
+
     def batch_klippy_log(self, test_file: Path) -> str:
         """Run a tests/klippy .test file in batch mode; return klippy's log."""
         from devtools.klippy_test import run_file

@@ -72,7 +72,7 @@ def print_with_autotemp(enable: int, build=None, venv=None,
             for i in range(0, len(lines), CHUNK_LINES):
                 chunk = lines[i:i + CHUNK_LINES]
                 api.gcode("\n".join(chunk + ["M400"]))
-                now = api.query_many("toolhead", "autotemp", "extruder")
+                now = api.status_now("toolhead", "autotemp", "extruder")
                 records.append({
                     "print_time": now["toolhead"]["print_time"],
                     "autotemp": now["autotemp"],

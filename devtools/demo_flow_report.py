@@ -70,8 +70,7 @@ def with_klippy(ctx) -> Recorder:
         speed = length / MOVE_S * 60.0
         ctx.gcode(f"SET_HEATER_TEMPERATURE HEATER=extruder TARGET={temp_c}\n"
                   f"G1 E{length:.3f} F{speed:.1f}\nM400")
-        sample = sample_from_status(t, {obj: ctx.query(obj) for obj in objects},
-                                    tools)
+        sample = sample_from_status(t, ctx.query_many(*objects), tools)
         grip = sample.grip if sample.grip is not None else 1.0
         rec.sample(dataclasses.replace(sample, commanded_flow_mm3_s=float(flow),
                                        measured_flow_mm3_s=flow * grip))

@@ -9,6 +9,11 @@ import time
 from pathlib import Path
 from typing import Iterator, List, Union
 
+# status_now(): the macro of tests/klippy/status_macro.cfg and the remote
+# method it calls
+STATUS_MACRO = "_FLOWLOOP_STATUS"
+STATUS_METHOD = "flowloop_status"
+
 
 class KlippyApi:
     """One request at a time with call(); messages that answer no request
@@ -22,6 +27,7 @@ class KlippyApi:
         self.buffer = b""
         self.next_id = 0
         self.remote: List[dict] = []
+        self.status_registered = False
 
     def send(self, method: str, **params) -> int:
         self.next_id += 1
@@ -74,6 +80,25 @@ class KlippyApi:
         0.25 s after the last one, so each request in a loop costs that."""
         return self.call("objects/query",
                          objects={obj: None for obj in objects})["status"]
+
+    def status_now(self, *objects: str) -> dict:
+        """{object: its status} at once, as query_many() would give it
+        without waiting for klippy's status tick: the macro of
+        tests/klippy/status_macro.cfg (which the printer's config must
+        include) sends it through a remote method this client registers.
+        For loops that read status after every chunk of G-code."""
+        if not self.status_registered:
+            self.call("register_remote_method", remote_method=STATUS_METHOD,
+                      response_template={"method": STATUS_METHOD})
+            self.status_registered = True
+        self.gcode(f'{STATUS_MACRO} OBJECTS="{",".join(objects)}"')
+        # sent while the script ran, so before its result
+        for i, msg in enumerate(self.remote):
+            if msg.get("method") == STATUS_METHOD:
+                del self.remote[i]
+                return msg["params"]["status"]
+        raise RuntimeError(f"{STATUS_MACRO} sent no status: is"
+                           " tests/klippy/status_macro.cfg included?")
 
     def close(self) -> None:
         self.sock.close()

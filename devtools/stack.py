@@ -646,11 +646,18 @@ class PrinterStack:
         return body["result"]
 
     def query(self, obj: str) -> dict:
+        return self.query_many(obj)[obj]
+
+    def query_many(self, *objects: str) -> dict:
+        """{object: its status} in one request: klippy answers a query on
+        its status timer's next tick, up to 0.25 s after the last one, so
+        each request in a loop costs that (an object klippy lacks: {})."""
         status, body = self.moonraker.request(
-            "GET", "/printer/objects/query?" + quote(obj))
+            "GET", "/printer/objects/query?" + "&".join(quote(o) for o in objects))
         if status != 200:
-            raise RuntimeError(f"query {obj!r} failed: {body}")
-        return body["result"]["status"].get(obj, {})
+            raise RuntimeError(f"query {objects!r} failed: {body}")
+        found = body["result"]["status"]
+        return {obj: found.get(obj, {}) for obj in objects}
 
 
 @contextlib.contextmanager

@@ -213,3 +213,42 @@ def test_the_limiter_says_which_host_it_runs_on(host, klipper_build, klippy_venv
         host, klipper_build, klippy_venv, short_tmp,
         f"[include {stack.PROJECT / 'tests' / 'klippy' / 'flow_sensor_printer.cfg'}]\n"
         "[flowrate_limiter]\nmax_flow: 8\n", "flowrate_limiter")
+
+
+def test_status_now_is_what_a_query_answers_at_once(klipper_build, klippy_venv,
+                                                    short_tmp):
+    """KlippyApi.status_now (the macro of status_macro.cfg) gives the status
+    objects/query gives, without the wait for klippy's status tick; a
+    config that lacks the macro is named, not read as an empty status."""
+    from devtools.klippy_api import KlippyApi
+    here = stack.PROJECT / "tests" / "klippy"
+    objects = ("toolhead", "extruder", "autotemp", "flow_sensor sim")
+    klippy = stack.Klippy(klipper_build, klippy_venv, here / "autotemp.cfg",
+                          short_tmp, {"mcu": "atmega2560"})
+    try:
+        klippy.wait_ready()
+        with KlippyApi(klippy.api_socket) as api:
+            stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+            api.gcode("G28\nSET_HEATER_TEMPERATURE HEATER=extruder TARGET=205\n"
+                      "G1 X50 Y40 Z1 F6000\nM400")
+            now = api.status_now(*objects)
+            queried = api.query_many(*objects)
+            assert now == queried
+            assert now["toolhead"]["position"][:2] == [50.0, 40.0]
+            assert now["extruder"]["target"] == 205.0
+            for _ in range(3):
+                api.status_now("toolhead")
+            assert not api.remote  # each answer taken, none left behind
+    finally:
+        klippy.stop()
+    (short_tmp / "plain").mkdir()
+    klippy = stack.Klippy(klipper_build, klippy_venv, here / "autotemp_plain.cfg",
+                          short_tmp / "plain", {"mcu": "atmega2560"})
+    try:
+        klippy.wait_ready()
+        with KlippyApi(klippy.api_socket) as api:
+            stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+            with pytest.raises(RuntimeError, match="status_macro.cfg"):
+                api.status_now("toolhead")
+    finally:
+        klippy.stop()

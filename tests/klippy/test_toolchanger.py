@@ -76,7 +76,7 @@ def printed(klipper_build, klippy_venv):
             for i in range(0, len(lines), CHUNK_LINES):
                 chunk = lines[i:i + CHUNK_LINES]
                 api.gcode("\n".join(chunk + ["M400"]))
-                now = api.query_many("toolhead", "autotemp", "autotemp extruder1",
+                now = api.status_now("toolhead", "autotemp", "autotemp extruder1",
                                      "extruder", "extruder1")
                 records.append({"tool": now["toolhead"]["extruder"],
                                 "autotemp": {"extruder": now["autotemp"],
