@@ -31,6 +31,10 @@ from ..errors import FlowloopError
 
 # Integration step: well below tau and the block's own time constant.
 STEP_S = 0.05
+# Times this close are one instant: a clock summed step by step drifts, and
+# without it a target change fell a step earlier or later depending on how
+# the model was advanced (in one call or several), 0.06 C apart on a ramp.
+SAME_INSTANT_S = 1e-9
 
 
 @dataclass(frozen=True)
@@ -91,7 +95,7 @@ class HotendModel:
 
     def target_seen_at(self, time_s: float) -> float:
         """The target the controller acts on at time_s (after dead time)."""
-        seen = time_s - self.params.dead_time_s
+        seen = time_s - self.params.dead_time_s + SAME_INSTANT_S
         targets = self._targets
         while len(targets) > 1 and targets[1][0] <= seen:
             targets.popleft()
@@ -117,7 +121,8 @@ class HotendModel:
         next_change = targets[1][0] if len(targets) > 1 else math.inf
         # Whole steps before the last one and before the next target change
         steps = int(min(until_s - time_s,
-                        next_change + p.dead_time_s - time_s) / STEP_S) - 1
+                        next_change + p.dead_time_s - time_s) / STEP_S
+                    + SAME_INSTANT_S) - 1
         if steps >= 2:
             power, lag = self._power(temp, target, k)
             after = self._after(temp, target, power, lag, k, steps * STEP_S)
@@ -128,7 +133,7 @@ class HotendModel:
                     time_s += STEP_S
         while time_s < until_s:
             dt = min(STEP_S, until_s - time_s)
-            if next_change <= time_s - p.dead_time_s:
+            if next_change <= time_s - p.dead_time_s + SAME_INSTANT_S:
                 target = self.target_seen_at(time_s)
                 next_change = targets[1][0] if len(targets) > 1 else math.inf
             power, lag = self._power(temp, target, k)

@@ -35,31 +35,33 @@ def demand_at(windows, t):
 
 def run_model(plan, windows, end_s, start_c, step_s=GRID_S):
     """Targets set every step_s as the plan says; the model's nozzle and the
-    targets, sampled during demanded flow. The k-th step starts at k *
-    step_s: times summed step by step drift (0.1 s each time), and a target
-    then reaches this model a grid step before or after it reaches the
-    plan's (its dead time ends on the other side of a step), which once left
-    the nozzle 0.058 C under a need the same instants keep it 0.007 C under."""
+    targets, sampled during demanded flow."""
     model = HotendModel(PARAMS, temp_c=start_c, target_c=start_c)
-    k, worst, targets = 0, math.inf, []
-    while k * step_s < end_s:
-        t = k * step_s
+    t, worst, targets = 0.0, math.inf, []
+    while t < end_s:
         target = plan.target_at(t, step_s)
         targets.append(target)
         model.set_target(t, target)
         flow = demand_at(windows, t)
-        temp = model.advance((k + 1) * step_s, flow)
+        temp = model.advance(t + step_s, flow)
         if flow > 0:
             worst = min(worst, temp - plan.need_c(flow))
-        k += 1
+        t += step_s
     return worst, targets
 
 
-def test_the_model_is_judged_at_the_instants_the_plan_sets_them():
-    """The case Hypothesis found (2026-11-30): a need at 210.3 C met after a
-    long cool-down, the targets set every 0.1 s."""
-    spans = [(1.0, 0.0), (2.0, 0.0), (8.0, 8.0), (2.0, 0.0), (8.0, 0.0),
-             (8.0, 0.0), (8.0, 0.0), (1.0, 6.0)]
+@pytest.mark.parametrize("spans", [
+    # a need of 210.3 C after a cool-down from 230 C
+    [(1.0, 0.0), (2.0, 0.0), (8.0, 8.0), (2.0, 0.0), (8.0, 0.0), (8.0, 0.0),
+     (8.0, 0.0), (1.0, 6.0)],
+    # a need of 200.25 C after a rise from the minimum
+    [(1.0, 0.0), (1.0, 0.0), (1.0, 0.0), (7.0, 0.0), (8.0, 0.0), (8.0, 0.0),
+     (1.0, 5.0)]])
+def test_the_plans_model_and_the_hotends_agree_on_when_a_target_acts(spans):
+    """Cases Hypothesis found (2026-11-30), 0.058 C and 0.052 C under the
+    need: the plan runs its model a dead time ahead in other steps than the
+    hotend's, and the model's summed clock then saw a target change a step
+    (50 ms) earlier or later (hotend.SAME_INSTANT_S); now 0.007 C under."""
     plan = TemperaturePlan(LINE, LIMITS, PARAMS)
     windows, t = [], PRELUDE_S
     for duration, flow in spans:
@@ -67,7 +69,7 @@ def test_the_model_is_judged_at_the_instants_the_plan_sets_them():
         plan.announce(0.0, flow, t, duration)
         t += duration
     worst, _ = run_model(plan, windows, t + 5.0, plan.nozzle_c(0.0), 0.1)
-    assert -0.05 <= worst < 0.05
+    assert -0.01 <= worst < 0.05
 
 
 windows_st = st.lists(

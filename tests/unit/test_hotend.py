@@ -196,3 +196,30 @@ def test_only_a_batch_mode_klippy_reads_the_nozzle_from_the_model():
     assert nozzle_estimate_for(True, 12.5) is None     # paced to the clock
     assert nozzle_estimate_for(False, 0.0) is None     # a printer, connecting
     assert nozzle_estimate_for(False, 12.5) is None
+
+
+@settings(deadline=None)
+@given(st.lists(st.floats(190.0, 260.0), min_size=1, max_size=80),
+       st.sampled_from([0.1, 0.2, 0.25, 0.5]))
+def test_a_target_acts_at_the_same_step_however_the_model_is_advanced(
+        targets, step_s):
+    """Targets set every step_s, one model advanced to each next setting (as
+    a hotend is), the other a dead time ahead of them (as autotemp's plan
+    runs its own): the same temperatures. Before SAME_INSTANT_S the summed
+    clock put a target change a step (STEP_S) apart in the two, 0.06 C on a
+    ramp, which Hypothesis found in the plan's tests."""
+    hotend, ahead = (HotendModel(PARAMS, temp_c=200.0, target_c=200.0)
+                     for _ in range(2))
+    ahead.advance(PARAMS.dead_time_s)
+    seen = {}
+    for k, target in enumerate(targets):
+        t = k * step_s
+        for m in (hotend, ahead):
+            m.set_target(t, target)
+        ahead.advance(t + step_s + PARAMS.dead_time_s)
+        seen[k + 1] = ahead.temp_c
+    lag = round(PARAMS.dead_time_s / step_s)   # steps (a whole number here)
+    for k in range(1, len(targets) + lag + 1):
+        temp = hotend.advance(k * step_s)
+        if k - lag in seen:
+            assert temp == pytest.approx(seen[k - lag], abs=1e-9)
