@@ -1,9 +1,12 @@
-"""`flowloop annotate` against preprocess_cancellation, as Moonraker runs them.
+"""`flowloop annotate` against preprocess_cancellation, as whole processes.
 
 preprocess_cancellation is the G-code processor Moonraker ships (its
 `check_objects` option runs it on every upload); `flowloop annotate` is meant
-to run in the same place, and Moonraker starts a process per upload for a
-processor. So both are timed here as whole processes, start-up included:
+to run in the same place. Moonraker's metadata script, a process per upload,
+runs flowloop's command as a process of its own but preprocess_cancellation
+inside itself (docs/autotemp.md, "Speed"), so the pair below leaves a Python
+start-up (about 0.01 s) in preprocess_cancellation's time that Moonraker does
+not pay. Both are timed here as whole processes, start-up included:
 `python -m flowloop annotate FILE` (the command line of flowloop's Moonraker
 processor) and `python -m preprocess_cancellation FILE`, each rewriting a
 fresh copy of the same file in place, alternately, ROUNDS (5) times; the
