@@ -51,7 +51,9 @@ def print_with_autotemp(enable: int, build=None, venv=None,
 
     An M400 every CHUNK_LINES lines: batch mode never holds the G-code
     reader back as a printer does, and the twin reads the heater's target as
-    the steps are generated."""
+    the steps are generated. The status after each chunk is read with
+    KlippyApi.status_now: `config` must include
+    tests/klippy/status_macro.cfg (autotemp.cfg does)."""
     text = annotated() if text is None else text
     workdir = stack.short_tempdir("fl-autotemp-")
     klippy = stack.Klippy(build or stack.build_klipper(),
