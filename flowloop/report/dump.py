@@ -270,6 +270,22 @@ def store(folder: Path, rec: Recorder, keep: int,
     return True
 
 
+def summaries(folder: Path) -> List[Dict[str, Optional[Any]]]:
+    """The summary of each report stored in folder, the job that ended last
+    first; a dump that cannot be read as its job id and the problem. A dump
+    removed between the listing and its reading (pruned as another job
+    ended) is left out, as a listing a moment later leaves it out: it was
+    listed as a problem of job_id only, while its file was fine."""
+    out: List[Dict[str, Optional[Any]]] = []
+    for path in stored(folder):
+        try:
+            out.append(summary(load(path)))
+        except FlowloopError as e:
+            if path.exists():
+                out.append({"job_id": path.stem, "problem": str(e)})
+    return out
+
+
 def summary(rec: Recorder) -> Dict[str, Optional[Any]]:
     """The few figures a list of reports shows per job."""
     return {

@@ -22,7 +22,7 @@ import asyncio
 import logging
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Dict, List, Optional
+from typing import TYPE_CHECKING, Any, Dict, Optional
 
 from flowloop.control.tools import tool_objects
 from flowloop.errors import FlowloopError
@@ -176,18 +176,12 @@ class Reports:
         return starts
 
     # --- endpoints ---------------------------------------------------------------
-    def _summaries(self) -> List[Dict[str, Any]]:
-        out = []
-        for path in dump.stored(self.folder):
-            try:
-                entry = dump.summary(dump.load(path))
-            except FlowloopError as e:
-                entry = {"job_id": path.stem, "problem": one_line(e)}
-            out.append(entry)
-        return out
-
     async def _handle_list(self, web_request: WebRequest) -> Dict[str, Any]:
-        reports = await self.eventloop.run_in_thread(self._summaries)
+        reports = [
+            dict(entry, problem=one_line(entry["problem"])) if "problem" in entry
+            else entry
+            for entry in await self.eventloop.run_in_thread(
+                dump.summaries, self.folder)]
         recording = None if self.recorder is None else self.recorder.job.job_id
         return {"reports": reports, "recording": recording,
                 "number_of_reports_to_keep": self.keep}

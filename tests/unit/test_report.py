@@ -552,6 +552,27 @@ def test_a_stored_report_replaces_the_one_of_a_reused_id_and_one_of_no_job_is_no
     assert [p.stem for p in dump.stored(tmp_path)] == ["000001"]
 
 
+def test_a_report_pruned_while_it_is_listed_is_left_out_not_listed_as_a_problem(
+        tmp_path, monkeypatch):
+    """The fil tier's report test polled the listing while a job's end
+    pruned an old report: the report gone between the listing and its
+    reading was listed as {job_id, problem}, without its filename."""
+    for k in range(3):
+        _stored_dump(tmp_path, f"00000{k + 1}", 1000.0 + 100 * k, 30.0)
+    (tmp_path / "00000F.json").write_text("{")         # stays unreadable
+    real_load = dump.load
+
+    def load_as_pruned(path):
+        if path.stem == "000001":           # pruned at this moment
+            dump.prune(tmp_path, 3)
+        return real_load(path)
+    monkeypatch.setattr(dump, "load", load_as_pruned)
+    listed = dump.summaries(tmp_path)
+    assert [e["job_id"] for e in listed] == ["00000F", "000003", "000002"]
+    assert "is not JSON" in listed[0]["problem"]
+    assert all(e["state"] == "completed" for e in listed[1:])
+
+
 def test_a_job_id_is_moonrakers_and_never_case_folded():
     assert dump.check_job_id("00002a") == "00002A"
     for bad in ("\ufb00\ufb00\ufb00", "0000\ufb00", "2A", "00002A\n", "../x", 42):
