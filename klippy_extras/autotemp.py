@@ -134,14 +134,17 @@ class Autotemp:
             self.core.set_profile(profile, working_point, self._print_time())
 
     def _print_time(self):
-        # Where queued motion ends (the value get_status()['print_time']
-        # reports, read without building the toolhead's whole status: this
-        # runs for every extruding move of a file without annotations).
-        # Moves still in the lookahead queue come later, so windows placed
-        # from here are placed early, never late.
+        # Where queued motion ends, or the MCU's present once it has run
+        # past that (an idle toolhead): the core's motion_start_s. Read
+        # with check_busy, not the toolhead's whole status: this runs for
+        # every extruding move of a file without annotations. Moves still
+        # in the lookahead queue come later, so windows placed from here
+        # are placed early, never late.
         if self.toolhead is None:
             return 0.
-        return self.toolhead.print_time
+        queued_end, mcu_now, _ = self.toolhead.check_busy(
+            self.printer.get_reactor().monotonic())
+        return fl_autotemp.motion_start_s(queued_end, mcu_now)
 
     # --- targets, as the motion is generated ---------------------------------
     def _flush(self, flush_time, step_gen_time):

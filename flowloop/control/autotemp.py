@@ -379,6 +379,18 @@ DONE_AFTER_S = 5.0
 MAX_HOLD_S = 1.0
 
 
+def motion_start_s(queued_end_s: float, mcu_now_s: float) -> float:
+    """The print time the plan counts a LEAD or a move from: where the
+    motion queued so far ends (the toolhead's print_time), or the MCU's
+    present once it has run past that (an idle toolhead: its next move
+    starts after the present, Klipper's BUFFER_TIME_START later, however
+    long ago the last one ended). Counted from the stale end, the first
+    window announced after a heat-up fell in the past (found on the
+    simulated firmware: a target raised and dropped within 1.5 s, the
+    window printed 40 C short). Up to the start buffer early, never late."""
+    return max(queued_end_s, mcu_now_s)
+
+
 def hold_s(previous_flush_s: Optional[float], flush_s: float) -> float:
     """How long a target set at the flush at flush_s holds (the first
     flush: one GRID_S)."""

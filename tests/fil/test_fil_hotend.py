@@ -15,8 +15,9 @@ import pytest
 
 from devtools import simavr, stack
 from devtools.klippy_api import KlippyApi
+from flowloop.control.autotemp import TemperaturePlan, TempLimits
 from flowloop.control.hotend import HotendModel, HotendParams
-from flowloop.material.profile import FlowLine, profile_from_dict
+from flowloop.material.profile import FlowLine, profile_from_dict, profile_line
 from tests.fil.conftest import FULL_STEPS, MICROSTEPS, ROTATION_DISTANCE, fil_printer
 from tests.klippy.test_measure_profile import FLOW, KNOWN, SLOPE, TEMP
 
@@ -124,9 +125,9 @@ def test_autotemp_heats_ahead_so_the_model_melts_an_announced_flow(hot):
     area = math.pi * 1.75 ** 2 / 4
     mm_per_step = ROTATION_DISTANCE / (FULL_STEPS * MICROSTEPS)
     script = "\n".join([
-        # M400: after idle, toolhead.print_time (where autotemp counts LEAD
-        # from) is stale until a move is flushed (see the docs)
-        "M83", f"G1 E0.05 F{SLOW_FLOW / area * 60:.2f}", "M400",
+        # no move first: an announcement read while the toolhead idles is
+        # counted from the present (the test below)
+        "M83",
         f"AUTOTEMP_FLOW FLOW={FLOW_AHEAD} LEAD={LEAD_S} DURATION={WINDOW_S}",
         f"G1 E{SLOW_FLOW / area * LEAD_S:.3f} F{SLOW_FLOW / area * 60:.2f}",
         f"G1 E{FLOW_AHEAD / area * WINDOW_S:.3f} F{FLOW_AHEAD / area * 60:.2f}",
@@ -155,4 +156,51 @@ def test_autotemp_heats_ahead_so_the_model_melts_an_announced_flow(hot):
     assert raised[0][0] < LEAD_S
     assert MELT.line().flow_mm3_s(first[2]) >= 0.9 * FLOW_AHEAD
     assert grip >= 0.97
+    assert driver.error is None
+
+
+IDLE_S, SHORT_LEAD_S, SHORT_WINDOW_S = 5.0, 1.0, 3.0
+
+
+def test_an_announcement_after_the_toolhead_idled_is_planned_from_now(hot):
+    """An AUTOTEMP_FLOW read while the toolhead idles (nothing queued since
+    the heater command IDLE_S ago) counts its LEAD from the MCU's present,
+    where the next move starts, not from the end of the last move: counted
+    from there (toolhead.print_time, stale while idle) this window fell
+    IDLE_S in the past and its moves ran at the profile's minimum."""
+    printer, driver = hot
+    printer.api.call("flowloop/set_active_profile", extruder="extruder",
+                     profile=KNOWN, working_point=0.5)
+    profile = profile_from_dict(KNOWN)
+    max_temp = printer.query("configfile")["settings"]["extruder"]["max_temp"]
+    need = TemperaturePlan(profile_line(profile, 0.5),
+                           TempLimits.of(profile, max_temp)).need_c(FLOW_AHEAD)
+    # the heater command syncs the toolhead's print time to the present
+    printer.gcode(f"SET_HEATER_TEMPERATURE HEATER=extruder TARGET={TARGET_C}")
+    time.sleep(IDLE_S)
+    area = math.pi * 1.75 ** 2 / 4
+    script = "\n".join([
+        "M83",
+        f"AUTOTEMP_FLOW FLOW={FLOW_AHEAD} LEAD={SHORT_LEAD_S}"
+        f" DURATION={SHORT_WINDOW_S}",
+        f"G1 E{SLOW_FLOW / area * SHORT_LEAD_S:.3f} F{SLOW_FLOW / area * 60:.2f}",
+        f"G1 E{FLOW_AHEAD / area * SHORT_WINDOW_S:.3f}"
+        f" F{FLOW_AHEAD / area * 60:.2f}",
+        "M400"])
+    rows = []  # (s since the announcement, the heater's target)
+    with KlippyApi(printer.klippy.api_socket, timeout=30) as printing:
+        printing.send("gcode/script", script=script)
+        announced = time.monotonic()
+        while time.monotonic() < announced + SHORT_LEAD_S + SHORT_WINDOW_S + 1:
+            rows.append((time.monotonic() - announced,
+                         printer.query("extruder")["target"]))
+            time.sleep(0.1)
+        printing.call("info")  # after the script's answer
+    # the plan heats at once (its nozzle is short of the need by the
+    # window) and lets the heater go before the window's end (the nozzle
+    # cools slower than the window lasts): raised within the lead
+    ahead = [t for s, t in rows if s <= SHORT_LEAD_S]
+    print(f"the target within the lead: {min(ahead):.1f}-{max(ahead):.1f} C"
+          f" (the flow's need {need:.1f} C)")
+    assert max(ahead) >= need, rows
     assert driver.error is None
