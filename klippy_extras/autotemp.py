@@ -22,7 +22,7 @@ from . import flowloop as flowloop_host
 from flowloop.control import autotemp as fl_autotemp
 from flowloop.control import caps as fl_caps
 from flowloop.control import tools as fl_tools
-from flowloop.control.hotend import HotendParams
+from flowloop.control.hotend import HotendParams, nozzle_estimate_for
 from flowloop.errors import FlowloopError
 from flowloop.gcode import melt_window as fl_melt_window
 from flowloop.host import klipper_config
@@ -101,6 +101,12 @@ class Autotemp:
         self.heater = extruder.get_heater()
         self.core.set_heater(self.heater.min_temp, self.heater.max_temp)
         self.toolhead = self.printer.lookup_object('toolhead')
+        # batch mode: no reading arrives (the heater reads 0 C)
+        mcu = self.printer.lookup_object('mcu')
+        self.reads_nozzle = nozzle_estimate_for(
+            mcu.is_fileoutput(),
+            mcu.estimated_print_time(self.printer.get_reactor().monotonic())
+        ) is None
         # the read-ahead the annotations' LEAD allows for is this host's
         self.core.set_host(flowloop_host.host_facts(self.printer, self.heater,
                                                     self.control_option))
@@ -148,10 +154,13 @@ class Autotemp:
 
     # --- targets, as the motion is generated ---------------------------------
     def _flush(self, flush_time, step_gen_time):
-        # the decision (hold, stand-down, limits) is the core's on_flush
+        # the decision (hold, stand-down, limits, where the model starts) is
+        # the core's on_flush
+        heater = self.heater.get_status(None)
         target = self.core.on_flush(
-            step_gen_time, self.heater.get_status(None)['target'],
-            printing=self.toolhead.get_extruder() is self.extruder)
+            step_gen_time, heater['target'],
+            printing=self.toolhead.get_extruder() is self.extruder,
+            nozzle_c=heater['temperature'] if self.reads_nozzle else None)
         if target is not None:
             self.heater.set_temp(target)
 

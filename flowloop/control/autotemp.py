@@ -391,6 +391,17 @@ def motion_start_s(queued_end_s: float, mcu_now_s: float) -> float:
     return max(queued_end_s, mcu_now_s)
 
 
+def start_c(heater_target_c: float, nozzle_c: Optional[float]) -> float:
+    """Where the model starts when autotemp takes over: the heater's target
+    (the start's M109 waited for it), or the reading where the nozzle is
+    cooler than that (a start that did not wait). A reading above the
+    target is not taken: the model then starts cooler than the nozzle,
+    which only plans more heat."""
+    if nozzle_c is None or not math.isfinite(nozzle_c):
+        return heater_target_c
+    return min(heater_target_c, nozzle_c)
+
+
 def hold_s(previous_flush_s: Optional[float], flush_s: float) -> float:
     """How long a target set at the flush at flush_s holds (the first
     flush: one GRID_S)."""
@@ -551,9 +562,11 @@ class Autotemp:
             self.plan.applied(time_s, target_c)
 
     def on_flush(self, flush_s: float, heater_target_c: float,
-                 printing: bool = True) -> Optional[float]:
+                 printing: bool = True,
+                 nozzle_c: Optional[float] = None) -> Optional[float]:
         """At each flush of generated motion (flush_s: the print time steps
-        are generated to; heater_target_c: the heater's target now): the
+        are generated to; heater_target_c: the heater's target now;
+        nozzle_c: the heater's reading now, None where none arrives): the
         target to set, or None to leave the heater as it is. A tool that
         does not print keeps its user's target; a heater turned off (M104
         S0, TURN_OFF_HEATERS, a fault) while a source was planning makes
@@ -571,8 +584,11 @@ class Autotemp:
             # start G-code's M109 waited for it): the model starts there, also
             # below the profile's minimum (clamped up, it believed the nozzle
             # hotter than it is and planned too little heat for the first
-            # windows). Targets stay within the limits (target_at).
-            self.plan.start_at(flush_s, heater_target_c)
+            # windows), and never above what the heater reads (a start that
+            # did not wait: believed at its target, the nozzle got too
+            # little heat for the first windows too). Targets stay within
+            # the limits (target_at).
+            self.plan.start_at(flush_s, start_c(heater_target_c, nozzle_c))
         target = self.target_at(flush_s, hold)
         return None if target == heater_target_c else target
 

@@ -204,3 +204,51 @@ def test_an_announcement_after_the_toolhead_idled_is_planned_from_now(hot):
           f" (the flow's need {need:.1f} C)")
     assert max(ahead) >= need, rows
     assert driver.error is None
+
+
+def test_autotemp_takes_over_from_what_the_heater_reads_not_its_target(hot):
+    """A start that does not wait for its temperature (M104, not M109):
+    autotemp takes over while the nozzle reads well under the heater's
+    target. Its model starts at the reading, so it heats at once for a
+    window that needs about that target; started at the target, it
+    believed the nozzle there and planned no push."""
+    printer, driver = hot
+    printer.api.call("flowloop/set_active_profile", extruder="extruder",
+                     profile=KNOWN, working_point=0.5)
+    profile = profile_from_dict(KNOWN)
+    max_temp = printer.query("configfile")["settings"]["extruder"]["max_temp"]
+    need = TemperaturePlan(profile_line(profile, 0.5),
+                           TempLimits.of(profile, max_temp)).need_c(FLOW_AHEAD)
+    area = math.pi * 1.75 ** 2 / 4
+    # the print before is over: the heater turned off stands autotemp down
+    # at the next flush (a print's end: M104 S0), so that the file's M104
+    # below is obeyed and autotemp takes over afresh
+    printer.gcode(f"M104 S0\nM83\nG1 E0.02 F{SLOW_FLOW / area * 60:.2f}\nM400")
+    assert printer.query("autotemp")["source"] is None
+    # well below the window's need (the test above left it hot)
+    cooled = stack.wait_until(lambda: _extruder_temp(printer) < need - 15, 60,
+                              0.2)
+    reads = _extruder_temp(printer)
+    assert cooled, reads
+    script = "\n".join([
+        f"M104 S{need + 3:.0f}",
+        f"AUTOTEMP_FLOW FLOW={FLOW_AHEAD} LEAD={SHORT_LEAD_S}"
+        f" DURATION={SHORT_WINDOW_S}",
+        f"G1 E{SLOW_FLOW / area * SHORT_LEAD_S:.3f} F{SLOW_FLOW / area * 60:.2f}",
+        f"G1 E{FLOW_AHEAD / area * SHORT_WINDOW_S:.3f}"
+        f" F{FLOW_AHEAD / area * 60:.2f}",
+        "M400"])
+    rows = []  # (s since the announcement, the heater's target)
+    with KlippyApi(printer.klippy.api_socket, timeout=30) as printing:
+        printing.send("gcode/script", script=script)
+        announced = time.monotonic()
+        while time.monotonic() < announced + SHORT_LEAD_S + SHORT_WINDOW_S + 1:
+            rows.append((time.monotonic() - announced,
+                         printer.query("extruder")["target"]))
+            time.sleep(0.1)
+        printing.call("info")  # after the script's answer
+    ahead = [t for s, t in rows if s <= SHORT_LEAD_S]
+    print(f"the nozzle read {reads:.1f} C; the target within the lead:"
+          f" {min(ahead):.1f}-{max(ahead):.1f} C (the flow's need {need:.1f} C)")
+    assert max(ahead) >= need + 10, rows
+    assert driver.error is None

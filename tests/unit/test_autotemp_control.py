@@ -107,6 +107,25 @@ def test_the_model_starts_where_the_heater_was_set():
     assert cold == PROFILE.bounds.max_temp_c
 
 
+def test_the_model_starts_no_hotter_than_the_heater_reads():
+    """A start that did not wait (M104, not M109): the heater reads 30 C
+    under its target when autotemp takes over. Believed at its target, the
+    model plans no push for a window 3 s ahead at that target; from the
+    reading it heats at the most it may. A reading above the target is not
+    taken (the model would only plan less heat)."""
+    need = temp_for_flow(PROFILE, 12.0 * (1 + FLOW_MARGIN), 0.5)
+    heater_c = round(need + 0.5)
+    targets = []
+    for nozzle_c in (None, heater_c - 30.0, heater_c + 20.0, float("nan")):
+        a = active()
+        a.announce(0.0, 12.0, 3.0, 10.0)
+        targets.append(a.on_flush(0.0, heater_c, nozzle_c=nozzle_c))
+    believed, cooler, hotter, unread = targets
+    assert believed is None or believed <= need + 1.0
+    assert cooler == PROFILE.bounds.max_temp_c
+    assert hotter == believed and unread == believed
+
+
 def test_a_heater_set_below_the_profiles_minimum_is_not_believed_hotter():
     """M109 S200 before a profile whose minimum is 210: the model starts at
     200, so the first window gets the heat it needs from there (clamped up
