@@ -160,32 +160,31 @@ def test_autotemp_heats_ahead_so_the_model_melts_an_announced_flow(hot):
 
 
 IDLE_S, SHORT_LEAD_S, SHORT_WINDOW_S = 5.0, 1.0, 3.0
+AREA_MM2 = math.pi * 1.75 ** 2 / 4
 
 
-def test_an_announcement_after_the_toolhead_idled_is_planned_from_now(hot):
-    """An AUTOTEMP_FLOW read while the toolhead idles (nothing queued since
-    the heater command IDLE_S ago) counts its LEAD from the MCU's present,
-    where the next move starts, not from the end of the last move: counted
-    from there (toolhead.print_time, stale while idle) this window fell
-    IDLE_S in the past and its moves ran at the profile's minimum."""
-    printer, driver = hot
+def _activate_and_need(printer) -> float:
+    """The known profile active at WP 0.5; the plan's need for FLOW_AHEAD."""
     printer.api.call("flowloop/set_active_profile", extruder="extruder",
                      profile=KNOWN, working_point=0.5)
     profile = profile_from_dict(KNOWN)
     max_temp = printer.query("configfile")["settings"]["extruder"]["max_temp"]
-    need = TemperaturePlan(profile_line(profile, 0.5),
+    return TemperaturePlan(profile_line(profile, 0.5),
                            TempLimits.of(profile, max_temp)).need_c(FLOW_AHEAD)
-    # the heater command syncs the toolhead's print time to the present
-    printer.gcode(f"SET_HEATER_TEMPERATURE HEATER=extruder TARGET={TARGET_C}")
-    time.sleep(IDLE_S)
-    area = math.pi * 1.75 ** 2 / 4
+
+
+def _targets_within_a_short_lead(printer, first: str) -> list:
+    """Run `first`, a short window's announcement and its moves (SLOW_FLOW
+    for its lead, FLOW_AHEAD through it); the heater's targets read within
+    the lead."""
     script = "\n".join([
-        "M83",
+        first,
         f"AUTOTEMP_FLOW FLOW={FLOW_AHEAD} LEAD={SHORT_LEAD_S}"
         f" DURATION={SHORT_WINDOW_S}",
-        f"G1 E{SLOW_FLOW / area * SHORT_LEAD_S:.3f} F{SLOW_FLOW / area * 60:.2f}",
-        f"G1 E{FLOW_AHEAD / area * SHORT_WINDOW_S:.3f}"
-        f" F{FLOW_AHEAD / area * 60:.2f}",
+        f"G1 E{SLOW_FLOW / AREA_MM2 * SHORT_LEAD_S:.3f}"
+        f" F{SLOW_FLOW / AREA_MM2 * 60:.2f}",
+        f"G1 E{FLOW_AHEAD / AREA_MM2 * SHORT_WINDOW_S:.3f}"
+        f" F{FLOW_AHEAD / AREA_MM2 * 60:.2f}",
         "M400"])
     rows = []  # (s since the announcement, the heater's target)
     with KlippyApi(printer.klippy.api_socket, timeout=30) as printing:
@@ -196,13 +195,27 @@ def test_an_announcement_after_the_toolhead_idled_is_planned_from_now(hot):
                          printer.query("extruder")["target"]))
             time.sleep(0.1)
         printing.call("info")  # after the script's answer
+    return [t for s, t in rows if s <= SHORT_LEAD_S]
+
+
+def test_an_announcement_after_the_toolhead_idled_is_planned_from_now(hot):
+    """An AUTOTEMP_FLOW read while the toolhead idles (nothing queued since
+    the heater command IDLE_S ago) counts its LEAD from the MCU's present,
+    where the next move starts, not from the end of the last move: counted
+    from there (toolhead.print_time, stale while idle) this window fell
+    IDLE_S in the past and its moves ran at the profile's minimum."""
+    printer, driver = hot
+    need = _activate_and_need(printer)
+    # the heater command syncs the toolhead's print time to the present
+    printer.gcode(f"SET_HEATER_TEMPERATURE HEATER=extruder TARGET={TARGET_C}")
+    time.sleep(IDLE_S)
     # the plan heats at once (its nozzle is short of the need by the
     # window) and lets the heater go before the window's end (the nozzle
     # cools slower than the window lasts): raised within the lead
-    ahead = [t for s, t in rows if s <= SHORT_LEAD_S]
+    ahead = _targets_within_a_short_lead(printer, "M83")
     print(f"the target within the lead: {min(ahead):.1f}-{max(ahead):.1f} C"
           f" (the flow's need {need:.1f} C)")
-    assert max(ahead) >= need, rows
+    assert max(ahead) >= need, ahead
     assert driver.error is None
 
 
@@ -213,42 +226,20 @@ def test_autotemp_takes_over_from_what_the_heater_reads_not_its_target(hot):
     window that needs about that target; started at the target, it
     believed the nozzle there and planned no push."""
     printer, driver = hot
-    printer.api.call("flowloop/set_active_profile", extruder="extruder",
-                     profile=KNOWN, working_point=0.5)
-    profile = profile_from_dict(KNOWN)
-    max_temp = printer.query("configfile")["settings"]["extruder"]["max_temp"]
-    need = TemperaturePlan(profile_line(profile, 0.5),
-                           TempLimits.of(profile, max_temp)).need_c(FLOW_AHEAD)
-    area = math.pi * 1.75 ** 2 / 4
+    need = _activate_and_need(printer)
     # the print before is over: the heater turned off stands autotemp down
     # at the next flush (a print's end: M104 S0), so that the file's M104
     # below is obeyed and autotemp takes over afresh
-    printer.gcode(f"M104 S0\nM83\nG1 E0.02 F{SLOW_FLOW / area * 60:.2f}\nM400")
+    printer.gcode(f"M104 S0\nM83\nG1 E0.02 F{SLOW_FLOW / AREA_MM2 * 60:.2f}"
+                  "\nM400")
     assert printer.query("autotemp")["source"] is None
     # well below the window's need (the test above left it hot)
     cooled = stack.wait_until(lambda: _extruder_temp(printer) < need - 15, 60,
                               0.2)
     reads = _extruder_temp(printer)
     assert cooled, reads
-    script = "\n".join([
-        f"M104 S{need + 3:.0f}",
-        f"AUTOTEMP_FLOW FLOW={FLOW_AHEAD} LEAD={SHORT_LEAD_S}"
-        f" DURATION={SHORT_WINDOW_S}",
-        f"G1 E{SLOW_FLOW / area * SHORT_LEAD_S:.3f} F{SLOW_FLOW / area * 60:.2f}",
-        f"G1 E{FLOW_AHEAD / area * SHORT_WINDOW_S:.3f}"
-        f" F{FLOW_AHEAD / area * 60:.2f}",
-        "M400"])
-    rows = []  # (s since the announcement, the heater's target)
-    with KlippyApi(printer.klippy.api_socket, timeout=30) as printing:
-        printing.send("gcode/script", script=script)
-        announced = time.monotonic()
-        while time.monotonic() < announced + SHORT_LEAD_S + SHORT_WINDOW_S + 1:
-            rows.append((time.monotonic() - announced,
-                         printer.query("extruder")["target"]))
-            time.sleep(0.1)
-        printing.call("info")  # after the script's answer
-    ahead = [t for s, t in rows if s <= SHORT_LEAD_S]
+    ahead = _targets_within_a_short_lead(printer, f"M104 S{need + 3:.0f}")
     print(f"the nozzle read {reads:.1f} C; the target within the lead:"
           f" {min(ahead):.1f}-{max(ahead):.1f} C (the flow's need {need:.1f} C)")
-    assert max(ahead) >= need + 10, rows
+    assert max(ahead) >= need + 10, ahead
     assert driver.error is None
