@@ -22,7 +22,7 @@ from . import flowloop as flowloop_host
 from flowloop.control import autotemp as fl_autotemp
 from flowloop.control import caps as fl_caps
 from flowloop.control import tools as fl_tools
-from flowloop.control.hotend import HotendParams, nozzle_estimate_for
+from flowloop.control.hotend import HotendParams, heater_reads
 from flowloop.errors import FlowloopError
 from flowloop.gcode import melt_window as fl_melt_window
 from flowloop.host import klipper_config
@@ -103,10 +103,9 @@ class Autotemp:
         self.toolhead = self.printer.lookup_object('toolhead')
         # batch mode: no reading arrives (the heater reads 0 C)
         mcu = self.printer.lookup_object('mcu')
-        self.reads_nozzle = nozzle_estimate_for(
+        self.reads_nozzle = heater_reads(
             mcu.is_fileoutput(),
-            mcu.estimated_print_time(self.printer.get_reactor().monotonic())
-        ) is None
+            mcu.estimated_print_time(self.printer.get_reactor().monotonic()))
         # the read-ahead the annotations' LEAD allows for is this host's
         self.core.set_host(flowloop_host.host_facts(self.printer, self.heater,
                                                     self.control_option))

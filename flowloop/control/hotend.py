@@ -209,13 +209,18 @@ class NozzleEstimate:
         return model.advance(model.time_s + pending_s, melted / pending_s)
 
 
+def heater_reads(writes_to_file: bool, estimated_print_time_s: float) -> bool:
+    """Whether the heater's temperature readings arrive: not in klippy's
+    batch mode (its output is a file and its MCU clock never starts: the
+    heater reads 0 C); on a printer, and in a klippy paced to the clock,
+    whose simulated twin gives the heater its readings."""
+    return not (writes_to_file and not estimated_print_time_s)
+
+
 def nozzle_estimate_for(writes_to_file: bool, estimated_print_time_s: float
                         ) -> Optional[NozzleEstimate]:
     """The estimate to read the nozzle from where no temperature reading
-    arrives: klippy in batch mode (its output is a file and its MCU clock
-    never starts). None: the heater's own reading is used (a printer; a
-    klippy paced to the clock, whose simulated twin gives the heater its
-    readings)."""
-    if writes_to_file and not estimated_print_time_s:
-        return NozzleEstimate()
-    return None
+    arrives (heater_reads). None: the heater's own reading is used."""
+    if heater_reads(writes_to_file, estimated_print_time_s):
+        return None
+    return NozzleEstimate()

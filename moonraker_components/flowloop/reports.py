@@ -177,11 +177,10 @@ class Reports:
 
     # --- endpoints ---------------------------------------------------------------
     async def _handle_list(self, web_request: WebRequest) -> Dict[str, Any]:
-        reports = [
-            dict(entry, problem=one_line(entry["problem"])) if "problem" in entry
-            else entry
-            for entry in await self.eventloop.run_in_thread(
-                dump.summaries, self.folder)]
+        reports = await self.eventloop.run_in_thread(dump.summaries, self.folder)
+        for entry in reports:
+            if "problem" in entry:  # a dump that cannot be read: its one line
+                entry["problem"] = one_line(entry["problem"])
         recording = None if self.recorder is None else self.recorder.job.job_id
         return {"reports": reports, "recording": recording,
                 "number_of_reports_to_keep": self.keep}

@@ -16,6 +16,7 @@ from flowloop.control.hotend import (
     HotendModel,
     HotendParams,
     NozzleEstimate,
+    heater_reads,
     nozzle_estimate_for,
 )
 from flowloop.errors import FlowloopError
@@ -192,6 +193,8 @@ def test_a_scaled_twin_melts_that_share_of_its_line():
 
 def test_only_a_batch_mode_klippy_reads_the_nozzle_from_the_model():
     # batch mode: output to a file, the MCU clock never started
+    assert not heater_reads(True, 0.0)                  # batch mode
+    assert heater_reads(True, 12.5) and heater_reads(False, 0.0)
     assert isinstance(nozzle_estimate_for(True, 0.0), NozzleEstimate)
     assert nozzle_estimate_for(True, 12.5) is None     # paced to the clock
     assert nozzle_estimate_for(False, 0.0) is None     # a printer, connecting
