@@ -93,7 +93,10 @@ MeltEvent = Union[Lines, Cells, Barrier]
 
 class _Pieces(NamedTuple):
     """A batch's flow as pieces of constant slope (each move's accel, cruise
-    and decel), with the plastic volume left through the nozzle at each start."""
+    and decel), with the plastic volume left through the nozzle at each start.
+    bounds_s: each move's four times (start, accel's end, cruise's end, end),
+    a row each: a piece ends at the very float its move's next one starts."""
+    bounds_s: np.ndarray
     start_s: np.ndarray
     length_s: np.ndarray
     volume_mm3: np.ndarray
@@ -112,7 +115,10 @@ def _pieces(batch: Segments, volume_before: float) -> _Pieces:
     f1 = np.where(whole, batch.end_flow_mm3_s, 0.0)
     length = np.stack((accel, cruise, decel), axis=1).ravel()
     at_start = np.stack((f0, fc, fc), axis=1).ravel()
-    starts = np.stack((start, start + accel, start + accel + cruise), axis=1).ravel()
+    accel_end = start + accel
+    cruise_end = accel_end + cruise
+    bounds = np.stack((start, accel_end, cruise_end, cruise_end + decel), axis=1)
+    starts = bounds[:, :3].ravel()
     # each piece's 0.5 * (flow at start + at end) * length, and its slope,
     # (flow at end - at start) / length (0 where it has none; a cruise's is 0)
     volume = np.stack((0.5 * (f0 + fc) * accel, 0.5 * (fc + fc) * cruise,
@@ -127,7 +133,7 @@ def _pieces(batch: Segments, volume_before: float) -> _Pieces:
                           np.zeros(len(fc)),
                           np.where(decel > 0.0, (f1 - fc) / decel, 0.0)),
                          axis=1).ravel()
-    return _Pieces(starts, length, before, at_start, slope,
+    return _Pieces(bounds, starts, length, before, at_start, slope,
                    volume_before + float(total[-1]))
 
 
@@ -169,18 +175,19 @@ def volume_on_grid(pieces: _Pieces, origin_s: float, first: int, stop: int,
     (grid_time; one before the batch counts as at its start, one after it
     or between two moves as at the last move's end)."""
     n = stop - first
-    start, length = pieces.start_s, pieces.length_s
+    start = pieces.start_s
     count = len(start)
     # segments of the grid: before the batch, then each piece and the gap
     # after it (none, mostly: a move starts where the last one ends);
-    # the grid points from bound[s] on are in segment s + 1
-    bound = np.empty(2 * count)
-    bound[0::2] = start
-    bound[1::2] = start + length
+    # the grid points from a piece's start on are in its segment, from its
+    # end on in the gap's. Within a move a piece ends where the next
+    # starts: each move's four bounds are searched once, then spread out
+    # (start, accel end twice, cruise end twice, end).
+    found = grid_search(pieces.bounds_s.ravel(), origin_s, first, stop, cell_s)
+    np.maximum.accumulate(found, out=found)
     seg_first = np.empty(2 * count + 1, np.intp)
     seg_first[0] = 0
-    seg_first[1:] = grid_search(bound, origin_s, first, stop, cell_s)
-    np.maximum.accumulate(seg_first, out=seg_first)
+    seg_first[1:].reshape(-1, 6)[:] = found.reshape(-1, 4)[:, _SPREAD]
     counts = np.diff(np.append(seg_first, n))
     # each segment's volume in its own grid steps j: A + j * (B + C * j)
     # (a piece's volume + u * (flow + slope / 2 * u) at u = e + j * cell_s,
@@ -198,14 +205,19 @@ def volume_on_grid(pieces: _Pieces, origin_s: float, first: int, stop: int,
     a[2:-1:2] = vol[1:]
     a[-1] = pieces.end_volume_mm3
     seg = _segment_of_each(seg_first, counts, n)
-    j = np.arange(n, dtype=float)
-    j -= seg_first.astype(float).take(seg)
+    j = np.arange(n)
+    j -= seg_first.take(seg)
+    j = j.astype(float)
     out = c.take(seg)
     out *= j
     out += b.take(seg)
     out *= j
     out += a.take(seg)
     return out
+
+
+# a move's four bounds as its three pieces' starts and ends
+_SPREAD = np.array([0, 1, 1, 2, 2, 3])
 
 
 def _segment_of_each(seg_first: np.ndarray, counts: np.ndarray, n: int
