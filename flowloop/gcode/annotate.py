@@ -41,8 +41,7 @@ import numpy as np
 
 from .. import files
 from ..errors import FlowloopError
-from .ahead import ahead
-from .bulk_planner import Segments, plan_batches
+from .bulk_planner import Segments, planned_ahead
 from .melt import MELT_TIME_S, Cells, Lines, melt_events
 from .melt_window import check_melt_window
 from .reference_planner import Barrier, Event, PrinterLimits
@@ -655,10 +654,10 @@ def annotate_file(src: Path, dst: Optional[Path] = None,
 
     def write(out: BinaryIO) -> None:
         nonlocal summary
-        # the planner runs ahead in a thread of its own (flowloop.gcode.ahead),
-        # stopped before the files close, whatever happens
-        with open(src, "rb") as lines, open(src, "rb") as copy, \
-                contextlib.closing(ahead(plan_batches(lines, limits))) as events:
+        # the planner runs ahead in a process (or a thread) of its own
+        # (flowloop.gcode.ahead), stopped before the files close, whatever happens
+        with open(src, "rb") as copy, \
+                contextlib.closing(planned_ahead(src, limits)) as events:
             try:
                 summary = annotate_stream(events, copy, out, settings, newline)
             except FlowloopError as e:

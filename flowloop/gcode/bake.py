@@ -48,7 +48,6 @@ from ..control.autotemp import DEFAULT_PARAMS, GRID_S, Autotemp, flat_line_note
 from ..control.hotend import HotendModel, HotendParams
 from ..errors import FlowloopError
 from ..material.profile import Profile
-from .ahead import ahead
 from .annotate import (
     COMMAND,
     FORMAT_VERSION,
@@ -62,7 +61,7 @@ from .annotate import (
     newline_of,
     quantise_flow,
 )
-from .bulk_planner import Segments, plan_batches
+from .bulk_planner import Segments, planned_ahead
 from .heater import HeaterRange, bake_note, cap_line
 from .melt import Cells
 from .reference_planner import PrinterLimits
@@ -323,10 +322,9 @@ def plan_announcements(src: Path, limits: PrinterLimits,
     `.end_s`."""
     rec = _Recorder(settings, newline)
     try:
-        # the planner ahead in a thread (flowloop.gcode.ahead), stopped
-        # before the file closes
-        with open(src, "rb") as lines, \
-                contextlib.closing(ahead(plan_batches(lines, limits))) as events:
+        # the planner ahead in a process or a thread (flowloop.gcode.ahead),
+        # stopped when this is done, whatever happens
+        with contextlib.closing(planned_ahead(src, limits)) as events:
             feed(rec, events)
     except FlowloopError as e:
         raise FlowloopError(f"{src}: {e}") from None

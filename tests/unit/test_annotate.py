@@ -6,8 +6,11 @@ from __future__ import annotations
 import codecs
 import io
 import itertools
+import json
 import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 from typing import List, NamedTuple
 
@@ -17,6 +20,7 @@ from hypothesis import strategies as st
 
 from flowloop import cli
 from flowloop.errors import FlowloopError
+from flowloop.gcode import ahead as ahead_module
 from flowloop.gcode.annotate import (
     MARKER_REGEX,
     READAHEAD_S,
@@ -560,3 +564,47 @@ def test_a_byte_order_mark_is_left_out_and_the_file_is_annotated_once(tmp_path):
     before = bom.read_bytes()
     assert not annotate_file(bom).annotated
     assert bom.read_bytes() == before
+
+
+# a profile for the bake (a weak PLA: the bake has heat to plan)
+BAKE_PROFILE = {
+    "identity": {"name": "weak", "nozzle_diameter_mm": 0.4},
+    "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                           "flow_mm3_s": 4.5},
+              "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                             "flow_mm3_s": 3.5}},
+    "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 200.0,
+               "max_temp_c": 240.0},
+    "provenance": {"method": "manual"}}
+
+
+@pytest.mark.parametrize("bake", [False, True])
+def test_the_command_as_moonraker_runs_it_writes_what_a_thread_writes(
+        tmp_path, monkeypatch, bake):
+    """The command as Moonraker runs it (a process of its own with one
+    thread: the planner runs in a child process, flowloop.gcode.ahead; here
+    for a file of any size) writes the bytes the same command writes with
+    the planner in a thread."""
+    extra = []
+    if bake:
+        profile = tmp_path / "weak.json"
+        profile.write_text(json.dumps(BAKE_PROFILE))
+        extra = ["--bake", str(profile)]
+
+    def args(out: Path) -> List[str]:
+        return ["annotate", str(DATA / "curves_0.4mm_layers_1_10.gcode"),
+                "-o", str(out), *extra]
+    child = tmp_path / "child.gcode"
+    script = ("import sys; from flowloop.gcode import bulk_planner;"
+              " bulk_planner.PROCESS_FROM_BYTES = 0;"
+              " from flowloop.cli import main; sys.argv[0] = 'flowloop';"
+              " sys.exit(main())")
+    run = subprocess.run([sys.executable, "-c", script, *args(child)],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    monkeypatch.setattr(ahead_module, "can_fork", lambda: False)
+    thread = tmp_path / "thread.gcode"
+    assert cli.main(args(thread)) == 0
+    assert child.read_bytes() == thread.read_bytes()
+    said = re.compile(rb"^M104 S\d+", re.M) if bake else COMMAND
+    assert said.search(child.read_bytes())
