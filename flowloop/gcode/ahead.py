@@ -104,6 +104,8 @@ def ahead(items: Iterable[T], depth: int = DEPTH) -> Iterator[T]:
 # the pipe's buffer: a batch of the bench file is about 1.4 MB of arrays,
 # the kernel's 64 kB default would switch between the two every 64 kB
 _PIPE_BYTES = 1 << 20
+# Linux's fcntl command for it (Python names it fcntl.F_SETPIPE_SZ from 3.10)
+_F_SETPIPE_SZ = 1031
 # each message: what it is, and its length (or the items' count)
 _HEADER = struct.Struct("<cq")
 _SENT, _RAISED_THERE, _DONE = b"I", b"R", b"Z"
@@ -150,15 +152,15 @@ def ahead_forked(make_items: Callable[[], Iterable[T]],
     read_fd, write_fd = os.pipe()
     try:
         import fcntl
-        fcntl.fcntl(write_fd, fcntl.F_SETPIPE_SZ, _PIPE_BYTES)
-    except (ImportError, AttributeError, OSError):
+        fcntl.fcntl(write_fd, _F_SETPIPE_SZ, _PIPE_BYTES)
+    except (ImportError, OSError):
         pass            # the default buffer: slower, no less right
     pid = os.fork()
     if pid == 0:                                    # the child
         os.close(read_fd)
         _produce(make_items, write_item, write_fd)  # never returns
     os.close(write_fd)
-    return _forked(_Child(pid), read_fd, read_item, depth)
+    return _Forked(_Child(pid), os.fdopen(read_fd, "rb"), read_item, depth)
 
 
 class _Child:
@@ -187,21 +189,42 @@ class _Child:
         return f"exit status {os.WEXITSTATUS(self.status)}"
 
 
-def _forked(child: _Child, read_fd: int, read_item, depth: int) -> Iterator:
-    items = ahead(_received(child, read_fd, read_item), depth)
-    try:
-        # not `yield from`: that would close items (join the thread, which
-        # may wait on the child's next write) before the finally kills it
-        for item in items:  # noqa: UP028
-            yield item
-    finally:
-        # whatever brought this here (the end, the consumer's own error,
-        # a close), the child is gone before the thread is joined: its
-        # read ends at once
-        child.kill()
-        items.close()
-        child.ended()
-        os.close(child.pidfd)
+class _Forked:
+    """The child's items, read by a thread here (flowloop.gcode.ahead's
+    `ahead` over the pipe). close() ends the child, then the thread, then
+    the pipe, whether iteration began or not; the last item, an error
+    raised or a close does it, and so does dropping the iterator."""
+
+    def __init__(self, child: _Child, pipe: BinaryIO, read_item, depth: int):
+        self.child, self.pipe = child, pipe
+        self.items = ahead(_received(child, pipe, read_item), depth)
+        self.closed = False
+
+    def __iter__(self) -> _Forked:
+        return self
+
+    def __next__(self):
+        try:
+            return next(self.items)
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        # the child goes first: the thread's read then ends at once, and
+        # joining it never waits on the child's next write
+        self.child.kill()
+        self.items.close()
+        self.pipe.close()
+        self.child.ended()
+        os.close(self.child.pidfd)
+
+    def __del__(self) -> None:
+        if getattr(self, "items", None) is not None:    # made whole
+            self.close()
 
 
 def _produce(make_items, write_item, write_fd: int) -> None:
@@ -236,21 +259,20 @@ def _send_raised(pipe: BinaryIO, error: BaseException) -> None:
     pipe.write(data)
 
 
-def _received(child: _Child, read_fd: int, read_item) -> Iterator:
+def _received(child: _Child, pipe: BinaryIO, read_item) -> Iterator:
     """The items the child sends, then what it raised, if anything."""
-    with os.fdopen(read_fd, "rb") as pipe:
-        while True:
-            header = pipe.read(_HEADER.size)
-            if len(header) < _HEADER.size:
-                raise FlowloopError("the planner's process ended before"
-                                    f" the file did ({child.ended()})")
-            kind, size = _HEADER.unpack(header)
-            if kind == _SENT:
-                yield read_item(pipe)
-            elif kind == _RAISED_THERE:
-                raise pickle.loads(read_exactly(pipe, size))
-            else:
-                return
+    while True:
+        header = pipe.read(_HEADER.size)
+        if len(header) < _HEADER.size:
+            raise FlowloopError("the planner's process ended before"
+                                f" the file did ({child.ended()})")
+        kind, size = _HEADER.unpack(header)
+        if kind == _SENT:
+            yield read_item(pipe)
+        elif kind == _RAISED_THERE:
+            raise pickle.loads(read_exactly(pipe, size))
+        else:
+            return
 
 
 def read_exactly(pipe: BinaryIO, size: int) -> bytes:

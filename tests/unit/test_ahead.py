@@ -179,6 +179,21 @@ def test_a_closed_iterator_kills_the_child_at_once():
     assert wait_until_gone()
 
 
+def test_a_child_never_asked_is_killed_when_closed_or_dropped():
+    def endless():
+        while True:
+            yield b"x" * 100_000
+    for drop in (False, True):
+        it = forked(endless)
+        pid = it.child.pid
+        time.sleep(0.1)         # it fills the pipe and waits on it
+        if drop:
+            del it              # as a consumer that raised before asking does
+        else:
+            it.close()
+        assert gone(pid, timeout_s=1.0), drop
+
+
 def test_no_child_where_another_thread_runs():
     release = threading.Event()
     other = threading.Thread(target=release.wait)
