@@ -11,7 +11,9 @@ from urllib.parse import quote
 
 from devtools import stack
 from flowloop.cli import main
-from flowloop.gcode.annotate import is_annotated
+from flowloop.gcode import ahead
+from flowloop.gcode.annotate import annotate_file, is_annotated
+from flowloop.gcode.bulk_planner import PROCESS_FROM_BYTES
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
 GCODE = DATA / "block_layers_1_2.gcode"
@@ -53,6 +55,29 @@ def test_an_upload_comes_back_annotated_once_with_its_metadata(printer):
     assert status == 200
     assert download(m, "block.gcode") == first
     assert "flowloop_autotemp" in metadata(m, "block.gcode")["file_processors"]
+
+
+def test_a_large_upload_planned_in_a_child_process_comes_back_as_planned_here(
+        printer, tmp_path, monkeypatch):
+    # a file of PROCESS_FROM_BYTES or more: in Moonraker's processor run the
+    # planner runs in a process of its own (flowloop.gcode.ahead)
+    excerpt = GCODE.read_bytes()
+    body = excerpt.index(b";LAYER_CHANGE")
+    layers = b"G92 E0\n" + excerpt[body:]
+    data = excerpt[:body] + layers * (PROCESS_FROM_BYTES // len(layers) + 1)
+    assert len(data) >= PROCESS_FROM_BYTES
+    m = printer.moonraker
+    m.upload("large.gcode", data)
+    assert stack.wait_until(lambda: (metadata(m, "large.gcode") or {}).get(
+        "file_processors"), 120)
+    uploaded = download(m, "large.gcode")
+    assert is_annotated(uploaded[:4096])
+    # the same file annotated here, the planner in a thread
+    monkeypatch.setattr(ahead, "can_fork", lambda: False)
+    here = tmp_path / "large.gcode"
+    here.write_bytes(data)
+    annotate_file(here)
+    assert uploaded == here.read_bytes()
 
 
 def test_a_file_the_annotator_refuses_stays_printable_and_says_so(printer):
