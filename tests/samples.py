@@ -46,3 +46,16 @@ def twin_known():
                    "max_temp_c": 250.0},
         "provenance": {"method": "manual"},
     }
+
+
+# A weak PLA for the bake's tests: its line melts 3.5 mm^3/s printing at
+# 200 C, 0.1 more per degree, up to 240 C (the bake has heat to plan)
+WEAK_PROFILE = {
+    "identity": {"name": "weak", "nozzle_diameter_mm": 0.4},
+    "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                           "flow_mm3_s": 4.5},
+              "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                             "flow_mm3_s": 3.5}},
+    "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 200.0,
+               "max_temp_c": 240.0},
+    "provenance": {"method": "manual"}}

@@ -35,14 +35,16 @@ def test_the_items_in_order(depth):
     assert wait_until_gone()
 
 
-def test_what_the_iterator_raises_comes_after_the_items_before_it():
+@pytest.mark.parametrize("where", ["thread", "child"])
+def test_what_the_iterator_raises_comes_after_the_items_before_it(where):
     def items():
         yield 1
         yield 2
         raise FlowloopError("line 3: bad word")
     got = []
+    run = ahead(items()) if where == "thread" else forked(items)
     with pytest.raises(FlowloopError, match="line 3: bad word"):
-        for item in ahead(items()):
+        for item in run:
             got.append(item)
     assert got == [1, 2]
     assert wait_until_gone()
@@ -115,18 +117,6 @@ def test_a_childs_items_arrive_in_order_and_it_is_waited_for():
     assert got[0] != os.getpid()            # made in another process
     assert got[1:] == list(range(3000))
     assert gone(got[0])
-
-
-def test_what_the_child_raises_comes_after_its_items():
-    def items():
-        yield 1
-        yield 2
-        raise FlowloopError("line 3: bad word")
-    got = []
-    with pytest.raises(FlowloopError, match="line 3: bad word"):
-        for item in forked(items):
-            got.append(item)
-    assert got == [1, 2]
 
 
 def test_an_error_that_cannot_cross_is_said_in_words():

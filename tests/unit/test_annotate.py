@@ -32,6 +32,7 @@ from flowloop.gcode.annotate import (
 from flowloop.gcode.bulk_planner import plan_batches
 from flowloop.gcode.melt import CELL_S, MELT_TIME_S
 from flowloop.gcode.reference_planner import Barrier, Segment, plan_file
+from tests.samples import WEAK_PROFILE
 
 pytestmark = pytest.mark.unit
 
@@ -566,18 +567,6 @@ def test_a_byte_order_mark_is_left_out_and_the_file_is_annotated_once(tmp_path):
     assert bom.read_bytes() == before
 
 
-# a profile for the bake (a weak PLA: the bake has heat to plan)
-BAKE_PROFILE = {
-    "identity": {"name": "weak", "nozzle_diameter_mm": 0.4},
-    "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                           "flow_mm3_s": 4.5},
-              "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                             "flow_mm3_s": 3.5}},
-    "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 200.0,
-               "max_temp_c": 240.0},
-    "provenance": {"method": "manual"}}
-
-
 @pytest.mark.parametrize("bake", [False, True])
 def test_the_command_as_moonraker_runs_it_writes_what_a_thread_writes(
         tmp_path, monkeypatch, bake):
@@ -588,7 +577,7 @@ def test_the_command_as_moonraker_runs_it_writes_what_a_thread_writes(
     extra = []
     if bake:
         profile = tmp_path / "weak.json"
-        profile.write_text(json.dumps(BAKE_PROFILE))
+        profile.write_text(json.dumps(WEAK_PROFILE))
         extra = ["--bake", str(profile)]
 
     def args(out: Path) -> List[str]:

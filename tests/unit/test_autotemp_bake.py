@@ -27,6 +27,7 @@ from flowloop.gcode.bake import (
 from flowloop.gcode.reference_planner import PrinterLimits, plan_file
 from flowloop.material.ddprint import import_file
 from flowloop.material.profile import profile_from_dict
+from tests.samples import WEAK_PROFILE
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "gcode"
 BLOCK = DATA / "block_layers_1_2.gcode"
@@ -34,14 +35,7 @@ BRIDGE_LAYER = DATA / "box_bridge_layer.gcode"
 SMALL_PARTS = DATA / "corpus" / "small_parts_fwretract_petg.gcode.gz"
 PETG_UM2 = (Path(__file__).resolve().parents[1] / "data" / "ddprint-profiles"
             / "mat-profiles" / "UM2-1" / "herz_petg_white.json")
-WEAK = {"identity": {"name": "weak", "nozzle_diameter_mm": 0.4},
-        "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                               "flow_mm3_s": 4.5},
-                  "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                                 "flow_mm3_s": 3.5}},
-        "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 200.0,
-                   "max_temp_c": 240.0},
-        "provenance": {"method": "manual"}}
+WEAK = WEAK_PROFILE
 PROFILE = profile_from_dict(WEAK)
 
 
