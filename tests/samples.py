@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 # Every material file of ddPrint's public profile repository (see SOURCE.md).
@@ -59,3 +60,37 @@ WEAK_PROFILE = {
     "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 200.0,
                "max_temp_c": 240.0},
     "provenance": {"method": "manual"}}
+
+
+def arc_fitted(layers: int, absolute_e: bool) -> bytes:
+    """A file as an arc fitter leaves it: each layer's rings as quarter
+    arcs (alternately G2 and G3) between straight infill lines, relative or
+    absolute E (reset with G92 E0 each layer)."""
+    area = 0.45 * 0.2 / (math.pi * 1.75 ** 2 / 4)
+    out = ["M82" if absolute_e else "M83", "G1 Z0.2 F600", "G1 X110 Y100 F6000"]
+    e = 0.0
+
+    def extrude(mm):
+        nonlocal e
+        e = e + mm * area if absolute_e else mm * area
+        return f"E{e:.5f}"
+    for layer in range(layers):
+        out += [";LAYER_CHANGE", f"G1 Z{0.2 + 0.2 * layer:.2f} F600"]
+        if absolute_e:
+            out.append("G92 E0")
+            e = 0.0
+        for k, r in enumerate((10.0, 9.55, 5.0)):
+            out.append(f"G1 X{100 + r:.3f} Y100 F9000")
+            x, y = 100 + r, 100.0
+            cw = (layer + k) % 2 == 1
+            for q in range(4):
+                angle = (-1 if cw else 1) * math.pi / 2 * (q + 1)
+                nx, ny = 100 + r * math.cos(angle), 100 + r * math.sin(angle)
+                out.append(f"{'G2' if cw else 'G3'} X{nx:.3f} Y{ny:.3f}"
+                           f" I{100 - x:.3f} J{100 - y:.3f}"
+                           f" {extrude(math.pi / 2 * r)} F2400")
+                x, y = nx, ny
+        for i in range(4):
+            out += [f"G1 X92 Y{94 + 4 * i} F9000",
+                    f"G1 X108 Y{94 + 4 * i} {extrude(16)} F4800"]
+    return ("\n".join(out) + "\n").encode()

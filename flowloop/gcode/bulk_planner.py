@@ -8,12 +8,14 @@ through its public surface (Planner's queue_move/flush_queue seams, Move,
 HANDLED_COMMANDS and the timeline's types):
 
 - the file is read in chunks of whole lines; the lines slicers write most
-  (`G0`/`G1` with X Y Z E F words, `G92` with X Y Z E, `G10`/`G11`,
-  comments, blank lines and M-commands Klipper's motion ignores) are
-  tokenised and parsed with numpy for the whole chunk, and gcode_move's
+  (`G0`/`G1` with X Y Z E F words, `G92` with X Y Z E, `G10`/`G11`, `G2`/`G3`
+  with I J K, comments, blank lines and M-commands Klipper's motion ignores)
+  are tokenised and parsed with numpy for the whole chunk, and gcode_move's
   state (positions, G92 offsets, the feed rate) follows them with prefix
-  sums; every other line goes to the reference Planner, which holds the
-  state the two share;
+  sums; an arc becomes its segments' G1 rows (reference_planner.arc_segments,
+  from the position the rows before it leave, checked once the run's
+  positions are known); every other line goes to the reference Planner,
+  which holds the state the two share;
 - moves are built, limited and joined (toolhead.Move, calc_junction) as
   arrays; the lookahead's recurrences on squared speeds
   (x[i] = min(a[i], x[i-1] + d[i])) are solved in closed form with one
@@ -28,6 +30,7 @@ HANDLED_COMMANDS and the timeline's types):
 
 from __future__ import annotations
 
+import itertools
 import os
 import pickle
 import struct
@@ -47,6 +50,7 @@ from .reference_planner import (
     Planner,
     PrinterLimits,
     Segment,
+    arc_segments,
 )
 
 # half a MB: a chunk's arrays stay within a core's L2 cache (2 MB here);
@@ -66,8 +70,12 @@ _WORD_BYTES = 24
 _M_HANDLED = frozenset(name.encode() for name in
                        (*HANDLED_COMMANDS, *BARRIER_COMMANDS)
                        if name.startswith("M"))
-_OTHER, _SKIP, _MOVE, _G92, _G10, _G11 = 0, 1, 2, 3, 4, 5
-_AXES = b"XYZEF"
+# what a line is; every kind from _MOVE on has words, from _G10 on is a
+# firmware retraction (_ARC_CW and _ARC_CCW: G2 and G3)
+_OTHER, _SKIP, _MOVE, _G92, _ARC_CW, _ARC_CCW, _G10, _G11 = range(8)
+# the words read: X Y Z E F (rows 0-4 of a chunk's values), and an arc's
+# offsets to its centre, I J K (rows 5-7)
+_AXES = b"XYZEFIJK"
 _LETTER = np.full(256, -1, np.int8)
 for _i, _c in enumerate(_AXES):
     _LETTER[_c] = _i
@@ -278,6 +286,9 @@ class BulkPlanner:
         move = (b0 == 71) & ((b1 == 48) | (b1 == 49)) & (b2 == 32)
         kinds[move] = _MOVE
         kinds[(b0 == 71) & (b1 == 57) & (b2 == 50) & (b3 == 32)] = _G92
+        # arcs (gcode_arcs): expanded into their segments in the run
+        kinds[(b0 == 71) & (b1 == 50) & (b2 == 32)] = _ARC_CW
+        kinds[(b0 == 71) & (b1 == 51) & (b2 == 32)] = _ARC_CCW
         # firmware retraction: a bare G10 / G11 (with anything after it
         # Klipper may read another command: those go the slow way)
         retraction = np.flatnonzero((b0 == 71) & (b1 == 49)
@@ -305,13 +316,15 @@ class BulkPlanner:
         return kinds
 
     def _words(self, buf, size, starts, ends, kinds, sep, sep_byte):
-        """X Y Z E F values (NaN: absent) of move and G92 lines, one row per
-        axis; a line whose words do not read as simple numbers becomes other.
+        """X Y Z E F I J K values (NaN: absent) of move, G92 and arc lines,
+        one row per letter; a line whose words do not read as simple numbers
+        (or a move's or G92's with I J K) becomes other.
         sep: where the bytes that end words are (newline, space, ';', CR),
         sep_byte: which."""
         n = len(starts)
-        values = np.full((5, n), np.nan)
-        code = (kinds == _MOVE) | (kinds == _G92)
+        values = np.full((len(_AXES), n), np.nan)
+        arc = (kinds == _ARC_CW) | (kinds == _ARC_CCW)
+        code = (kinds == _MOVE) | (kinds == _G92) | arc
         if not code.any():
             return values
         # the line each of them is on: the newlines before it
@@ -353,6 +366,7 @@ class BulkPlanner:
         letter = _LETTER[buf[word_start]]
         ok &= (letter >= 0) & (length >= 2)
         bad_lines.append(line[~ok])
+        bad_lines.append(line[(letter >= 5) & ~arc[line]])
         absurd = ~(np.abs(numbers) <= MAX_ABS_VALUE)
         bad_lines.append(line[ok & absurd])
         feed = ok & (letter == 4)
@@ -395,6 +409,29 @@ class BulkPlanner:
     # --- gcode_move over a run of move and G92 lines --------------------------
     def _run(self, lo, hi, kinds, words, starts, ends, data, offset,
              first_line) -> None:
+        if self._bulk_run(lo, hi, kinds, words, starts, offset):
+            return
+        kind = kinds[lo:hi]
+        arcs = np.flatnonzero((kind == _ARC_CW) | (kind == _ARC_CCW)) + lo
+        if not arcs.size:
+            # an error or an odd move: the slow way, line by line
+            for i in range(lo, hi):
+                self._scalar_line(data, starts, ends, i, offset, first_line)
+            return
+        # arcs this run cannot expand at once: each through the reference,
+        # the lines between them in bulk
+        run_start = lo
+        for stop in arcs.tolist() + [hi]:
+            if stop > run_start:
+                self._run(run_start, stop, kinds, words, starts, ends, data,
+                          offset, first_line)
+            if stop < hi:
+                self._scalar_line(data, starts, ends, stop, offset, first_line)
+            run_start = stop + 1
+
+    def _bulk_run(self, lo, hi, kinds, words, starts, offset) -> bool:
+        """gcode_move and the moves of lines lo..hi-1 at once; False (and
+        nothing done) where they must go the slow way."""
         st = self.state
         ef = st.extrude_factor
         retracted = st.is_retracted
@@ -406,17 +443,22 @@ class BulkPlanner:
             # (comments) give no value, and in absolute coordinates a
             # position is only ever carried over them
             if not (kind >= _MOVE).any():
-                return
+                return True
             rows = np.arange(lo, hi)
             vals = words[:, lo:hi]
-            retractions = rows[:0]
         else:
             rows = np.flatnonzero(kind >= _MOVE) + lo
             if not rows.size:
-                return
+                return True
             kind = kinds[rows]
             vals = words[:, rows]
-            retractions = np.flatnonzero(kind >= _G10)
+        arcs = None
+        if ((kind == _ARC_CW) | (kind == _ARC_CCW)).any():
+            expanded = self._expand_arcs(rows, kind, vals)
+            if expanded is None:
+                return False
+            rows, kind, vals, arcs = expanded
+        retractions = np.flatnonzero(kind >= _G10)
         if retractions.size:
             # firmware_retraction: a G10 acts only when not retracted, a G11
             # only when retracted; each that acts is an E-only move (its own
@@ -424,7 +466,7 @@ class BulkPlanner:
             keep = np.ones(len(rows), bool)
             step_e = np.full(len(rows), np.nan)
             step_speed = np.full(len(rows), np.nan)
-            for r, k in zip(retractions.tolist(), kinds[rows[retractions]].tolist()):
+            for r, k in zip(retractions.tolist(), kind[retractions].tolist()):
                 if k == _G10 and not retracted:
                     length, speed = -st.retract_length, st.retract_speed
                 elif k == _G11 and retracted:
@@ -436,20 +478,26 @@ class BulkPlanner:
                 retracted = not retracted
                 step_e[r] = length * ef
                 step_speed[r] = float(int(speed * 60)) * st.speed_factor
+            if arcs is not None and not keep.all():
+                return False        # rows the arcs' checks count: the slow way
             rows, step_e, step_speed = rows[keep], step_e[keep], step_speed[keep]
             if not rows.size:
                 st.is_retracted = retracted
-                return
+                return True
             kind, vals = kind[keep], vals[:, keep]
         is_move = kind == _MOVE
-        vals[3] *= ef
+        # (vals may be a view of the chunk's words, which a retry reads again)
+        axis_vals = [vals[0], vals[1], vals[2], vals[3] * ef]
         last = [None] * 4
+        base_rows = [None] * 4
         base_out = list(st.base_position)
         for axis in range(4):
             absolute = st.absolute_coord and (axis < 3 or st.absolute_extrude)
-            last[axis], base_out[axis] = _axis_positions(
-                vals[axis], is_move, st.last_position[axis],
+            last[axis], base_out[axis], base_rows[axis] = _axis_positions(
+                axis_vals[axis], is_move, st.last_position[axis],
                 st.base_position[axis], absolute, step_e if axis == 3 else None)
+        if arcs is not None and not self._arcs_started_right(arcs, last, base_rows):
+            return False
         # the feed rate each move runs at (a retraction's own, not kept)
         feed = vals[4]
         speeds = _ffill(feed * st.speed_factor, st.speed, ~np.isnan(feed))
@@ -462,21 +510,137 @@ class BulkPlanner:
         if not moving.size:
             self._set_state(last, base_out, speeds)
             st.is_retracted = retracted
-            return
+            return True
         # each axis's position after each move, and its change from the one
         # before (the first from where the last run left it)
         pos = [axis[moving] for axis in last]
         d = [_steps(p, c) for p, c in zip(pos, st.commanded_pos)]
         moves = self._moves(d, move_speeds[moving],
                             offset + starts[rows[moving]])
-        if moves is None:               # an error or an odd move: the slow way
-            for i in range(lo, hi):
-                self._scalar_line(data, starts, ends, i, offset, first_line)
-            return
+        if moves is None:               # an error or an odd move
+            return False
         self._set_state(last, base_out, speeds)
         st.is_retracted = retracted
         st.commanded_pos = [p[-1] for p in pos]
         self.parts.append(moves)
+        return True
+
+    # --- gcode_arcs -------------------------------------------------------------
+    def _position_before_run(self) -> List[float]:
+        """The G-code position (X Y Z, E in G-code units) where the last run
+        left it, as gcode_arcs reads it."""
+        st = self.state
+        pos = [lp - bp for lp, bp in zip(st.last_position, st.base_position)]
+        pos[3] /= st.extrude_factor
+        return pos
+
+    def _expand_arcs(self, rows, kind, vals):
+        """The run's rows with each arc's row replaced by its segments' G1
+        rows (reference_planner.arc_segments, which the reference expands
+        them with), and for each arc the index of its first segment and the
+        position it started from; None: the slow way (relative coordinates,
+        no centre, what the reference refuses or reads another way).
+
+        An arc starts from the G-code position the rows before it leave:
+        taken here as each axis's last word before it (moves', G92s' and
+        arcs' alike), which is what gcode_move computes unless an origin's
+        arithmetic rounds it; _arcs_started_right checks that against the
+        positions the rows give, and the run goes the slow way if not."""
+        st = self.state
+        if not st.absolute_coord or not self._origins_stay(kind, vals):
+            return None
+        start = self._position_before_run()
+        before = [np.concatenate(([start[axis]], _ffill(vals[axis], start[axis])))
+                  for axis in range(4)]
+        # in absolute E an arc ends where its segments' running sum does,
+        # which is not quite its E word: the E each row last took it from
+        e_from = _ffill(np.where(np.isnan(vals[3]), np.nan,
+                                 np.arange(len(rows), dtype=float)), -1.0)
+        end_e = {}
+        alpha, beta, _ = st.arc_axes
+        arc_rows = np.flatnonzero((kind == _ARC_CW) | (kind == _ARC_CCW))
+        # each arc's words and starting position, as Python floats
+        words = vals[:, arc_rows].T.tolist()
+        starts = np.stack([b[arc_rows] for b in before], axis=1).tolist()
+        sources = ([-1.0] + e_from.tolist())
+        clockwise = (kind[arc_rows] == _ARC_CW).tolist()
+        counts = np.ones(len(rows), np.intp)
+        ends_of, extruded_of, started = [], [], []
+        for k, r in enumerate(arc_rows.tolist()):
+            word = words[k]
+            planar = (word[5 + alpha], word[5 + beta])
+            planar = tuple(0.0 if c != c else c for c in planar)   # NaN: none
+            if not (planar[0] or planar[1]):
+                return None
+            params = {a: word[i] for i, a in enumerate("XYZE") if word[i] == word[i]}
+            current = starts[k]
+            source = int(sources[r])
+            if source in end_e:
+                current[3] = end_e[source]
+            ends, extruded = arc_segments(current, params, planar, st.arc_axes,
+                                          clockwise[k], st.absolute_extrude,
+                                          st.limits.arc_resolution)
+            end_e[r] = extruded[-1] if st.absolute_extrude and extruded \
+                else current[3]
+            counts[r] = len(ends)
+            ends_of.append(ends)
+            extruded_of.append(extruded)
+            started.append(current)
+        # the expanded rows: every row repeated as often as it has segments
+        # (once, but for arcs; an arc's F stays on each), then the arcs'
+        # rows given their segments' ends and E words
+        first = np.cumsum(counts) - counts
+        is_arc = np.zeros(len(counts), bool)
+        is_arc[arc_rows] = True
+        extrudes = np.zeros(len(counts), bool)
+        extrudes[arc_rows[[e is not None for e in extruded_of]]] = True
+        rows = np.repeat(rows, counts)
+        kind = np.repeat(kind, counts)
+        vals = np.repeat(vals[:5], counts, axis=1)
+        at = np.flatnonzero(np.repeat(is_arc, counts))
+        chain = itertools.chain.from_iterable
+        flat = list(chain(chain(ends_of)))
+        vals[:3, at] = np.array(flat).reshape(-1, 3).T
+        vals[3, at] = np.nan
+        vals[3, np.repeat(extrudes, counts)] = list(chain(
+            e for e in extruded_of if e is not None))
+        kind[at] = _MOVE
+        arcs = [(int(first[r]), current)
+                for r, current in zip(arc_rows.tolist(), started)]
+        return rows, kind, vals, arcs
+
+    def _origins_stay(self, kind, vals) -> bool:
+        """Whether the G-code position is each axis's last word throughout
+        the run (what _expand_arcs takes it to be): no origin moved from 0
+        (a G92 in the run, or before it), and E not scaled by M221; E's
+        only where E is absolute (an arc reads it only then)."""
+        st = self.state
+        axes = 4 if st.absolute_extrude else 3
+        if any(st.base_position[axis] != 0.0 for axis in range(axes)):
+            return False
+        if axes == 4 and st.extrude_factor != 1.0:
+            return False
+        g92 = kind == _G92
+        return not (g92.any() and (~np.isnan(vals[:axes, g92])).any())
+
+    def _arcs_started_right(self, arcs, last, base_rows) -> bool:
+        """Whether each arc started from the G-code position the rows
+        before it give (last: each axis's position after each row, base_rows
+        its origin; E only where it is absolute)."""
+        st = self.state
+        start = self._position_before_run()
+        axes = 4 if st.absolute_extrude else 3
+        for at, current in arcs:
+            for axis in range(axes):
+                if at:
+                    pos = float(last[axis][at - 1]) - float(base_rows[axis][at - 1])
+                    if axis == 3:
+                        pos /= st.extrude_factor
+                else:
+                    pos = start[axis]
+                if pos != current[axis]:
+                    return False
+        return True
 
     def _set_state(self, last, base, speeds) -> None:
         st = self.state
@@ -761,7 +925,8 @@ def _ffill(values: np.ndarray, first: float,
 def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
     """gcode_move's position of one axis after each row (moves set it, G92
     rows move its origin, steps (firmware retraction, E only) move it and its
-    origin together), and the origin after the last row."""
+    origin together), the origin after the last row, and the origin after
+    each row (None where the axis is relative: nothing asks for it)."""
     given = ~np.isnan(vals)
     g92 = given & ~is_move
     if steps is None:
@@ -772,7 +937,8 @@ def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
         special = np.flatnonzero(g92 | stepping)
     if absolute and not special.size:
         # the values given are all moves': each from the origin
-        return _ffill(vals + base0, last0, given), base0
+        return _ffill(vals + base0, last0, given), base0, \
+            np.full(len(vals), base0)
     moves = given & is_move
     if not absolute:
         add = np.where(moves, vals, np.where(stepping, steps, 0.0)) \
@@ -785,7 +951,7 @@ def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
                 base = base + (float(last[i]) - before)
             else:
                 base = float(last[i]) - float(vals[i])
-        return last, base
+        return last, base, None
     # each G92 or step starts a new origin from the position at that row
     bases = [base0]
     at_step = np.full(len(vals), np.nan)
@@ -824,7 +990,7 @@ def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
     np.cumsum(epoch, out=epoch)
     base_of_row = np.asarray(bases)[epoch]
     known = np.where(moves, vals + base_of_row, at_step)
-    return _ffill(known, last0), cur_base
+    return _ffill(known, last0), cur_base, base_of_row
 
 
 def _read_numbers(buf, start, length, width):

@@ -39,7 +39,7 @@ import io
 import math
 import re
 from dataclasses import dataclass, fields
-from typing import BinaryIO, Dict, Iterator, List, NamedTuple, Optional, Union
+from typing import BinaryIO, Dict, Iterator, List, NamedTuple, Optional, Tuple, Union
 
 from ..errors import FlowloopError
 
@@ -780,58 +780,21 @@ class Planner:
         other = self._floats(args, "IJKR")
         if "R" in other:
             raise self._error("G2/G3 does not support R moves")
-        ef = self.extrude_factor
-        current = [lp - bp for lp, bp in zip(self.last_position, self.base_position)]
-        current[3] /= ef
-        target = [params.get(a, current[i]) for i, a in enumerate("XYZ")]
-        alpha, beta, helical = self.arc_axes
+        alpha, beta, _ = self.arc_axes
         names = "IJK"
         planar = (other.get(names[alpha], 0.0), other.get(names[beta], 0.0))
         if not (planar[0] or planar[1]):
             raise self._error("G2/G3 requires IJ, IK or JK parameters")
-        r_p, r_q = -planar[0], -planar[1]
-        center_p = current[alpha] - r_p
-        center_q = current[beta] - r_q
-        rt_alpha = target[alpha] - center_p
-        rt_beta = target[beta] - center_q
-        angular_travel = math.atan2(r_p * rt_beta - r_q * rt_alpha,
-                                    r_p * rt_alpha + r_q * rt_beta)
-        if angular_travel < 0.0:
-            angular_travel += 2.0 * math.pi
-        if clockwise:
-            angular_travel -= 2.0 * math.pi
-        if (angular_travel == 0.0 and current[alpha] == target[alpha]
-                and current[beta] == target[beta]):
-            angular_travel = 2.0 * math.pi
-        linear_travel = target[helical] - current[helical]
-        radius = math.hypot(r_p, r_q)
-        flat_mm = radius * angular_travel
-        mm_of_travel = math.hypot(flat_mm, linear_travel) if linear_travel \
-            else math.fabs(flat_mm)
-        segments = max(1.0, math.floor(mm_of_travel / self.limits.arc_resolution))
-        theta_per_segment = angular_travel / segments
-        linear_per_segment = linear_travel / segments
-        e_per_move = e_base = 0.0
-        if "E" in params:
-            if self.absolute_extrude:
-                e_base = current[3]
-            e_per_move = (params["E"] - e_base) / segments
-        for i in range(1, int(segments) + 1):
-            c_theta = i * theta_per_segment
-            cos_ti, sin_ti = math.cos(c_theta), math.sin(c_theta)
-            r_p = -planar[0] * cos_ti + planar[1] * sin_ti
-            r_q = -planar[0] * sin_ti - planar[1] * cos_ti
-            c = [0.0, 0.0, 0.0]
-            c[alpha] = center_p + r_p
-            c[beta] = center_q + r_q
-            c[helical] = current[helical] + i * linear_per_segment
-            if i == segments:
-                c = target
+        ef = self.extrude_factor
+        current = [lp - bp for lp, bp in zip(self.last_position, self.base_position)]
+        current[3] /= ef
+        ends, extruded = arc_segments(current, params, planar, self.arc_axes,
+                                      clockwise, self.absolute_extrude,
+                                      self.limits.arc_resolution)
+        for k, c in enumerate(ends):
             g1 = {"X": c[0], "Y": c[1], "Z": c[2]}
-            if e_per_move:
-                g1["E"] = e_base + e_per_move
-                if self.absolute_extrude:
-                    e_base += e_per_move
+            if extruded is not None:
+                g1["E"] = extruded[k]
             if "F" in params:
                 g1["F"] = params["F"]
             self._g1(g1)
@@ -883,3 +846,73 @@ def plan_file(f: BinaryIO, limits: PrinterLimits = PrinterLimits()) -> Iterator[
 def plan_text(text: str, limits: PrinterLimits = PrinterLimits()) -> List[Event]:
     """All events of G-code given as text (tests, small snippets)."""
     return list(plan_file(io.BytesIO(text.encode()), limits))
+
+
+def arc_segments(current: List[float], params: Dict[str, float],
+                 planar: Tuple[float, float], arc_axes: Tuple[int, int, int],
+                 clockwise: bool, absolute_extrude: bool, resolution: float
+                 ) -> Tuple[List[Tuple[float, float, float]], Optional[List[float]]]:
+    """gcode_arcs' segments of one G2 (clockwise) or G3, from the G-code
+    position before it (current: X Y Z and E, E in G-code units), its X Y Z
+    E words (params; F is the caller's) and its offsets to the centre in
+    the arc's plane (planar, not both 0): each segment's end (X Y Z) and,
+    if the arc extrudes, each one's E word; the same floats, in the same
+    order, as klippy/extras/gcode_arcs.py computes them. The reference
+    planner and the bulk planner both expand arcs with it."""
+    target = [params.get(a, current[i]) for i, a in enumerate("XYZ")]
+    alpha, beta, helical = arc_axes
+    r_p, r_q = -planar[0], -planar[1]
+    center_p = current[alpha] - r_p
+    center_q = current[beta] - r_q
+    rt_alpha = target[alpha] - center_p
+    rt_beta = target[beta] - center_q
+    angular_travel = math.atan2(r_p * rt_beta - r_q * rt_alpha,
+                                r_p * rt_alpha + r_q * rt_beta)
+    if angular_travel < 0.0:
+        angular_travel += 2.0 * math.pi
+    if clockwise:
+        angular_travel -= 2.0 * math.pi
+    if (angular_travel == 0.0 and current[alpha] == target[alpha]
+            and current[beta] == target[beta]):
+        angular_travel = 2.0 * math.pi
+    linear_travel = target[helical] - current[helical]
+    radius = math.hypot(r_p, r_q)
+    flat_mm = radius * angular_travel
+    mm_of_travel = math.hypot(flat_mm, linear_travel) if linear_travel \
+        else math.fabs(flat_mm)
+    segments = max(1.0, math.floor(mm_of_travel / resolution))
+    theta_per_segment = angular_travel / segments
+    linear_per_segment = linear_travel / segments
+    e_per_move = e_base = 0.0
+    if "E" in params:
+        if absolute_extrude:
+            e_base = current[3]
+        e_per_move = (params["E"] - e_base) / segments
+    count = int(segments)
+    p0, p1 = planar
+    height = current[helical]
+    cos, sin = math.cos, math.sin
+    ends = []
+    for i in range(1, count):
+        c_theta = i * theta_per_segment
+        cos_ti, sin_ti = cos(c_theta), sin(c_theta)
+        # the end in the arc's plane (alpha, beta) and along its axis
+        a = center_p + (-p0 * cos_ti + p1 * sin_ti)
+        b = center_q + (-p0 * sin_ti - p1 * cos_ti)
+        h = height + i * linear_per_segment
+        if alpha == 0 and beta == 1:
+            ends.append((a, b, h))
+        else:
+            c = [0.0, 0.0, 0.0]
+            c[alpha], c[beta], c[helical] = a, b, h
+            ends.append(tuple(c))
+    ends.append(tuple(target))
+    if not e_per_move:
+        return ends, None
+    if not absolute_extrude:
+        return ends, [e_base + e_per_move] * count
+    extruded = []
+    for _ in range(count):
+        extruded.append(e_base + e_per_move)
+        e_base += e_per_move
+    return ends, extruded

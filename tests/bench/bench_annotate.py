@@ -52,6 +52,7 @@ from typing import Dict, List, Optional, Tuple
 
 from flowloop.gcode.bulk_planner import Segments, plan_batches
 from tests.bench.size import pick
+from tests.samples import arc_fitted
 
 PROJECT = Path(__file__).resolve().parents[2]
 SHARED = Path(os.environ.get("FLOWLOOP_BENCH_GCODE",
@@ -59,6 +60,8 @@ SHARED = Path(os.environ.get("FLOWLOOP_BENCH_GCODE",
 EXCERPT = PROJECT / "tests" / "data" / "gcode" / "block_layers_1_2.gcode"
 TARGET_BYTES = pick(25_000_000, 300_000)
 ROUNDS = pick(5, 1)
+# layers of the synthetic arc-fitted file: 5.3 MB, 72,000 arcs (full size)
+ARC_LAYERS = pick(6000, 100)
 
 
 def large_file(folder: Path) -> Path:
@@ -159,3 +162,26 @@ def test_annotate_whole_process_vs_preprocess_cancellation(tmp_path, bench):
         assert sum(len(b) for b in plan_batches(f) if isinstance(b, Segments)) > 0
     planner_s = time.perf_counter() - start
     bench.figure("planner alone, in this process, no labels", planner_s, " s")
+
+
+def test_annotate_an_arc_fitted_file(tmp_path, bench):
+    # No slicer here fits arcs: tests.samples.arc_fitted writes each
+    # layer's rings as quarter arcs (G2/G3, relative E) between straight
+    # lines, as an arc fitter leaves a file; gcode_arcs makes each one some
+    # twelve 1 mm moves, which the planner expands in bulk
+    # (preprocess_cancellation refuses a file no slicer's header names, so
+    # flowloop's time is a figure of its own: whole process, median)
+    path = tmp_path / "arcs.gcode"
+    path.write_bytes(arc_fitted(ARC_LAYERS, absolute_e=False))
+    env = cached(tmp_path)
+    argv, _ = commands(Path("{}"))
+    work = tmp_path / "work_arcs.gcode"
+    timed(argv, path, work, env)
+    wall = statistics.median(timed(argv, path, work, env)[0] for _ in range(ROUNDS))
+    megabytes = path.stat().st_size / 1e6
+    bench.figure("annotate arc-fitted file (synthetic, relative E)", megabytes,
+                 " MB", goal="")
+    bench.figure("annotate wall time, whole process with start-up, arc-fitted",
+                 wall, " s")
+    bench.figure("annotate arc-fitted file, MB per second", megabytes / wall,
+                 " MB/s")

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from flowloop.errors import FlowloopError
 from flowloop.gcode import bulk_planner, reference_planner
 from flowloop.gcode.reference_planner import PrinterLimits
+from tests.samples import arc_fitted
 
 pytestmark = pytest.mark.unit
 
@@ -129,6 +130,74 @@ line = st.one_of(
                      "M221 S95", "M220 S110", "G4 P50", "M400", "G1 E-1 F2400",
                      "G1 E1", "G1 Z0.4", "G1 F600", "G2 X10 Y10 I5 J0",
                      "M109 S210", "G1 X1 ; c", "SET_VELOCITY_LIMIT ACCEL=500"]))
+
+
+# arcs (gcode_arcs): mostly an end and a centre in the plane, now and then
+# none, an R (refused) or a helical Z; extruding or not, a feed or not
+coordinate = st.floats(-60, 60).map(lambda v: f"{v:.3f}".rstrip("0").rstrip("."))
+arc_line = st.tuples(
+    st.sampled_from(["G2", "G3"]),
+    st.sampled_from(["X{} Y{}", "X{} Y{}", "X{} Y{}", "X{}", "X{} Y{} Z{}", ""]),
+    st.lists(coordinate, min_size=3, max_size=3),
+    st.sampled_from(["I{} J{}", "I{} J{}", "I{} J{}", "I{}", "J{}", "", "R{}"]),
+    st.lists(st.floats(-20, 20).map(lambda v: f"{v:.3f}"), min_size=2, max_size=2),
+    st.one_of(st.none(), st.floats(0, 5).map(lambda v: f"{v:.4f}")),
+    st.one_of(st.none(), st.integers(60, 9000))).map(
+    lambda a: " ".join(w for w in (a[0], a[1].format(*a[2]), a[3].format(*a[4]),
+                                   f"E{a[5]}" if a[5] is not None else "",
+                                   f"F{a[6]}" if a[6] is not None else "") if w))
+simple_move = st.lists(st.tuples(st.sampled_from("XYE"), coordinate),
+                       min_size=1, max_size=3).map(
+    lambda ws: "G1 " + " ".join(k + v for k, v in ws))
+arc_file_line = st.one_of(
+    arc_line, arc_line, arc_line, simple_move, simple_move,
+    st.sampled_from(["G17", "G18", "G19", "M82", "M83", "M83", "G92 E0",
+                     "G92 Z1", "M221 S90", "G10", "G11", "G1 F1200", "G91",
+                     "G90", "; a comment", "M106 S128"]))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(arc_file_line, min_size=1, max_size=40), st.integers(1, 400))
+def test_a_file_of_arcs_gives_the_reference_plan_at_any_chunk_size(lines, chunk):
+    limits = PrinterLimits(max_velocity=300, max_accel=3000, retract_length=1.0,
+                           max_extrude_cross_section=1e6,
+                           max_extrude_only_distance=1e4)
+    data = ("G90\n" + "\n".join(lines) + "\n").encode()
+    try:
+        expected = reference(data, limits)
+    except FlowloopError as e:
+        with pytest.raises(FlowloopError) as ours:
+            fast(data, limits, chunk)
+        assert str(ours.value) == str(e)
+        return
+    ours = fast(data, limits, chunk)
+    assert [tuple(e) for e in ours] == [tuple(e) for e in expected]
+
+
+@pytest.mark.parametrize("absolute_e", [False, True])
+@pytest.mark.parametrize("chunk_bytes", [1 << 20, 4096, 97])
+def test_an_arc_fitted_file_gives_the_reference_plan(absolute_e, chunk_bytes):
+    assert_same(arc_fitted(6, absolute_e), chunk_bytes=chunk_bytes)
+
+
+def test_arcs_are_read_in_bulk_where_the_origins_stay():
+    """Relative E (no origin moves in X Y Z): every arc of the file is
+    expanded in bulk, none goes through the reference line by line; with
+    absolute E reset each layer (G92 E0) they go the reference's way."""
+    through_reference = []
+
+    class Counting(bulk_planner.BulkPlanner):
+        def _scalar_line(self, data, starts, ends, i, offset, first_line):
+            through_reference.append(bytes(data[starts[i]:ends[i]]))
+            super()._scalar_line(data, starts, ends, i, offset, first_line)
+
+    for absolute_e in (False, True):
+        through_reference.clear()
+        planner = Counting(LIMITS)
+        planner.chunk(arc_fitted(6, absolute_e), 0)
+        planner.finish()
+        arcs = [line for line in through_reference if line[:2] in (b"G2", b"G3")]
+        assert len(arcs) == (6 * 3 * 4 if absolute_e else 0)
 
 
 @settings(max_examples=150, deadline=None)
