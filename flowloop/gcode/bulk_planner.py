@@ -13,9 +13,9 @@ HANDLED_COMMANDS and the timeline's types):
   are tokenised and parsed with numpy for the whole chunk, and gcode_move's
   state (positions, G92 offsets, the feed rate) follows them with prefix
   sums; an arc becomes its segments' G1 rows (reference_planner.arc_segments,
-  from the position the rows before it leave, checked once the run's
-  positions are known); every other line goes to the reference Planner,
-  which holds the state the two share;
+  from the position the rows before it leave, followed row by row and
+  checked once the run's positions are known); every other line goes to
+  the reference Planner, which holds the state the two share;
 - moves are built, limited and joined (toolhead.Move, calc_junction) as
   arrays; the lookahead's recurrences on squared speeds
   (x[i] = min(a[i], x[i-1] + d[i])) are solved in closed form with one
@@ -539,59 +539,75 @@ class BulkPlanner:
         rows (reference_planner.arc_segments, which the reference expands
         them with), and for each arc the index of its first segment and the
         position it started from; None: the slow way (relative coordinates,
-        no centre, what the reference refuses or reads another way).
+        no centre, firmware retraction in the run).
 
-        An arc starts from the G-code position the rows before it leave:
-        taken here as each axis's last word before it (moves', G92s' and
-        arcs' alike), which is what gcode_move computes unless an origin's
-        arithmetic rounds it; _arcs_started_right checks that against the
-        positions the rows give, and the run goes the slow way if not."""
+        The G-code position each arc starts from is gcode_move's, followed
+        row by row in Python floats as gcode_move keeps it (a move sets an
+        axis to its word plus the origin, or adds the word in relative E; a
+        G92 moves the origin; an arc's segments set it one after another).
+        _arcs_started_right checks each arc's start against the positions
+        the run's rows then give in bulk, so a slip in this loop sends the
+        run the slow way rather than into the plan."""
         st = self.state
-        if not st.absolute_coord or not self._origins_stay(kind, vals):
+        if not st.absolute_coord or (kind >= _G10).any():
             return None
-        start = self._position_before_run()
-        before = [np.concatenate(([start[axis]], _ffill(vals[axis], start[axis])))
-                  for axis in range(4)]
-        # in absolute E an arc ends where its segments' running sum does,
-        # which is not quite its E word: the E each row last took it from
-        e_from = _ffill(np.where(np.isnan(vals[3]), np.nan,
-                                 np.arange(len(rows), dtype=float)), -1.0)
-        end_e = {}
+        ef = st.extrude_factor
+        absolute_e = st.absolute_extrude
+        last, base = list(st.last_position[:4]), list(st.base_position[:4])
         alpha, beta, _ = st.arc_axes
-        arc_rows = np.flatnonzero((kind == _ARC_CW) | (kind == _ARC_CCW))
-        # each arc's words and starting position, as Python floats
-        words = vals[:, arc_rows].T.tolist()
-        starts = np.stack([b[arc_rows] for b in before], axis=1).tolist()
-        sources = ([-1.0] + e_from.tolist())
-        clockwise = (kind[arc_rows] == _ARC_CW).tolist()
+        is_arc = (kind == _ARC_CW) | (kind == _ARC_CCW)
+        # the rows that move the position (comments carry it), as floats
+        moving = np.flatnonzero((kind == _MOVE) | (kind == _G92) | is_arc)
+        words = vals[:, moving].T.tolist()
+        kinds = kind[moving].tolist()
         counts = np.ones(len(rows), np.intp)
         ends_of, extruded_of, started = [], [], []
-        for k, r in enumerate(arc_rows.tolist()):
-            word = words[k]
-            planar = (word[5 + alpha], word[5 + beta])
-            planar = tuple(0.0 if c != c else c for c in planar)   # NaN: none
+        for r, k, word in zip(moving.tolist(), kinds, words):
+            if k == _MOVE:
+                for axis in range(4):
+                    v = word[axis]
+                    if v != v:                          # NaN: no word
+                        continue
+                    if axis < 3:
+                        last[axis] = v + base[axis]
+                    elif absolute_e:
+                        last[3] = v * ef + base[3]
+                    else:
+                        last[3] += v * ef
+                continue
+            if k == _G92:
+                for axis in range(4):
+                    v = word[axis]
+                    if v == v:
+                        base[axis] = last[axis] - (v * ef if axis == 3 else v)
+                continue
+            planar = tuple(0.0 if c != c else c
+                           for c in (word[5 + alpha], word[5 + beta]))
             if not (planar[0] or planar[1]):
                 return None
             params = {a: word[i] for i, a in enumerate("XYZE") if word[i] == word[i]}
-            current = starts[k]
-            source = int(sources[r])
-            if source in end_e:
-                current[3] = end_e[source]
+            current = [last[axis] - base[axis] for axis in range(4)]
+            current[3] /= ef
             ends, extruded = arc_segments(current, params, planar, st.arc_axes,
-                                          clockwise[k], st.absolute_extrude,
+                                          k == _ARC_CW, absolute_e,
                                           st.limits.arc_resolution)
-            end_e[r] = extruded[-1] if st.absolute_extrude and extruded \
-                else current[3]
+            for axis in range(3):
+                last[axis] = ends[-1][axis] + base[axis]
+            if extruded is not None:
+                if absolute_e:
+                    last[3] = extruded[-1] * ef + base[3]
+                else:
+                    for e in extruded:
+                        last[3] += e * ef
             counts[r] = len(ends)
             ends_of.append(ends)
             extruded_of.append(extruded)
             started.append(current)
+        arc_rows = np.flatnonzero(is_arc)
         # the expanded rows: every row repeated as often as it has segments
         # (once, but for arcs; an arc's F stays on each), then the arcs'
         # rows given their segments' ends and E words
         first = np.cumsum(counts) - counts
-        is_arc = np.zeros(len(counts), bool)
-        is_arc[arc_rows] = True
         extrudes = np.zeros(len(counts), bool)
         extrudes[arc_rows[[e is not None for e in extruded_of]]] = True
         rows = np.repeat(rows, counts)
@@ -599,8 +615,7 @@ class BulkPlanner:
         vals = np.repeat(vals[:5], counts, axis=1)
         at = np.flatnonzero(np.repeat(is_arc, counts))
         chain = itertools.chain.from_iterable
-        flat = list(chain(chain(ends_of)))
-        vals[:3, at] = np.array(flat).reshape(-1, 3).T
+        vals[:3, at] = np.array(list(chain(chain(ends_of)))).reshape(-1, 3).T
         vals[3, at] = np.nan
         vals[3, np.repeat(extrudes, counts)] = list(chain(
             e for e in extruded_of if e is not None))
@@ -608,20 +623,6 @@ class BulkPlanner:
         arcs = [(int(first[r]), current)
                 for r, current in zip(arc_rows.tolist(), started)]
         return rows, kind, vals, arcs
-
-    def _origins_stay(self, kind, vals) -> bool:
-        """Whether the G-code position is each axis's last word throughout
-        the run (what _expand_arcs takes it to be): no origin moved from 0
-        (a G92 in the run, or before it), and E not scaled by M221; E's
-        only where E is absolute (an arc reads it only then)."""
-        st = self.state
-        axes = 4 if st.absolute_extrude else 3
-        if any(st.base_position[axis] != 0.0 for axis in range(axes)):
-            return False
-        if axes == 4 and st.extrude_factor != 1.0:
-            return False
-        g92 = kind == _G92
-        return not (g92.any() and (~np.isnan(vals[:axes, g92])).any())
 
     def _arcs_started_right(self, arcs, last, base_rows) -> bool:
         """Whether each arc started from the G-code position the rows

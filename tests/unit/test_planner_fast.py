@@ -180,10 +180,10 @@ def test_an_arc_fitted_file_gives_the_reference_plan(absolute_e, chunk_bytes):
     assert_same(arc_fitted(6, absolute_e), chunk_bytes=chunk_bytes)
 
 
-def test_arcs_are_read_in_bulk_where_the_origins_stay():
-    """Relative E (no origin moves in X Y Z): every arc of the file is
-    expanded in bulk, none goes through the reference line by line; with
-    absolute E reset each layer (G92 E0) they go the reference's way."""
+def test_arcs_are_read_in_bulk():
+    """Relative E, and absolute E reset each layer (G92 E0): every arc of
+    the file is expanded in bulk, none goes through the reference line by
+    line; with firmware retraction in the run they do."""
     through_reference = []
 
     class Counting(bulk_planner.BulkPlanner):
@@ -191,13 +191,19 @@ def test_arcs_are_read_in_bulk_where_the_origins_stay():
             through_reference.append(bytes(data[starts[i]:ends[i]]))
             super()._scalar_line(data, starts, ends, i, offset, first_line)
 
-    for absolute_e in (False, True):
+    for absolute_e, retraction in ((False, False), (True, False), (False, True)):
         through_reference.clear()
+        data = arc_fitted(6, absolute_e)
+        if retraction:
+            data = data.replace(b"F9000\n", b"F9000\nG10\nG11\n")
         planner = Counting(LIMITS)
-        planner.chunk(arc_fitted(6, absolute_e), 0)
-        planner.finish()
+        events = planner.chunk(data, 0) + planner.finish()
         arcs = [line for line in through_reference if line[:2] in (b"G2", b"G3")]
-        assert len(arcs) == (6 * 3 * 4 if absolute_e else 0)
+        assert len(arcs) == (6 * 3 * 4 if retraction else 0)
+        planned = [r for e in events if isinstance(e, bulk_planner.Segments)
+                   for r in e.records()]
+        assert planned == [e for e in reference(data, LIMITS)
+                           if isinstance(e, reference_planner.Segment)]
 
 
 @settings(max_examples=150, deadline=None)
