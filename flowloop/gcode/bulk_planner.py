@@ -51,6 +51,7 @@ from .reference_planner import (
     PrinterLimits,
     Segment,
     arc_segments,
+    gcode_position,
 )
 
 # half a MB: a chunk's arrays stay within a core's L2 cache (2 MB here);
@@ -478,8 +479,6 @@ class BulkPlanner:
                 retracted = not retracted
                 step_e[r] = length * ef
                 step_speed[r] = float(int(speed * 60)) * st.speed_factor
-            if arcs is not None and not keep.all():
-                return False        # rows the arcs' checks count: the slow way
             rows, step_e, step_speed = rows[keep], step_e[keep], step_speed[keep]
             if not rows.size:
                 st.is_retracted = retracted
@@ -526,14 +525,6 @@ class BulkPlanner:
         return True
 
     # --- gcode_arcs -------------------------------------------------------------
-    def _position_before_run(self) -> List[float]:
-        """The G-code position (X Y Z, E in G-code units) where the last run
-        left it, as gcode_arcs reads it."""
-        st = self.state
-        pos = [lp - bp for lp, bp in zip(st.last_position, st.base_position)]
-        pos[3] /= st.extrude_factor
-        return pos
-
     def _expand_arcs(self, rows, kind, vals):
         """The run's rows with each arc's row replaced by its segments' G1
         rows (reference_planner.arc_segments, which the reference expands
@@ -586,8 +577,7 @@ class BulkPlanner:
             if not (planar[0] or planar[1]):
                 return None
             params = {a: word[i] for i, a in enumerate("XYZE") if word[i] == word[i]}
-            current = [last[axis] - base[axis] for axis in range(4)]
-            current[3] /= ef
+            current = gcode_position(last, base, ef)
             ends, extruded = arc_segments(current, params, planar, st.arc_axes,
                                           k == _ARC_CW, absolute_e,
                                           st.limits.arc_resolution)
@@ -627,20 +617,18 @@ class BulkPlanner:
     def _arcs_started_right(self, arcs, last, base_rows) -> bool:
         """Whether each arc started from the G-code position the rows
         before it give (last: each axis's position after each row, base_rows
-        its origin; E only where it is absolute)."""
+        its origin; E only where it is absolute). An arc on the run's first
+        row started from the state, as _expand_arcs read it."""
         st = self.state
-        start = self._position_before_run()
         axes = 4 if st.absolute_extrude else 3
         for at, current in arcs:
-            for axis in range(axes):
-                if at:
-                    pos = float(last[axis][at - 1]) - float(base_rows[axis][at - 1])
-                    if axis == 3:
-                        pos /= st.extrude_factor
-                else:
-                    pos = start[axis]
-                if pos != current[axis]:
-                    return False
+            if not at:
+                continue
+            pos = gcode_position([float(a[at - 1]) for a in last],
+                                 [float(b[at - 1]) if b is not None else 0.0
+                                  for b in base_rows], st.extrude_factor)
+            if pos[:axes] != current[:axes]:
+                return False
         return True
 
     def _set_state(self, last, base, speeds) -> None:
@@ -939,7 +927,7 @@ def _axis_positions(vals, is_move, last0, base0, absolute, steps=None):
     if absolute and not special.size:
         # the values given are all moves': each from the origin
         return _ffill(vals + base0, last0, given), base0, \
-            np.full(len(vals), base0)
+            np.broadcast_to(np.float64(base0), vals.shape)
     moves = given & is_move
     if not absolute:
         add = np.where(moves, vals, np.where(stepping, steps, 0.0)) \
@@ -1094,7 +1082,6 @@ def plan_file(f: BinaryIO, limits: Optional[PrinterLimits] = None,
             yield batch
         else:
             yield from batch.records()
-
 
 
 # --- to another process -----------------------------------------------------------

@@ -98,7 +98,6 @@ class _Pieces(NamedTuple):
     a row each: a piece ends at the very float its move's next one starts."""
     bounds_s: np.ndarray
     start_s: np.ndarray
-    length_s: np.ndarray
     volume_mm3: np.ndarray
     flow_mm3_s: np.ndarray
     slope_mm3_s2: np.ndarray
@@ -113,7 +112,6 @@ def _pieces(batch: Segments, volume_before: float) -> _Pieces:
     f0 = np.where(whole, batch.start_flow_mm3_s, 0.0)
     fc = np.where(whole, batch.flow_mm3_s, 0.0)
     f1 = np.where(whole, batch.end_flow_mm3_s, 0.0)
-    length = np.stack((accel, cruise, decel), axis=1).ravel()
     at_start = np.stack((f0, fc, fc), axis=1).ravel()
     accel_end = start + accel
     cruise_end = accel_end + cruise
@@ -133,7 +131,7 @@ def _pieces(batch: Segments, volume_before: float) -> _Pieces:
                           np.zeros(len(fc)),
                           np.where(decel > 0.0, (f1 - fc) / decel, 0.0)),
                          axis=1).ravel()
-    return _Pieces(bounds, starts, length, before, at_start, slope,
+    return _Pieces(bounds, starts, before, at_start, slope,
                    volume_before + float(total[-1]))
 
 

@@ -785,9 +785,8 @@ class Planner:
         planar = (other.get(names[alpha], 0.0), other.get(names[beta], 0.0))
         if not (planar[0] or planar[1]):
             raise self._error("G2/G3 requires IJ, IK or JK parameters")
-        ef = self.extrude_factor
-        current = [lp - bp for lp, bp in zip(self.last_position, self.base_position)]
-        current[3] /= ef
+        current = gcode_position(self.last_position, self.base_position,
+                                 self.extrude_factor)
         ends, extruded = arc_segments(current, params, planar, self.arc_axes,
                                       clockwise, self.absolute_extrude,
                                       self.limits.arc_resolution)
@@ -846,6 +845,15 @@ def plan_file(f: BinaryIO, limits: PrinterLimits = PrinterLimits()) -> Iterator[
 def plan_text(text: str, limits: PrinterLimits = PrinterLimits()) -> List[Event]:
     """All events of G-code given as text (tests, small snippets)."""
     return list(plan_file(io.BytesIO(text.encode()), limits))
+
+
+def gcode_position(last_position: List[float], base_position: List[float],
+                   extrude_factor: float) -> List[float]:
+    """gcode_move's G-code position (X Y Z, E in G-code units) from its
+    position and origin, as gcode_arcs reads it."""
+    pos = [lp - bp for lp, bp in zip(last_position[:4], base_position[:4])]
+    pos[3] /= extrude_factor
+    return pos
 
 
 def arc_segments(current: List[float], params: Dict[str, float],
