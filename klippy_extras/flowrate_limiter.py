@@ -143,7 +143,21 @@ class FlowrateLimiter:
         # measures klippy's host time with and without it).
         # From where the toolhead really is: commands that move it directly
         # (calibrations) leave no stale start behind.
-        shape = fl_caps.move_shape(self.next_transform.get_position(), newpos)
+        start = self.next_transform.get_position()
+        shape = fl_caps.move_shape(start, newpos)
+        if self.nozzle is None and shape.extrude_mm > 0.:
+            # A printer (or a klippy paced to the clock): the toolhead may
+            # pause inside each piece's move, windows and temperatures
+            # arrive meanwhile, and the next piece is capped by them
+            count = self.limiter.pieces(shape, speed)
+            if count > 1:
+                for end in fl_caps.piece_ends(start, newpos, count):
+                    self._queue(fl_caps.move_shape(start, end), end, speed)
+                    start = end
+                return
+        self._queue(shape, newpos, speed)
+
+    def _queue(self, shape, newpos, speed):
         melted_mm3 = 0.
         if shape.extrude_mm > 0.:   # ToolMoves hands this tool's moves only
             if self.nozzle is None:

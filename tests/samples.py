@@ -61,6 +61,14 @@ WEAK_PROFILE = {
                "max_temp_c": 240.0},
     "provenance": {"method": "manual"}}
 
+# 12 mm^3/s at 200 C (working point 0.5): a hotend three times the weak one
+STRONG_PROFILE = {
+    **WEAK_PROFILE, "identity": {"name": "strong", "nozzle_diameter_mm": 0.4},
+    "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                           "flow_mm3_s": 12.5},
+              "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
+                             "flow_mm3_s": 11.5}}}
+
 
 def arc_fitted(layers: int, absolute_e: bool) -> bytes:
     """A file as an arc fitter leaves it: each layer's rings as quarter

@@ -12,7 +12,7 @@ speed, and nothing here changes a distance.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Optional, Sequence
+from typing import Iterator, List, NamedTuple, Optional, Sequence
 
 from ..errors import FlowloopError
 
@@ -22,6 +22,16 @@ MIN_XYZ_MM = 1e-9
 MIN_CAP_MM3_S = 0.1
 
 CAP_NAMES = ("max_flow", "temperature", "grip", "model")
+# On a printer a cap acts on a move when klippy queues it, about a second
+# (its BUFFER_TIME_HIGH) before the move runs, and a move runs whole at the
+# speed it was queued at: a 3 s infill line went on slipping to its end,
+# whatever the windows said meanwhile (4.7 s from a slip to the first
+# slowed move, against 1.3 s on 5 mm segments). So where the caps can
+# change while a move waits (klippy runs its timers between the pieces), an
+# extruding move longer than this is queued in equal pieces, each capped as
+# it is queued: a quarter of klippy's buffer.
+PIECE_S = 0.5
+CUT_FROM_S = 1.0
 
 
 class MoveShape(NamedTuple):
@@ -53,6 +63,28 @@ def move_shape(start: Sequence[float], end: Sequence[float]) -> MoveShape:
     """The shape of a move between two G-code positions (x, y, z, e, ...)."""
     dx, dy, dz = end[0] - start[0], end[1] - start[1], end[2] - start[2]
     return MoveShape(math.sqrt(dx * dx + dy * dy + dz * dz), end[3] - start[3])
+
+
+def piece_count(shape: MoveShape, speed_mm_s: float,
+                piece_s: float = PIECE_S, cut_from_s: float = CUT_FROM_S) -> int:
+    """How many equal pieces make an extruding move none of which takes
+    longer than piece_s at the requested speed, if the move takes longer
+    than cut_from_s (1: the move as it is)."""
+    if not shape.extrudes:
+        return 1
+    duration = shape.duration_s(speed_mm_s)
+    return 1 if duration <= cut_from_s else math.ceil(duration / piece_s)
+
+
+def piece_ends(start: Sequence[float], end: Sequence[float], count: int
+               ) -> Iterator[List[float]]:
+    """The end position of each of count equal pieces of the move from start
+    to end (every axis, E and any extra one, interpolated alike); the last
+    is end itself, so the pieces add up to the move exactly."""
+    for k in range(1, count):
+        f = k / count
+        yield [a + (b - a) * f for a, b in zip(start, end)]
+    yield list(end)
 
 
 def capped_speed(shape: MoveShape, speed_mm_s: float, cap_mm3_s: Optional[float],

@@ -29,13 +29,16 @@
 - klippy host time with the limiter on (checking every move, slowing none)
   vs no limiter, on the same file (batch mode, each config's start-up time
   with an empty file taken off): klippy's CPU time, the best of five runs of
-  each, taken in turn. Goal: <= 1.10x.
+  each, taken in turn. Goal: <= 1.10x. And on a printer, where the limiter
+  queues a long extruding move in pieces (batch mode does not): the same
+  file cut as it cuts them, the limiter on, against neither. Goal: <= 1.10x.
 
 - Reaction time from a step drop in grip to the first slowed move
   executing, on a klippy paced to the clock (devtools/realtime_klippy.py):
-  a steady print at 7 mm^3/s, the twin's melt stepped down at a known print
-  time, the first slowed extruder step found in klippy's MCU output. Goal:
-  <= 1.2 s.
+  a steady print at 7 mm^3/s on a hotend at its temperature, the twin's
+  melt stepped down at a known print time, the first slowed extruder step
+  found in klippy's MCU output; on 5 mm segments, and on 3 s lines (queued
+  in pieces). Goal: <= 1.2 s.
 """
 
 from __future__ import annotations
@@ -55,10 +58,10 @@ from devtools import stack
 from devtools.demo_flowrate_limiter import (
     GCODE,
     OPTIMISTIC_PROFILE,
-    WEAK_PROFILE,
     print_closed_loop,
 )
 from devtools.klippy_api import KlippyApi
+from flowloop.control import caps as fl_caps
 from flowloop.control import nozzle_health as nh
 from flowloop.control import rule_plot
 from flowloop.control.hotend import HotendParams
@@ -67,6 +70,7 @@ from flowloop.sensor.twin import DEFAULT_MELT_TIME_S, DEFAULT_NOISE_COUNTS
 from tests.bench.size import FULL, pick
 from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps
 from tests.klippy.test_flowrate_limiter import AREA, CLOCK_HZ, HERE, gcode_extrusion
+from tests.samples import STRONG_PROFILE
 
 
 def _scaled_profile(profile, scale, name="truthful"):
@@ -339,6 +343,45 @@ def _klippy_cpu_seconds(build, venv, config, gcode, tmp):
 
 RUNS = pick(5, 1)
 
+
+def _cut_as_on_a_printer(text: str) -> str:
+    """The G-code with every extruding G0/G1 cut into the pieces the limiter
+    queues it in on a printer (fl_caps.piece_count at the move's F, as
+    klippy_extras/flowrate_limiter.py cuts it; batch mode cuts nothing):
+    absolute XYZ (G90), E absolute or relative (M82/M83), G92 E."""
+    pos = {"X": 0.0, "Y": 0.0, "Z": 0.0, "E": 0.0}
+    feed, relative_e, out = 1500.0, False, []
+    for line in text.splitlines():
+        words = line.split(";", 1)[0].split()
+        cmd = words[0].upper() if words else ""
+        args = {w[0].upper(): float(w[1:]) for w in words[1:]
+                if cmd in ("G0", "G1", "G92") and len(w) > 1}
+        relative_e = {"M82": False, "M83": True}.get(cmd, relative_e)
+        if cmd == "G92":
+            pos.update(args)
+        if cmd not in ("G0", "G1"):
+            out.append(line)
+            continue
+        feed = args.get("F", feed)
+        end = {a: pos[a] + args["E"] if a == "E" and relative_e
+               else args.get(a, pos[a]) for a in pos}
+        start = [pos[a] for a in "XYZE"]
+        target = [end[a] for a in "XYZE"]
+        shape = fl_caps.move_shape(start, target)
+        count = fl_caps.piece_count(shape, feed / 60.0)
+        if count == 1:
+            out.append(line)
+        else:
+            prev = start[3]
+            for p in fl_caps.piece_ends(start, target, count):
+                e = p[3] - prev if relative_e else p[3]
+                out.append(f"G1 X{p[0]:.4f} Y{p[1]:.4f} Z{p[2]:.4f}"
+                           f" E{e:.5f} F{feed:g}")
+                prev = p[3]
+        pos = end
+    return "\n".join(out) + "\n"
+
+
 BED = """
 [heater_bed]
 heater_pin: PH5
@@ -365,19 +408,35 @@ def test_klippy_host_time_with_the_limiter(klipper_build, klippy_venv, bench,
     # that the start-up's scatter does not swamp the difference
     gcode = tmp_path / "long.gcode"
     gcode.write_text(GCODE.read_text() * pick(16, 1))
-    # The best of RUNS each, the four kinds of run taken in turn so that a
-    # busy spell on the machine hits all of them; start-up (importing
-    # flowloop's numpy and msgspec included) taken off
+    # On a printer the limiter queues its long extruding moves in pieces
+    # (batch mode does not): the same file cut as it cuts them
+    cut = tmp_path / "cut.gcode"
+    cut.write_text(_cut_as_on_a_printer(gcode.read_text()))
+    # The best of RUNS each, the kinds of run taken in turn so that a busy
+    # spell on the machine hits all of them; start-up (importing flowloop's
+    # numpy and msgspec included) taken off
     runs = {}
+    kinds = [(cfg, file) for cfg in (with_limiter, without)
+             for file in (gcode, cut, empty)]
     for _ in range(RUNS):
-        for cfg in (with_limiter, without):
-            for file in (gcode, empty):
-                runs.setdefault((cfg, file), []).append(_klippy_cpu_seconds(
-                    klipper_build, klippy_venv, cfg, file, tmp_path))
-    t_on, t_off = (min(runs[cfg, gcode]) - min(runs[cfg, empty])
-                   for cfg in (with_limiter, without))
+        for cfg, file in kinds:
+            runs.setdefault((cfg, file), []).append(_klippy_cpu_seconds(
+                klipper_build, klippy_venv, cfg, file, tmp_path))
+    cpu = {(cfg, file): min(runs[cfg, file]) - min(runs[cfg, empty])
+           for cfg, file in kinds if file is not empty}
     bench.ratio("klippy host CPU time, limiter on vs none (start-up taken off)",
-                t_on, t_off, " s", goal="<= 1.10x")
+                cpu[with_limiter, gcode], cpu[without, gcode], " s",
+                goal="<= 1.10x")
+    moves = [sum(line.startswith("G1") for line in f.read_text().splitlines())
+             for f in (cut, gcode)]
+    bench.ratio("G1 moves klippy queues, cut as on a printer vs as sliced",
+                *moves, "")
+    bench.ratio("klippy host CPU time, no limiter, the file cut as on a"
+                " printer vs as sliced", cpu[without, cut], cpu[without, gcode],
+                " s")
+    bench.ratio("klippy host CPU time, limiter on and the file cut as on a"
+                " printer vs neither", cpu[with_limiter, cut],
+                cpu[without, gcode], " s", goal="<= 1.10x")
 
 
 # --- reaction time, in real time ---------------------------------------------
@@ -386,17 +445,14 @@ def test_klippy_host_time_with_the_limiter(klipper_build, klippy_venv, bench,
 # extruding 7 mm^3/s: the twin melts 0.7 x 12 = 8.4 of it under STRONG, and
 # 0.7 x 8 = 5.6 (grip 0.8) under WEAK, whose line (8) still lies above 7 so
 # that the temperature cap does not act on the step itself.
-STRONG = {**WEAK_PROFILE, "identity": {"name": "strong", "nozzle_diameter_mm": 0.4},
-          "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                                 "flow_mm3_s": 12.5},
-                    "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                                   "flow_mm3_s": 11.5}}}
+STRONG = STRONG_PROFILE
 WEAK = {**STRONG, "identity": {"name": "weaker", "nozzle_diameter_mm": 0.4},
         "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
                                "flow_mm3_s": 8.5},
                   "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
                                  "flow_mm3_s": 7.5}}}
 SPEED_MM_S, FLOW_MM3_S, SEGMENT_MM = 100.0, 7.0, 5.0
+LINE_MM, LINE_S = 120.0, 3.0  # the lines' variant: 40 mm/s
 STEP_AT_S = 8.0      # the step, this long after the print starts
 PRINT_S = 14.0
 
@@ -413,6 +469,21 @@ def _circle_gcode(seconds: float) -> str:
                      f" Y{100 + radius * math.sin(angle):.3f}"
                      f" E{SEGMENT_MM * e_per_mm:.5f} F{SPEED_MM_S * 60:g}")
     return "\n".join(lines + ["M400"])
+
+
+def _lines_gcode(seconds: float) -> str:
+    """Straight lines of LINE_S each, back and forth, at the same flow: a
+    slicer's infill (the bench print's lines run up to 3.3 s)."""
+    speed = LINE_MM / LINE_S
+    e_per_line = FLOW_MM3_S / AREA * LINE_S
+    lines = ["G1 X40 Y100 F6000", "M83"]
+    for i in range(math.ceil(seconds / LINE_S)):
+        lines.append(f"G1 X{40 + LINE_MM * ((i + 1) % 2):g} Y100"
+                     f" E{e_per_line:.5f} F{speed * 60:g}")
+    return "\n".join(lines + ["M400"])
+
+
+MOVES = {"5 mm segments": _circle_gcode, "3 s lines": _lines_gcode}
 
 
 def _step_time(rows, near_s):
@@ -444,11 +515,15 @@ def _first_slowed_step(times, step_at_s):
 
 
 @pytest.mark.alone  # paced to the clock
-@pytest.mark.parametrize("grip_window_mm", pick([1.25, 0.5], [1.25]))
+@pytest.mark.parametrize("moves,grip_window_mm", pick(
+    [("5 mm segments", 1.25), ("5 mm segments", 0.5), ("3 s lines", 1.25)],
+    [("5 mm segments", 1.25), ("3 s lines", 1.25)]))
 def test_reaction_time_to_a_step_drop_in_grip(klipper_build, klippy_venv, bench,
-                                              grip_window_mm):
+                                              moves, grip_window_mm):
     # 1.25 mm: [flow_sensor]'s default grip_window (0.43 s of filament at
-    # 7 mm^3/s); 0.5 mm: what a shorter window saves. (When the limiter
+    # 7 mm^3/s); 0.5 mm: what a shorter window saves. 5 mm segments of a
+    # circle, or straight lines of 3 s each (a cap acts on a move when
+    # klippy queues it, about a second before it runs). (When the limiter
     # decides is not split out: a status poll answers 0.25-0.75 s late while
     # klippy prints in real time.)
     workdir = stack.short_tempdir("fl-react-")
@@ -469,9 +544,13 @@ def test_reaction_time_to_a_step_drop_in_grip(klipper_build, klippy_venv, bench,
                  profile=STRONG, working_point=0.5)
         api.gcode("SET_KINEMATIC_POSITION X=100 Y=100 Z=10\n"
                   "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=200")
+        # M109 does not wait here, and a move queued on a cold nozzle runs
+        # at the temperature cap of then to its end
+        stack.wait_until(lambda: api.query("extruder")["temperature"] > 199.0,
+                         30)
         now = lambda: api.query("toolhead")["estimated_print_time"]  # noqa: E731
         started = now()
-        printing.send("gcode/script", script=_circle_gcode(PRINT_S))
+        printing.send("gcode/script", script=MOVES[moves](PRINT_S))
         stack.wait_until(lambda: now() >= started + STEP_AT_S, 30)
         before = now()
         api.call("flowloop/set_active_profile", extruder="extruder",
@@ -497,7 +576,8 @@ def test_reaction_time_to_a_step_drop_in_grip(klipper_build, klippy_venv, bench,
     assert status["reason"] == "grip" or status["slowed_moves"] > 0, status
     assert before - 0.05 <= step_s <= after + 0.05, (before, step_s, after)
     assert slowed_at is not None, "no slowed move after the step"
-    what = f"grip_window {grip_window_mm:g} mm"
+    what = f"grip_window {grip_window_mm:g} mm" + (
+        "" if moves == "5 mm segments" else f", {moves}")
     bench.figure(f"reaction ({what}): steady extruder step interval before"
                  " the step", steady * 1e3, " ms")
     bench.figure(f"reaction time ({what}), step drop in grip to the first"

@@ -290,3 +290,25 @@ def test_the_query_line_says_the_caps_and_the_seed():
                            " mm^3/s (max_flow); caps: max_flow 12.00,")
     assert "; model seeded at melt ratio 0.80" in line
     assert "no hotend temperature" in line and "climbing" not in line
+
+
+# 120 mm at 40 mm/s extruding: a 3 s infill line
+LONG_LINE = move_shape([40, 100, 0, 0], [160, 100, 0, 8.7])
+
+
+@pytest.mark.parametrize("mode", ["temperature", "reactive", "predictive"])
+def test_a_long_line_is_queued_in_pieces_where_a_cap_follows_the_hotend(mode):
+    lim = FlowLimiter(LimiterSettings(mode=mode), AREA)
+    assert lim.pieces(LONG_LINE, 40.0) == 6
+    assert lim.pieces(FAST, 200.0) == 1   # 0.5 s: within klippy's buffer
+
+
+@pytest.mark.parametrize("settings, enabled", [
+    (LimiterSettings(mode="static", max_flow_mm3_s=5.0), True),
+    (LimiterSettings(max_flow_mm3_s=5.0), False),
+])
+def test_a_limiter_whose_caps_cannot_move_queues_moves_whole(settings, enabled):
+    lim = FlowLimiter(settings, AREA)
+    lim.configure(enabled=enabled)
+    assert lim.pieces(LONG_LINE, 40.0) == 1
+

@@ -10,12 +10,16 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from flowloop.control.caps import (
+    CUT_FROM_S,
     MIN_CAP_MM3_S,
+    PIECE_S,
     MoveShape,
     capped_speed,
     check_max_flow,
     lowest_cap,
     move_shape,
+    piece_count,
+    piece_ends,
 )
 from flowloop.errors import FlowloopError
 
@@ -114,3 +118,44 @@ def test_a_bad_max_flow_is_one_line(bad):
 
 def test_move_shape_ignores_extra_axes():
     assert move_shape([0, 0, 0, 0, 9], [3, 4, 0, 1, 2]) == MoveShape(5.0, 1.0)
+
+
+# --- a long move queued in pieces (on a printer) ----------------------------
+
+def test_a_move_longer_than_klippy_s_buffer_is_cut_into_pieces_of_half_of_it():
+    # 120 mm at 40 mm/s: 3 s, six pieces of 0.5 s
+    shape = move_shape([40, 100, 0, 0], [160, 100, 0, 8.7])
+    assert piece_count(shape, 40.0) == math.ceil(3.0 / PIECE_S) == 6
+    # 1.2 s: three pieces of 0.4 s, none longer than PIECE_S
+    assert piece_count(shape, 100.0) == 3
+
+
+def test_a_move_within_the_buffer_travel_and_a_retraction_stay_whole():
+    line = move_shape([0, 0, 0, 0], [40, 0, 0, 2.0])
+    assert piece_count(line, 40.0 / CUT_FROM_S) == 1        # exactly 1 s
+    # just over: 1.01 s in three pieces, none longer than PIECE_S
+    assert piece_count(line, 40.0 / CUT_FROM_S * 0.99) == 3
+    assert piece_count(move_shape([0, 0, 0, 0], [200, 0, 0, 0]), 10.0) == 1
+    assert piece_count(move_shape([0, 0, 0, 5], [200, 0, 0, 4]), 10.0) == 1
+
+
+def test_an_extrude_only_move_is_cut_on_its_e_time():
+    # 20 mm of filament at 5 mm/s: 4 s
+    assert piece_count(move_shape([0, 0, 0, 0], [0, 0, 0, 20]), 5.0) == 8
+
+
+@given(st.lists(st.floats(-500, 500), min_size=4, max_size=6),
+       st.lists(st.floats(-500, 500), min_size=4, max_size=6),
+       st.integers(1, 40))
+def test_the_pieces_add_up_to_the_move_exactly(start, end, count):
+    n = min(len(start), len(end))
+    start, end = start[:n], end[:n]
+    ends = list(piece_ends(start, end, count))
+    assert len(ends) == count
+    assert ends[-1] == list(end)  # the G-code's own position, not a sum
+    prev = start
+    for p in ends:
+        # each piece on the line from start to end, an equal share of it
+        for a, b, s0, e0 in zip(prev, p, start, end):
+            assert b - a == pytest.approx((e0 - s0) / count, abs=1e-9)
+        prev = p

@@ -1,0 +1,82 @@
+"""[flowrate_limiter] on a klippy paced to the clock (devtools/realtime_klippy.py),
+where klippy queues a move about a second before it runs and runs its timers
+while the G-code waits: a long extruding move is queued in pieces, so a cap
+that falls while the move runs reaches the rest of it. (How fast: the
+reaction figures of make bench.)"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from devtools import stack
+from devtools.klippy_api import KlippyApi
+from flowloop.control.caps import PIECE_S
+from tests.samples import STRONG_PROFILE, WEAK_PROFILE
+
+pytestmark = pytest.mark.alone  # paced to the wall clock
+
+HERE = Path(__file__).resolve().parent
+AREA = 2.405
+LINE_S, LINE_MM, FLOW_MM3_S = 8.0, 160.0, 7.0
+DROP_AT_S = 2.0
+
+
+def test_a_cap_that_falls_during_a_long_line_slows_the_rest_of_it(
+        klipper_build, klippy_venv, short_tmp):
+    # The twin melts 70 % of the active profile's line: 8.4 mm^3/s under
+    # the strong one, so the 7 mm^3/s line runs at the speed it asks for;
+    # the weak one's line (4 at 200 C) caps it to 4 (and the twin, melting
+    # 2.8, slips below that)
+    klippy = stack.Klippy(klipper_build, klippy_venv,
+                          HERE / "flowrate_limiter_reaction.cfg", short_tmp,
+                          {"mcu": "atmega2560"}, realtime=True)
+    try:
+        klippy.wait_ready()
+        api = KlippyApi(klippy.api_socket)
+        stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+        api.call("flowloop/set_active_profile", extruder="extruder",
+                 profile=STRONG_PROFILE, working_point=0.5)
+        api.gcode("SET_KINEMATIC_POSITION X=20 Y=100 Z=10\nM83\n"
+                  "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=200")
+        stack.wait_until(
+            lambda: api.query("extruder")["temperature"] > 199.0, 30)
+        e_mm = round(FLOW_MM3_S / AREA * LINE_S, 4)
+        done = threading.Event()
+
+        def drop():
+            if not done.wait(DROP_AT_S):
+                with KlippyApi(klippy.api_socket) as other:
+                    other.call("flowloop/set_active_profile",
+                               extruder="extruder", profile=WEAK_PROFILE,
+                               working_point=0.5)
+
+        dropper = threading.Thread(target=drop)
+        start = time.monotonic()
+        dropper.start()
+        api.gcode(f"G1 X{20 + LINE_MM:g} E{e_mm:g}"
+                  f" F{LINE_MM / LINE_S * 60:g}\nM400")
+        took = time.monotonic() - start
+        done.set()
+        dropper.join()
+        toolhead = api.query("toolhead")
+        limiter = api.query("flowrate_limiter")
+    finally:
+        klippy.stop()
+    # One G-code move, queued whole, would have run at the speed it was
+    # queued at: about LINE_S (measured: 6.3 s for a 6 s line). Its pieces
+    # queued after the drop ran at 4/7 of it or less: the line's last
+    # LINE_S - DROP_AT_S - klippy's buffer (1 s, Kalico's 2 s) - a piece or
+    # two takes 1.75 times as long or more (measured on a 6 s line: 10.2 s
+    # on Klipper, 7.6 s on Kalico)
+    print(f"the line took {took:.2f} s, {limiter['slowed_moves']} pieces slowed")
+    assert took > LINE_S + 0.8, (took, limiter, klippy.log_tail())
+    assert limiter["profile"] == "weak" and limiter["slowed_moves"] >= 2, limiter
+    # pieces of half a second: at most twelve of them slowed
+    assert limiter["slowed_moves"] <= LINE_S / PIECE_S, limiter
+    # and the pieces end where the G-code said, to the last digit
+    assert toolhead["position"][0] == 20 + LINE_MM
+    assert toolhead["position"][3] == e_mm
