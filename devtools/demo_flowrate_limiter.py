@@ -167,7 +167,8 @@ def print_closed_loop(enable: int, build=None, venv=None,
     the limiter's status (with the toolhead's final `print_time` and the
     print's nozzle health estimate as Moonraker stores it, `nozzle_health`,
     added) and the filament
-    the twin really moved while printing the file (sent by print_in_chunks)."""
+    the twin really moved while printing the file (sent by print_in_chunks,
+    in the pieces a printer's limiter queues its long moves in)."""
     workdir = stack.short_tempdir("fl-limiter-")
     klippy = stack.Klippy(build or stack.build_klipper(),
                           venv or stack.klippy_venv(), config, workdir,

@@ -346,9 +346,10 @@ class FlowLimiter:
 
     def pieces(self, shape: fl_caps.MoveShape, speed_mm_s: float) -> int:
         """How many pieces to queue a move in, where the caps can change
-        while it waits to run (fl_caps.PIECE_S): an extruding move longer
-        than that, whenever a cap that follows the hotend (its temperature,
-        the grip, the model) may act. 1: queue it whole."""
+        while it waits to run: an extruding move longer than
+        fl_caps.CUT_FROM_S in pieces of at most fl_caps.PIECE_S, whenever a
+        cap that follows the hotend (its temperature, the grip, the model)
+        may act. 1: queue it whole."""
         if not self.enabled or "temperature" not in MODE_CAPS[self.settings.mode]:
             return 1  # off, or max_flow alone (static): no cap moves
         return fl_caps.piece_count(shape, speed_mm_s)
