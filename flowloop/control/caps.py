@@ -32,7 +32,7 @@ CAP_NAMES = ("max_flow", "temperature", "grip", "model")
 # equal pieces of at most PIECE_S, half of it, each capped as it is queued
 # (2.2 s on the 3 s line). A shorter move is replaced within the buffer
 # anyway; pieces of 0.25 s from 0.25 s reacted in 1.6 s but cost klippy
-# 1.20x its host time on the bench print, where these cost 1.07-1.10x.
+# 1.20x its host time on the bench print, where these cost 1.03-1.10x.
 PIECE_S = 0.5
 CUT_FROM_S = 1.0
 
