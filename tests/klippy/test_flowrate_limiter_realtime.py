@@ -67,15 +67,15 @@ def test_a_cap_that_falls_during_a_long_line_slows_the_rest_of_it(
     finally:
         klippy.stop()
     # One G-code move, queued whole, would have run at the speed it was
-    # queued at: about LINE_S (measured: 6.3 s for a 6 s line). Its pieces
-    # queued after the drop ran at 4/7 of it or less: the line's last
-    # LINE_S - DROP_AT_S - klippy's buffer (1 s, Kalico's 2 s) - a piece or
-    # two takes 1.75 times as long or more (measured on a 6 s line: 10.2 s
-    # on Klipper, 7.6 s on Kalico)
+    # queued at: about LINE_S (a 6 s line took 6.3 s, and this test
+    # failed). Its pieces queued after the drop ran at 4/7 of it or less:
+    # the line's last LINE_S - DROP_AT_S - klippy's buffer (1 s, Kalico's
+    # 2 s) - a piece or two takes 1.75 times as long or more (measured:
+    # 14.3 s on Klipper, 9 pieces slowed; 13.1 s on Kalico, 6)
     print(f"the line took {took:.2f} s, {limiter['slowed_moves']} pieces slowed")
     assert took > LINE_S + 0.8, (took, limiter, klippy.log_tail())
     assert limiter["profile"] == "weak" and limiter["slowed_moves"] >= 2, limiter
-    # pieces of half a second: at most twelve of them slowed
+    # pieces of half a second: at most sixteen of them slowed
     assert limiter["slowed_moves"] <= LINE_S / PIECE_S, limiter
     # and the pieces end where the G-code said, to the last digit
     assert toolhead["position"][0] == 20 + LINE_MM
