@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from devtools.demo_flowrate_limiter import WEAK_PROFILE as DEMO_WEAK_PROFILE
+
 # Every material file of ddPrint's public profile repository (see SOURCE.md).
 DATA = Path(__file__).resolve().parent / "data" / "ddprint-profiles"
 MAT = DATA / "mat-profiles"
@@ -49,17 +51,13 @@ def twin_known():
     }
 
 
-# A weak PLA for the bake's tests: its line melts 3.5 mm^3/s printing at
-# 200 C, 0.1 more per degree, up to 240 C (the bake has heat to plan)
+# A weak PLA for the bake's tests: the demo's weak profile (its line melts
+# 3.5 mm^3/s printing at 200 C, 0.1 more per degree) recommended at 200 C
+# and allowed up to 240 C (the bake has heat to plan below max_temp)
 WEAK_PROFILE = {
-    "identity": {"name": "weak", "nozzle_diameter_mm": 0.4},
-    "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                           "flow_mm3_s": 4.5},
-              "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
-                             "flow_mm3_s": 3.5}},
+    **DEMO_WEAK_PROFILE,
     "bounds": {"min_temp_c": 190.0, "recommended_temp_c": 200.0,
-               "max_temp_c": 240.0},
-    "provenance": {"method": "manual"}}
+               "max_temp_c": 240.0}}
 
 # 12 mm^3/s at 200 C (working point 0.5): a hotend three times the weak one
 STRONG_PROFILE = {
