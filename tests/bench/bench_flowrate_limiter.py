@@ -2,14 +2,16 @@
 
 - Under-extrusion and print time: the block excerpt (tests/data/gcode) on the
   simulated sensor and hotend, limiter off, reactive, predictive, and the
-  slip-free bound (a limiter told the twin's true capacity), on six
+  slip-free bound (a limiter told the twin's true capacity), on ten
   hotends (HOTENDS): the bench's own (a twin melting 70 % of what its
   optimistic profile says, as tests/klippy/flowrate_limiter_bench.cfg),
   four the limiter was not tuned on, fixed before any tuning (issue 41): a
   high-flow hotend, a worn nozzle, a noisy sensor, a slow high-mass one
   (heater time constant, heat capacity and melt lag twice the bench's),
   and one true to its profile (added with the first print's climb, to show
-  what the climb costs where nothing needs it). Goals (issue 41):
+  what the climb costs where nothing needs it); and a second held-out set
+  of the same four kinds (FRESH_HOTENDS), fixed before the model's fit was
+  tuned again on the first (which had by then been looked at). Goals (issue 41):
   predictive prevents >= 98 % of the under-extrusion the uncapped run has
   (asserted on every hotend) at a print time within the slip-free bound's
   (printed; guarded at TIME_GUARD), and on the bench's hotend at a
@@ -151,6 +153,32 @@ HOTENDS = (
     # at the profile's min_grip 0.9, is its capacity)
     Hotend("true to its profile", melt_scale=0.9),
 )
+# A second held-out set, fixed on 2026-11-30 before the model's fit was
+# touched again, once tuning had looked at every hotend above (so those are
+# a tuning set now): the same four kinds as the issue asks for, each set up
+# differently from its first (capacity, heater, speed, the noise's seed).
+FRESH_HOTENDS = (
+    # 2.5 times the bench's capacity and heater, the file at 2.5 times its
+    # speeds
+    Hotend("high-flow B", profile_scale=2.5,
+           twin_options=(("heater_power", "100"),), speed_percent=250),
+    # a worn nozzle (15 % below its profile) on a profile 1.3 times the
+    # bench's, a 52 W heater, the file at 1.3 times its speeds
+    Hotend("worn nozzle B", profile_scale=1.3, melt_scale=0.85,
+           twin_options=(("heater_power", "52"), ("seed", "3")),
+           speed_percent=130),
+    # twice the datasheet's noise, another noise draw, a hotend melting 65 %
+    # of its profile
+    Hotend("noisy sensor B", melt_scale=0.65, twin_options=(
+        ("noise_counts", f"{2 * DEFAULT_NOISE_COUNTS:g}"), ("seed", "11"))),
+    # time constant, heat capacity and melt lag 2.5 times the bench's, 75 %
+    # of its profile
+    Hotend("slow high-mass B", melt_scale=0.75, twin_options=(
+        ("heater_time_constant", f"{2.5 * HotendParams.time_constant_s:g}"),
+        ("heater_heat_capacity",
+         f"{2.5 * HotendParams.heat_capacity_j_per_c:g}"),
+        ("melt_time", f"{2.5 * DEFAULT_MELT_TIME_S:g}"))),
+)
 
 # The smoke run's print: the excerpt's first lines (homing and the start of
 # its first layer), on the held-out hotend whose set-up differs most from
@@ -210,7 +238,7 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
         gcode = tmp_path / "smoke.gcode"
         gcode.write_text("\n".join(GCODE.read_text().splitlines()[:SMOKE_LINES]))
     table = {}
-    for hotend in pick(HOTENDS, SMOKE_HOTENDS):
+    for hotend in pick(HOTENDS + FRESH_HOTENDS, SMOKE_HOTENDS):
         results = table[hotend.name] = _print_hotend(
             hotend, gcode, klipper_build, klippy_venv, tmp_path)
         estimate = results["estimate"]
