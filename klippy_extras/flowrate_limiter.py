@@ -106,10 +106,13 @@ class FlowrateLimiter:
         self.sensor = self._find_sensor()
         if self.sensor is not None:
             self.sensor.subscribe_grip_windows(self._handle_window)
-        # batch mode: the thermal model follows the heater's target
+        # batch mode: the thermal model follows the heater's target, on the
+        # simulated sensor's hotend if it has one (as a thermistor would
+        # read that hotend on a printer)
         self.nozzle = nozzle_estimate_for(
             self.mcu.is_fileoutput(),
-            self.mcu.estimated_print_time(self.reactor.monotonic()))
+            self.mcu.estimated_print_time(self.reactor.monotonic()),
+            None if self.sensor is None else self.sensor.simulated_hotend())
         active = self.host.get_active_profile(self.extruder_name)
         if active is not None:
             self.limiter.set_profile(*active)

@@ -217,10 +217,12 @@ def heater_reads(writes_to_file: bool, estimated_print_time_s: float) -> bool:
     return not (writes_to_file and not estimated_print_time_s)
 
 
-def nozzle_estimate_for(writes_to_file: bool, estimated_print_time_s: float
+def nozzle_estimate_for(writes_to_file: bool, estimated_print_time_s: float,
+                        params: Optional[HotendParams] = None
                         ) -> Optional[NozzleEstimate]:
     """The estimate to read the nozzle from where no temperature reading
-    arrives (heater_reads). None: the heater's own reading is used."""
+    arrives (heater_reads), on the hotend `params` describe (the default
+    hotend's if None). None: the heater's own reading is used."""
     if heater_reads(writes_to_file, estimated_print_time_s):
         return None
-    return NozzleEstimate()
+    return NozzleEstimate(None if params is None else HotendModel(params))

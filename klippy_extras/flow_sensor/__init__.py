@@ -155,6 +155,12 @@ class FlowSensor:
         caller's wait_moves; in batch mode the steps are generated first)."""
         self.source.sync(until)
 
+    def simulated_hotend(self):
+        """The hotend (HotendParams) a simulated sensor's twin heats, which
+        batch mode's thermal estimate follows; None for a real sensor or a
+        twin without heater_power."""
+        return self.source.hotend_params()
+
     def hotend_reading(self, eventtime):
         """(temperature degC, heater power 0..1) of the hotend the sensor's
         windows are stamped with, as its source reads them."""

@@ -103,6 +103,9 @@ class Ems22Source:
     def temp_c(self, eventtime):
         return self.sensor.heater.get_temp(eventtime)[0]
 
+    def hotend_params(self):
+        return None     # a real hotend: its heater reads it
+
     def power(self, eventtime):
         return self.sensor.heater.get_status(eventtime)['power']
 

@@ -175,6 +175,10 @@ class SimulatedSource:
         # The twin's nozzle: its hotend model's, else at its target at once
         return self.twin.temp_c(self.heater.get_status(eventtime)['target'])
 
+    def hotend_params(self):
+        hotend = self.twin.hotend
+        return None if hotend is None else hotend.params
+
     def power(self, eventtime):
         hotend = self.twin.hotend
         if hotend is None:

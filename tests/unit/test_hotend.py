@@ -201,6 +201,28 @@ def test_only_a_batch_mode_klippy_reads_the_nozzle_from_the_model():
     assert nozzle_estimate_for(False, 12.5) is None
 
 
+def test_batch_mode_s_estimate_heats_as_the_hotend_it_is_given():
+    # A simulated hotend slower than the default (its twin's heater): the
+    # estimate must follow it, not the default hotend, or the caps are set
+    # at a temperature the nozzle has not reached
+    slow = HotendParams(time_constant_s=10.0, heat_capacity_j_per_c=41.75)
+    estimates = {name: nozzle_estimate_for(True, 0.0, params)
+                 for name, params in (("default", None), ("slow", slow))}
+    assert estimates["slow"].model.params == slow
+    assert estimates["default"].model.params == HotendParams()
+    for estimate in estimates.values():
+        estimate.model = HotendModel(estimate.model.params, temp_c=200.0,
+                                     target_c=200.0)
+        for _ in range(20):           # 200 -> 215 C, 6 s of moves
+            estimate.add_move(READING_PERIOD_S, 0.0)
+            temp = estimate.read(215.0)
+        estimate.temp = temp
+    twin = HotendModel(slow, temp_c=200.0, target_c=200.0)
+    twin.set_target(0.0, 215.0)
+    assert estimates["slow"].temp == pytest.approx(twin.advance(6.0), abs=0.01)
+    assert estimates["default"].temp > estimates["slow"].temp + 2.0
+
+
 @settings(deadline=None)
 @given(st.lists(st.floats(190.0, 260.0), min_size=1, max_size=80),
        st.sampled_from([0.1, 0.2, 0.25, 0.5]))
