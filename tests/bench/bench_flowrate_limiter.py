@@ -46,10 +46,12 @@
 from __future__ import annotations
 
 import math
+import os
 import resource
 import shutil
 import subprocess
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Tuple
 
@@ -104,9 +106,14 @@ class Hotend:
     @property
     def true_profile(self):
         """A profile that says exactly what this twin melts."""
+        return self.knowing_profile(1.0)
+
+    def knowing_profile(self, share):
+        """A profile that says `share` of what this twin melts."""
         return _scaled_profile(OPTIMISTIC_PROFILE,
-                               self.profile_scale * self.melt_scale,
-                               f"{self.name} truthful")
+                               share * self.profile_scale * self.melt_scale,
+                               f"{self.name} truthful"
+                               + ("" if share == 1.0 else f" x{share:g}"))
 
     def config(self, tmp_path, melt_scale):
         options = (("melt_scale", f"{melt_scale:g}"),) + self.twin_options
@@ -193,6 +200,16 @@ RUN_NAMES = ("off", "reactive", "predictive", "knowing the capacity")
 # of it: what Moonraker sends at the next activation, the same hotend's next
 # print after a restart)
 SEEDED = "predictive, seeded"
+# The limiter that knows the capacity is not slip-free: capped at the
+# capacity, a speed change still slips while the melt catches up (0.6-0.8 mm
+# on this print). Told a share of it (KNOWING_SHARES) it trades that slip
+# for time, so predictive's time is also judged against it at predictive's
+# own under-extrusion (equal_slip_time: between the shares it was told).
+KNOWING_SHARES = (0.99, 1.01)
+KNOWING = {share: f"knowing {share:.0%} of the capacity"
+           for share in KNOWING_SHARES}
+# the hotends run side by side, one klippy each (each klippy is one process)
+WORKERS = max(1, min(2, os.cpu_count() or 1))
 
 
 def _print_hotend(hotend, gcode, build, venv, tmp_path):
@@ -219,6 +236,12 @@ def _print_hotend(hotend, gcode, build, venv, tmp_path):
         if name == "predictive":
             results["model"] = status["model"]
             results["estimate"] = status["nozzle_health"]
+    for share, name in KNOWING.items():
+        # told `share` of what it melts: the twin melts 1/share of the line
+        status, moved = print_closed_loop(
+            1, build, venv, hotend.knowing_profile(share),
+            hotend.config(tmp_path, 1.0 / share), "temperature", gcode)
+        results[name] = (commanded - moved, status["print_time"])
     ratio = nh.carried_ratio([results["estimate"]])
     results["seed"] = ratio
     status, moved = print_closed_loop(1, build, venv, hotend.profile, given,
@@ -237,10 +260,13 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
     if not FULL:
         gcode = tmp_path / "smoke.gcode"
         gcode.write_text("\n".join(GCODE.read_text().splitlines()[:SMOKE_LINES]))
+    hotends = pick(HOTENDS + FRESH_HOTENDS, SMOKE_HOTENDS)
+    with ThreadPoolExecutor(WORKERS) as pool:
+        done = list(pool.map(lambda hotend: _print_hotend(
+            hotend, gcode, klipper_build, klippy_venv, tmp_path), hotends))
     table = {}
-    for hotend in pick(HOTENDS + FRESH_HOTENDS, SMOKE_HOTENDS):
-        results = table[hotend.name] = _print_hotend(
-            hotend, gcode, klipper_build, klippy_venv, tmp_path)
+    for hotend, results in zip(hotends, done):
+        table[hotend.name] = results
         estimate = results["estimate"]
         bench.figure(f"{hotend.name}: predictive's nozzle health estimate"
                      f" ({estimate.reason or 'known'})",
@@ -249,7 +275,7 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
         bench.figure(f"{hotend.name}: carried to '{SEEDED}' (its model's ratio"
                      " at the end; dropped unconfirmed: "
                      f"{results['dropped'] is not None})", results["seed"], "")
-        for name in RUN_NAMES + (SEEDED,):
+        for name in RUN_NAMES + tuple(KNOWING.values()) + (SEEDED,):
             lost, took = results[name]
             bench.figure(f"{hotend.name}: limiter {name}: under-extruded",
                          lost, " mm")
@@ -266,16 +292,39 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
         bench.ratio(f"{name}: predictive print time vs the slip-free bound",
                     r["predictive"][1], r["knowing the capacity"][1], " s",
                     goal="<= 1.0x")
+        bench.ratio(f"{name}: predictive print time vs the limiter knowing"
+                    " the capacity at predictive's under-extrusion",
+                    r["predictive"][1], equal_slip_time(r, r["predictive"][0]),
+                    " s", goal="<= 1.0x")
         bench.ratio(f"{name}: predictive seeded by its last print, under-extrusion"
                     " vs limiter off", r[SEEDED][0], r["off"][0], " mm",
                     goal="<= 0.02x")
         bench.ratio(f"{name}: predictive seeded by its last print, print time vs"
                     " the slip-free bound", r[SEEDED][1],
                     r["knowing the capacity"][1], " s", goal="<= 1.0x")
+        bench.ratio(f"{name}: predictive seeded by its last print, print time vs"
+                    " the limiter knowing the capacity at its under-extrusion",
+                    r[SEEDED][1], equal_slip_time(r, r[SEEDED][0]), " s",
+                    goal="<= 1.0x")
     for line in _table(table):
         bench.terminal.write_line(line)
     if FULL:
         _assert_goals_met_today(table)
+
+
+def equal_slip_time(results, lost_mm):
+    """The print time of the limiter that knows the capacity were it told
+    the share of it at which it under-extrudes lost_mm: interpolated between
+    the shares it was told (KNOWING_SHARES and 1), their under-extrusion
+    rising with the share; held at the end shares outside them; nan where
+    the points do not rise (no share to read)."""
+    names = [KNOWING[KNOWING_SHARES[0]], "knowing the capacity",
+             KNOWING[KNOWING_SHARES[-1]]]
+    lost = np.array([results[name][0] for name in names])
+    took = np.array([results[name][1] for name in names])
+    if not np.all(np.diff(lost) > 0.0):
+        return math.nan
+    return float(np.interp(lost_mm, lost, took))
 
 
 def _bench_hotend_ratios(bench, results):
@@ -328,13 +377,29 @@ def _table(table):
                f" ({r['true_ratio']:.3f}) | {lost:.2f} mm"
                f" | {lost / r['off'][0]:.3f}x"
                f" | {took / r['knowing the capacity'][1]:.3f}x |")
+    yield ""
+    knowing = [KNOWING[KNOWING_SHARES[0]], "knowing the capacity",
+               KNOWING[KNOWING_SHARES[-1]]]
+    yield ("| hotend | " + " | ".join(knowing) + " | predictive"
+           " | predictive time / knowing's at its under-extrusion"
+           " | seeded | seeded time / knowing's at its under-extrusion |")
+    yield "| --- |" + " --- |" * (len(knowing) + 4)
+    for name, r in table.items():
+        cells = [f"{r[run][0]:.2f} mm, {r[run][1]:.1f} s"
+                 for run in knowing + ["predictive"]]
+        seeded = r[SEEDED]
+        yield (f"| {name} | " + " | ".join(cells)
+               + f" | {r['predictive'][1] / equal_slip_time(r, r['predictive'][0]):.3f}x"
+               + f" | {seeded[0]:.2f} mm, {seeded[1]:.1f} s"
+               + f" | {seeded[1] / equal_slip_time(r, seeded[0]):.3f}x |")
 
 
 # Print time against the slip-free bound's, first print and seeded by the
-# last: issue 41's goal is 1.0x. Measured 2026-11-30 (the first print
-# climbing from CLIMB_FROM, the G-code fed in a printer's pieces): first
-# prints 0.998-1.003x on the five hotends and 1.007x true to its profile,
-# seeded 1.001-1.005x; guarded at this
+# last: issue 41's goal is 1.0x. Measured 2026-11-30 on the ten hotends
+# (the first print climbing from CLIMB_FROM, the G-code fed in a printer's
+# pieces): first prints 0.994-1.007x, 0.999-1.003x at their own
+# under-extrusion (equal_slip_time); seeded 0.995-1.005x and 0.999-1.000x;
+# guarded at this
 TIME_GUARD = 1.02
 
 
@@ -342,13 +407,16 @@ def _assert_goals_met_today(table):
     """Asserted where it was met on 2026-11-30: predictive's under-extrusion
     <= 0.02x of limiter-off (issue 41's goal) on a first print and seeded by
     the last, on every hotend; its print time within TIME_GUARD of the
-    slip-free bound's (the goal, 1.0x, is printed: the climb costs a first
+    slip-free bound's, and of the limiter knowing the capacity at its own
+    under-extrusion (the goal, 1.0x, is printed: the climb costs a first
     print up to 0.7 %, docs/flowrate_limiter.md)."""
     for name, r in table.items():
         bound = r["knowing the capacity"][1]
         for run in ("predictive", SEEDED):
             assert r[run][0] <= 0.02 * r["off"][0], (name, run, r)
             assert r[run][1] <= TIME_GUARD * bound, (name, run, r)
+            assert r[run][1] <= TIME_GUARD * equal_slip_time(r, r[run][0]), \
+                (name, run, r)
 
 
 def test_reactive_rule_against_ddprint_s(bench):
