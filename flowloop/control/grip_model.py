@@ -24,6 +24,13 @@ thirds of the way and the seed no longer holds the fit above what the
 windows measure (worth 5 windows, it held the bench's twin 1 % above its
 capacity for the whole print, every capped move slipping that much).
 
+A window at the cap that reads a slip beyond the noise band (SLIP_TOLERANCE)
+counts even when only the sensor's noise made it read so; alone, those
+would pull the fit down and never up, and a noisy sensor's model drifted
+3.5 % below its hotend over ten layers. So a window at the cap that reads
+as far over 1 counts too, at the capacity its excess says
+(capacity_read_over). Within the band, a window at the cap teaches nothing.
+
 The predictive cap is C(T), the flow at which the model predicts the feeder
 starts to slip: it acts before grip falls, where the reactive rule (and
 min_grip, its threshold) acts after. Capping at C / min_grip instead would
@@ -121,6 +128,21 @@ def melted_capacity(flows_mm3_s: Sequence[float], melted_mm3_s: float) -> float:
     return float(c[np.argmax(fits)])
 
 
+def capacity_read_over(flows_mm3_s: np.ndarray, melted_mm3_s: float,
+                       melted_capacity_mm3_s: float) -> float:
+    """melted_capacity's mirror for a window that read more than it was
+    asked (melted above the mean, which only the sensor's noise gives): the
+    capacity as far above its peak as melted_capacity would put it below for
+    as much less (the pieces at the peak, within SLIP_TOLERANCE of it, take
+    the difference); melted_capacity_mm3_s where it read no more."""
+    mean = float(flows_mm3_s.mean()) if len(flows_mm3_s) else 0.0
+    if not len(flows_mm3_s) or melted_mm3_s <= mean:
+        return melted_capacity_mm3_s
+    peak = float(flows_mm3_s.max())
+    share = float(np.mean(flows_mm3_s >= peak * (1.0 - SLIP_TOLERANCE)))
+    return peak + (melted_mm3_s - mean) / share
+
+
 def duration_s(window: Window) -> float:
     """How long a window lasted (a plain float: windows may carry numpy
     numbers, the limiter's status is JSON)."""
@@ -149,6 +171,9 @@ class WindowFlow:
     grip: float
     melted_mm3_s: float     # melted_capacity: what the hotend melted when asked more
     peak_mm3_s: float       # the highest commanded flow in it
+    # where it read more than it was asked (grip over 1): the capacity that
+    # excess says, above the peak (capacity_read_over); melted_mm3_s if not
+    over_mm3_s: float = 0.0
 
     @classmethod
     def of(cls, commanded_mm3_s: float, grip: float,
@@ -161,9 +186,10 @@ class WindowFlow:
         if mean <= 0.0:
             flows, mean = np.array([commanded_mm3_s]), commanded_mm3_s
         flows = flows * (commanded_mm3_s / mean)
-        return cls(float(commanded_mm3_s), float(grip),
-                   melted_capacity(flows, grip * commanded_mm3_s),
-                   float(flows.max()))
+        melted = melted_capacity(flows, grip * commanded_mm3_s)
+        return cls(float(commanded_mm3_s), float(grip), melted,
+                   float(flows.max()),
+                   capacity_read_over(flows, grip * commanded_mm3_s, melted))
 
     @classmethod
     def of_window(cls, window: Window,
@@ -222,10 +248,18 @@ class GripModel:
             # (kept as one, its peak would hold the fit down after the climb)
             return self._climb(flow.peak_mm3_s, temp_c)
         self.climb_ratio = None       # (a slip measured the hotend: no more climb)
-        if kept_up and flow.peak_mm3_s <= self.fitted.at(temp_c):
-            return False  # kept up where the fit said it would: nothing new
+        cap = self.fitted.at(temp_c)
         # what it melted when asked for more (its peak if it kept up whole)
-        self.observations.append((float(temp_c), float(flow.melted_mm3_s)))
+        seen = flow.melted_mm3_s
+        if kept_up and flow.grip >= 1.0 + SLIP_TOLERANCE \
+                and flow.peak_mm3_s >= (1.0 - SLIP_TOLERANCE) * cap:
+            # at the cap, read over the noise band: the mirror of a window
+            # that noise alone reads as a slip (counted, it pulls the fit
+            # down), so that the noise pulls it both ways
+            seen = flow.over_mm3_s
+        elif kept_up and flow.peak_mm3_s <= cap:
+            return False  # kept up where the fit said it would: nothing new
+        self.observations.append((float(temp_c), float(seen)))
         self.fitted = fit_capacity(self.seed, self.observations,
                                    self.prior_windows, self.capacity_prior_windows)
         return True

@@ -11,7 +11,10 @@
   and one true to its profile (added with the first print's climb, to show
   what the climb costs where nothing needs it); and a second held-out set
   of the same four kinds (FRESH_HOTENDS), fixed before the model's fit was
-  tuned again on the first (which had by then been looked at). Goals (issue 41):
+  tuned again on the first (which had by then been looked at). The same
+  runs again on the print's first ten layers (make bench only), where a
+  first print's climb is a smaller share and a model that drifts over a
+  print drifts further. Goals (issue 41):
   predictive prevents >= 98 % of the under-extrusion the uncapped run has
   (asserted on every hotend) at a print time within the slip-free bound's
   (printed; guarded at TIME_GUARD), and on the bench's hotend at a
@@ -20,7 +23,8 @@
   run (what Moonraker sends after a restart): the same goals, asserted and
   guarded the same way. The same run gives the same figures (the twin is
   seeded and devtools.demo_flowrate_limiter.print_closed_loop syncs the
-  sensor at each chunk, about a second of print time); besides the goals'
+  sensor at each chunk, about a second of print time), to within one
+  sensor count (0.01 mm) and 0.05 s with two klippy side by side; besides the goals'
   ratios, the time each mode adds per mm of under-extrusion it prevents
   (reactive is faster partly because it lets the
   feeder slip, and a slipping print runs at full speed). The table of
@@ -260,33 +264,60 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
     if not FULL:
         gcode = tmp_path / "smoke.gcode"
         gcode.write_text("\n".join(GCODE.read_text().splitlines()[:SMOKE_LINES]))
-    hotends = pick(HOTENDS + FRESH_HOTENDS, SMOKE_HOTENDS)
-    with ThreadPoolExecutor(WORKERS) as pool:
-        done = list(pool.map(lambda hotend: _print_hotend(
-            hotend, gcode, klipper_build, klippy_venv, tmp_path), hotends))
-    table = {}
-    for hotend, results in zip(hotends, done):
-        table[hotend.name] = results
-        estimate = results["estimate"]
-        bench.figure(f"{hotend.name}: predictive's nozzle health estimate"
-                     f" ({estimate.reason or 'known'})",
-                     math.nan if estimate.ratio is None else estimate.ratio,
-                     f" of the profile, the twin melts {results['true_ratio']:.3f}")
-        bench.figure(f"{hotend.name}: carried to '{SEEDED}' (its model's ratio"
-                     " at the end; dropped unconfirmed: "
-                     f"{results['dropped'] is not None})", results["seed"], "")
-        for name in RUN_NAMES + tuple(KNOWING.values()) + (SEEDED,):
-            lost, took = results[name]
-            bench.figure(f"{hotend.name}: limiter {name}: under-extruded",
-                         lost, " mm")
-            bench.figure(f"{hotend.name}: limiter {name}: print time", took, " s")
-        bench.figure(f"{hotend.name}: predictive's grip model at the end",
-                     results["model"]["capacity_mm3_s"], " mm^3/s at"
-                     f" {results['model']['ref_temp_c']:g} C")
+    table = _hotend_table(pick(HOTENDS + FRESH_HOTENDS, SMOKE_HOTENDS), gcode,
+                          klipper_build, klippy_venv, bench, tmp_path)
     # (the smoke run has only the held-out hotend: its figures stand in)
     _bench_hotend_ratios(bench, table.get(BENCH_HOTEND.name,
                                           next(iter(table.values()))))
-    for name, r in table.items():
+    if FULL:
+        _assert_goals_met_today(table)
+
+
+# The same print's first ten layers (block.gcode's first 4050 lines, of
+# which the bench print is the first 755): 13-17 min where the two layers
+# take 4-7, so what a first print's climb costs once is a smaller share,
+# and a model that drifts over a print drifts further
+TEN_LAYERS = GCODE.parent / "block_layers_1_10.gcode"
+
+
+def test_under_extrusion_and_print_time_over_ten_layers(
+        klipper_build, klippy_venv, bench, tmp_path):
+    if not FULL:
+        pytest.skip("make bench only: the same runs as the two layers' on a"
+                    " longer file (its smoke run covers them)")
+    table = _hotend_table(HOTENDS + FRESH_HOTENDS, TEN_LAYERS, klipper_build,
+                          klippy_venv, bench, tmp_path, "ten layers: ")
+    _assert_goals_met_today(table)
+
+
+def _hotend_table(hotends, gcode, build, venv, bench, tmp_path, label=""):
+    """Every hotend's runs on `gcode` (two at a time), their figures and
+    ratios printed (names prefixed with `label`), and the docs' tables;
+    the runs by hotend name."""
+    with ThreadPoolExecutor(WORKERS) as pool:
+        done = list(pool.map(lambda hotend: _print_hotend(
+            hotend, gcode, build, venv, tmp_path), hotends))
+    table = {}
+    for hotend, results in zip(hotends, done):
+        table[hotend.name] = results
+        name = label + hotend.name
+        estimate = results["estimate"]
+        bench.figure(f"{name}: predictive's nozzle health estimate"
+                     f" ({estimate.reason or 'known'})",
+                     math.nan if estimate.ratio is None else estimate.ratio,
+                     f" of the profile, the twin melts {results['true_ratio']:.3f}")
+        bench.figure(f"{name}: carried to '{SEEDED}' (its model's ratio"
+                     " at the end; dropped unconfirmed: "
+                     f"{results['dropped'] is not None})", results["seed"], "")
+        for run in RUN_NAMES + tuple(KNOWING.values()) + (SEEDED,):
+            lost, took = results[run]
+            bench.figure(f"{name}: limiter {run}: under-extruded", lost, " mm")
+            bench.figure(f"{name}: limiter {run}: print time", took, " s")
+        bench.figure(f"{name}: predictive's grip model at the end",
+                     results["model"]["capacity_mm3_s"], " mm^3/s at"
+                     f" {results['model']['ref_temp_c']:g} C")
+    for hotend_name, r in table.items():
+        name = label + hotend_name
         bench.ratio(f"{name}: predictive under-extrusion vs limiter off",
                     r["predictive"][0], r["off"][0], " mm", goal="<= 0.02x")
         bench.ratio(f"{name}: predictive print time vs the slip-free bound",
@@ -308,8 +339,7 @@ def test_under_extrusion_and_print_time(klipper_build, klippy_venv, bench,
                     goal="<= 1.0x")
     for line in _table(table):
         bench.terminal.write_line(line)
-    if FULL:
-        _assert_goals_met_today(table)
+    return table
 
 
 def equal_slip_time(results, lost_mm):

@@ -8,6 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from flowloop.control.grip_model import (
+    SLIP_TOLERANCE,
     CLIMB_FROM,
     CLIMB_STEP,
     DEFAULT_FILAMENT_AREA_MM2,
@@ -152,6 +153,43 @@ def test_a_mixed_window_reads_the_capacity_its_mean_would_hide():
     assert scaled.melted_mm3_s == pytest.approx(8.0)
     # without the flow over time: a window at one flow
     assert WindowFlow.of(10.0, 0.7).melted_mm3_s == pytest.approx(7.0)
+
+
+def test_a_window_that_reads_over_1_mirrors_one_that_reads_as_much_under():
+    # half the window at the peak, 12 mm^3/s, half at 2: a grip 3 % under 1
+    # puts the capacity below the peak by what the peak's pieces lost, 3 %
+    # over puts it as far above
+    flows = [12.0] * 5 + [2.0] * 5
+    under, over = WindowFlow.of(7.0, 0.97, flows), WindowFlow.of(7.0, 1.03, flows)
+    assert under.over_mm3_s == under.melted_mm3_s == pytest.approx(12.0 - 0.42)
+    assert over.melted_mm3_s == pytest.approx(12.0)     # kept up: its peak
+    assert over.over_mm3_s == pytest.approx(12.0 + 0.42)
+    # a window at one flow: the flow times its grip
+    assert WindowFlow.of(10.0, 1.04).over_mm3_s == pytest.approx(10.4)
+
+
+def test_noise_at_the_cap_pulls_the_fit_both_ways():
+    # The hotend melts more than the cap: every window at the cap kept up,
+    # and only the sensor's noise makes one read under or over the band. As
+    # many read 3 % over as under: the fit stays at the cap, where counting
+    # only those read under walked it down window by window.
+    def fed(grips):
+        model = GripModel(CapacityLine(210.0, 10.0, 0.15), climb_from=1.0)
+        for grip in grips:
+            model.learn(seen(model.cap_mm3_s(210.0), grip, 210.0))
+        return model.cap_mm3_s(210.0)
+    for noisy in ([0.97, 1.03] * 40, [1.03, 0.97] * 40):
+        assert fed(noisy) == pytest.approx(10.0, rel=0.015)
+    # within the band a window at the cap says nothing, either way
+    assert fed([1.0 + SLIP_TOLERANCE / 2, 1.0 - SLIP_TOLERANCE / 2] * 40) == 10.0
+    # the reads under alone (all that counted before): 10 % down in 40
+    assert fed([0.97] * 40) < 0.92 * 10.0
+
+
+def test_a_window_read_over_1_below_the_cap_teaches_nothing():
+    model = GripModel(CapacityLine(210.0, 10.0, 0.15), climb_from=1.0)
+    assert not model.learn(seen(8.0, 1.05, 210.0))
+    assert model.fitted == model.seed
 
 
 def test_mixed_windows_teach_the_true_capacity_not_their_mean():
