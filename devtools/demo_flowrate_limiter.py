@@ -75,8 +75,8 @@ def warm_up(api, target_c: float, seconds: float = 100.0,
     the limiter's nozzle temperature (in batch mode its thermal estimate,
     which follows the twin's heater) is within WARM_UP_WITHIN_C of the
     target, as M109 waits, or most_s have passed. (Until 2026-11-30 only
-    the 100 s: a hotend twice as heavy as the bench's then started the file
-    at 150 C.)"""
+    the 100 s: a heater block 2.5 times as heavy as the bench's, slow
+    high-mass B, then started the file at 111 C.)"""
     def travel(first, count):
         return [f"G1 X{10 if i % 2 else 160} F6000"
                 for i in range(first, first + count)]

@@ -173,7 +173,7 @@ class WindowFlow:
     peak_mm3_s: float       # the highest commanded flow in it
     # where it read more than it was asked (grip over 1): the capacity that
     # excess says, above the peak (capacity_read_over); melted_mm3_s if not
-    over_mm3_s: float = 0.0
+    over_mm3_s: float
 
     @classmethod
     def of(cls, commanded_mm3_s: float, grip: float,
