@@ -417,9 +417,9 @@ def _table(table):
     for name, r in table.items():
         cells = [f"{r[run][0]:.2f} mm, {r[run][1]:.1f} s"
                  for run in knowing + ["predictive"]]
-        seeded = r[SEEDED]
+        first, seeded = r["predictive"], r[SEEDED]
         yield (f"| {name} | " + " | ".join(cells)
-               + f" | {r['predictive'][1] / equal_slip_time(r, r['predictive'][0]):.3f}x"
+               + f" | {first[1] / equal_slip_time(r, first[0]):.3f}x"
                + f" | {seeded[0]:.2f} mm, {seeded[1]:.1f} s"
                + f" | {seeded[1] / equal_slip_time(r, seeded[0]):.3f}x |")
 

@@ -8,10 +8,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from flowloop.control.grip_model import (
-    SLIP_TOLERANCE,
     CLIMB_FROM,
     CLIMB_STEP,
     DEFAULT_FILAMENT_AREA_MM2,
+    SLIP_TOLERANCE,
     CapacityLine,
     GripModel,
     WindowFlow,
