@@ -18,7 +18,6 @@ from typing import Any, Dict, List, Tuple
 
 from devtools import stack
 from devtools.demo_flowrate_limiter import WEAK_PROFILE, announced_peak, warm_up
-from devtools.klippy_api import KlippyApi
 from flowloop.gcode.annotate import annotate_file
 from flowloop.material.profile import profile_from_dict, profile_line
 
@@ -61,10 +60,8 @@ def print_with_autotemp(enable: int, build=None, venv=None,
                           {"mcu": "atmega2560"})
     records = []
     try:
-        klippy.wait_ready()
-        api = KlippyApi(klippy.api_socket)
+        api = klippy.ready_api()
         try:
-            stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
             api.call("flowloop/set_active_profile", extruder="extruder",
                      profile=profile, working_point=0.5)
             api.gcode(f"SET_AUTOTEMP ENABLE={enable}")

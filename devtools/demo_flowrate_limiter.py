@@ -20,7 +20,6 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import numpy as np
 
 from devtools import stack
-from devtools.klippy_api import KlippyApi
 from flowloop.control import caps as fl_caps
 from flowloop.control import nozzle_health as nh
 from flowloop.control import rule_plot
@@ -197,10 +196,8 @@ def print_closed_loop(enable: int, build=None, venv=None,
                           venv or stack.klippy_venv(), config, workdir,
                           {"mcu": "atmega2560"})
     try:
-        klippy.wait_ready()
-        api = KlippyApi(klippy.api_socket)
+        api = klippy.ready_api()
         try:
-            stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
             seed = {} if melt_ratio is None else {"melt_ratio": melt_ratio}
             api.call("flowloop/set_active_profile", extruder="extruder",
                      profile=profile, working_point=0.5, **seed)

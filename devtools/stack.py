@@ -35,6 +35,7 @@ from urllib.parse import quote
 PROJECT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(PROJECT))
 
+from devtools.klippy_api import KlippyApi  # noqa: E402
 from flowloop.host import install  # noqa: E402
 
 TARGETS = ("linuxprocess", "atmega2560")
@@ -507,6 +508,18 @@ class Klippy(Process):
                           timeout) or not self.alive():
             raise RuntimeError("klippy did not open its API socket:\n"
                                + self.log_tail())
+
+    def ready_api(self, timeout: float = 30.0) -> KlippyApi:
+        """A connection to klippy's API once klippy says it is ready (its
+        configuration read, its MCU connected): the socket open (wait_ready),
+        then the state 'ready'; RuntimeError with the log's tail if not
+        within timeout."""
+        self.wait_ready(timeout)
+        api = KlippyApi(self.api_socket)
+        if not wait_until(lambda: api.call("info")["state"] == "ready", timeout):
+            api.close()
+            raise RuntimeError("klippy is not ready:\n" + self.log_tail())
+        return api
 
 
 MOONRAKER_CONF = """\

@@ -622,9 +622,8 @@ def test_reaction_time_to_a_step_drop_in_grip(klipper_build, klippy_venv, bench,
     klippy = stack.Klippy(klipper_build, klippy_venv, config, workdir,
                           {"mcu": "atmega2560"}, realtime=True)
     try:
-        klippy.wait_ready()
-        api, printing = KlippyApi(klippy.api_socket), KlippyApi(klippy.api_socket)
-        stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+        api = klippy.ready_api()
+        printing = KlippyApi(klippy.api_socket)
         rows = []
         dump = threading.Thread(target=_collect_samples,
                                 args=(klippy.api_socket, rows), daemon=True)

@@ -20,7 +20,6 @@ from pathlib import Path
 import pytest
 
 from devtools import stack
-from devtools.klippy_api import KlippyApi
 from tests.bench.size import pick
 
 # paced to the wall clock: under make test's scheduler, with no other test beside it
@@ -43,9 +42,7 @@ def test_realtime_klippy_keeps_time(bench, klipper_build, klippy_venv, short_tmp
     klippy = stack.Klippy(klipper_build, klippy_venv, CFG, short_tmp,
                           {"mcu": "atmega2560"}, realtime=True)
     try:
-        klippy.wait_ready()
-        with KlippyApi(klippy.api_socket) as api:
-            stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+        with klippy.ready_api() as api:
             api.gcode("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=210\n"
                       "G28\nM83\nG1 Z1 F600\nM400")
             samples0 = api.query(SENSOR)["samples"]

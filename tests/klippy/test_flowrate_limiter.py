@@ -11,7 +11,6 @@ import pytest
 
 from devtools import stack
 from devtools.demo_flowrate_limiter import OPTIMISTIC_PROFILE, print_closed_loop
-from devtools.klippy_api import KlippyApi
 from devtools.klippy_test import run_file, write_test
 from flowloop.control import nozzle_health as nh
 from flowloop.material.profile import profile_from_dict, profile_line
@@ -129,9 +128,7 @@ def test_the_temperature_cap_follows_the_profile_at_the_hotend_temperature(
     klippy = stack.Klippy(klipper_build, klippy_venv, cfg, short_tmp,
                           {"mcu": "atmega2560"})
     try:
-        klippy.wait_ready()
-        api = KlippyApi(klippy.api_socket)
-        stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+        api = klippy.ready_api()
         assert api.query("flowrate_limiter")["reason"] == "none"
         assert "no active profile" in api.query("flowrate_limiter")["why"]
         api.call("flowloop/set_active_profile", extruder="extruder",

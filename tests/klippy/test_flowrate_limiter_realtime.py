@@ -35,9 +35,7 @@ def test_a_long_line_runs_whole_and_a_cap_that_falls_during_it_slows_its_rest(
                           HERE / "flowrate_limiter_reaction.cfg", short_tmp,
                           {"mcu": "atmega2560"}, realtime=True)
     try:
-        klippy.wait_ready()
-        api = KlippyApi(klippy.api_socket)
-        stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+        api = klippy.ready_api()
         api.call("flowloop/set_active_profile", extruder="extruder",
                  profile=STRONG_PROFILE, working_point=0.5)
         api.gcode("SET_KINEMATIC_POSITION X=20 Y=100 Z=10\nM83\n"

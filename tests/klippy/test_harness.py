@@ -220,15 +220,12 @@ def test_status_now_is_what_a_query_answers_at_once(klipper_build, klippy_venv,
     """KlippyApi.status_now (the macro of status_macro.cfg) gives the status
     objects/query gives, without the wait for klippy's status tick; a
     config that lacks the macro is named, not read as an empty status."""
-    from devtools.klippy_api import KlippyApi
     here = stack.PROJECT / "tests" / "klippy"
     objects = ("toolhead", "extruder", "autotemp", "flow_sensor sim")
     klippy = stack.Klippy(klipper_build, klippy_venv, here / "autotemp.cfg",
                           short_tmp, {"mcu": "atmega2560"})
     try:
-        klippy.wait_ready()
-        with KlippyApi(klippy.api_socket) as api:
-            stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+        with klippy.ready_api() as api:
             api.gcode("G28\nSET_HEATER_TEMPERATURE HEATER=extruder TARGET=205\n"
                       "G1 X50 Y40 Z1 F6000\nM400")
             now = api.status_now(*objects)
@@ -245,9 +242,7 @@ def test_status_now_is_what_a_query_answers_at_once(klipper_build, klippy_venv,
     klippy = stack.Klippy(klipper_build, klippy_venv, here / "autotemp_plain.cfg",
                           short_tmp / "plain", {"mcu": "atmega2560"})
     try:
-        klippy.wait_ready()
-        with KlippyApi(klippy.api_socket) as api:
-            stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
+        with klippy.ready_api() as api:
             with pytest.raises(RuntimeError, match="status_macro.cfg"):
                 api.status_now("toolhead")
     finally:

@@ -22,13 +22,6 @@ MOVE_S = 6.0
 SENSOR = "flow_sensor sim"
 
 
-def _ready_api(klippy) -> KlippyApi:
-    klippy.wait_ready()
-    api = KlippyApi(klippy.api_socket)
-    stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
-    return api
-
-
 def _poll(path, polls, stop):
     with KlippyApi(path) as api:
         while not stop.is_set():
@@ -46,7 +39,7 @@ def test_a_move_takes_its_time_and_the_sensor_follows_the_clock(
                           {"mcu": "atmega2560"}, realtime=True)
     polls, stop = [], threading.Event()
     try:
-        api = _ready_api(klippy)
+        api = klippy.ready_api()
         api.gcode("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=210\nG28\n"
                   "M83\nG1 Z1 F600\nM400")
         poller = threading.Thread(target=_poll,
@@ -94,7 +87,7 @@ def test_the_printer_klippy_builds_after_a_restart_is_paced_too(
                           HERE / "simulated_realtime.cfg", short_tmp,
                           {"mcu": "atmega2560"}, realtime=True)
     try:
-        api = _ready_api(klippy)
+        api = klippy.ready_api()
         api.send("gcode/script", script="RESTART")
         api.close()
         # the old printer's socket closes; the new one opens the same path

@@ -14,7 +14,6 @@ from pathlib import Path
 import pytest
 
 from devtools import stack
-from devtools.klippy_api import KlippyApi
 from devtools.klippy_test import run_file, write_test
 from flowloop.material.profile import profile_from_dict, profile_line
 from tests.klippy.flowrate_limiter_steps import parsedump, stepper_steps, windowed_flow
@@ -58,10 +57,8 @@ def printed(klipper_build, klippy_venv):
                           {"mcu": "atmega2560"})
     records, limiters = [], {}
     try:
-        klippy.wait_ready()
-        api = KlippyApi(klippy.api_socket)
+        api = klippy.ready_api()
         try:
-            stack.wait_until(lambda: api.call("info")["state"] == "ready", 30)
             for extruder, profile in PROFILES.items():
                 api.call("flowloop/set_active_profile", extruder=extruder,
                          profile=profile, working_point=WP)
