@@ -159,6 +159,40 @@ def test_the_temperature_cap_follows_the_profile_at_the_hotend_temperature(
         klippy.stop()
 
 
+# A simulated hotend 2.5 times as heavy and slow as the default one: in batch
+# mode the limiter's temperature estimate follows the twin's heater, not the
+# default 40 W hotend's (which heats about 2.5 times as fast)
+SLOW_TWIN_CFG = """\
+[include {here}/flowrate_limiter_loop.cfg]
+[flow_sensor_simulation sim]
+heater_time_constant: 10
+heater_heat_capacity: 41.75
+"""
+
+
+def test_batch_mode_s_temperature_follows_the_simulated_hotend_s_heater(
+        klipper_build, klippy_venv, short_tmp):
+    temps = {}
+    for name, text in (("default", PROFILE_CFG), ("slow", SLOW_TWIN_CFG)):
+        workdir = short_tmp / name
+        workdir.mkdir()
+        cfg = workdir / "printer.cfg"
+        cfg.write_text(text.format(here=HERE))
+        klippy = stack.Klippy(klipper_build, klippy_venv, cfg, workdir,
+                              {"mcu": "atmega2560"})
+        try:
+            api = klippy.ready_api()
+            api.gcode("G28\nSET_HEATER_TEMPERATURE HEATER=extruder TARGET=200")
+            _pass_time(api, 30.0)
+            temps[name] = api.query("flowrate_limiter")["temperature"]
+        finally:
+            klippy.stop()
+    # 30 s from the room's 25 C at full power (the dead time first): the
+    # default block gains about 2.4 C/s, the 2.5x heavier one a 2.5th of it
+    assert temps["default"] > 60.0, temps
+    assert 30.0 < temps["slow"] < temps["default"] - 20.0, temps
+
+
 # --- the closed loop: simulated sensor and hotend ------------------------------
 
 def test_the_closed_loop_keeps_grip_where_the_uncapped_print_loses_it(
