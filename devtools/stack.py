@@ -29,7 +29,7 @@ import urllib.error
 import urllib.request
 import uuid
 from pathlib import Path
-from typing import Dict, Iterator, List, Optional
+from typing import Dict, Iterator, List, Optional, Type
 from urllib.parse import quote
 
 PROJECT = Path(__file__).resolve().parent.parent
@@ -509,16 +509,28 @@ class Klippy(Process):
             raise RuntimeError("klippy did not open its API socket:\n"
                                + self.log_tail())
 
-    def ready_api(self, timeout: float = 30.0) -> KlippyApi:
+    def ready_api(self, timeout: float = 30.0,
+                  api_class: Type[KlippyApi] = KlippyApi) -> KlippyApi:
         """A connection to klippy's API once klippy says it is ready (its
         configuration read, its MCU connected): the socket open (wait_ready),
-        then the state 'ready'; RuntimeError with the log's tail if not
-        within timeout."""
+        then the state 'ready'; RuntimeError with klippy's own message and
+        the log's tail if not within timeout, or at once where klippy
+        stopped in 'error' or 'shutdown' (a config error: it never gets
+        ready). api_class: a KlippyApi of the caller's (one that answers
+        remote methods)."""
         self.wait_ready(timeout)
-        api = KlippyApi(self.api_socket)
-        if not wait_until(lambda: api.call("info")["state"] == "ready", timeout):
+        api = api_class(self.api_socket)
+        info = {}
+
+        def settled() -> bool:
+            info.update(api.call("info"))
+            return info["state"] in ("ready", "error", "shutdown")
+
+        if not wait_until(settled, timeout) or info["state"] != "ready":
             api.close()
-            raise RuntimeError("klippy is not ready:\n" + self.log_tail())
+            raise RuntimeError(
+                f"klippy is not ready ({info.get('state')}):"
+                f" {info.get('state_message', '').strip()}\n" + self.log_tail())
         return api
 
 

@@ -531,11 +531,11 @@ def test_klippy_host_time_with_the_limiter(klipper_build, klippy_venv, bench,
 # --- reaction time, in real time ---------------------------------------------
 
 # A circle of 5 mm segments at 100 mm/s (every junction allows full speed)
-# extruding 7 mm^3/s: the twin melts 0.7 x 12 = 8.4 of it under STRONG, and
-# 0.7 x 8 = 5.6 (grip 0.8) under WEAK, whose line (8) still lies above 7 so
-# that the temperature cap does not act on the step itself.
-STRONG = STRONG_PROFILE
-WEAK = {**STRONG, "identity": {"name": "weaker", "nozzle_diameter_mm": 0.4},
+# extruding 7 mm^3/s: the twin melts 0.7 x 12 = 8.4 of it under
+# STRONG_PROFILE, and 0.7 x 8 = 5.6 (grip 0.8) under WEAKER, whose line (8)
+# still lies above 7 so that the temperature cap does not act on the step
+# itself.
+WEAKER = {**STRONG_PROFILE, "identity": {"name": "weaker", "nozzle_diameter_mm": 0.4},
         "lines": {"into_air": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
                                "flow_mm3_s": 8.5},
                   "real_print": {"slope_mm3_s_per_c": 0.1, "temp_c": 200.0,
@@ -629,7 +629,7 @@ def test_reaction_time_to_a_step_drop_in_grip(klipper_build, klippy_venv, bench,
                                 args=(klippy.api_socket, rows), daemon=True)
         dump.start()
         api.call("flowloop/set_active_profile", extruder="extruder",
-                 profile=STRONG, working_point=0.5)
+                 profile=STRONG_PROFILE, working_point=0.5)
         api.gcode("SET_KINEMATIC_POSITION X=100 Y=100 Z=10\n"
                   "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=200")
         # M109 does not wait here, and a move queued on a cold nozzle runs
@@ -642,7 +642,7 @@ def test_reaction_time_to_a_step_drop_in_grip(klipper_build, klippy_venv, bench,
         stack.wait_until(lambda: now() >= started + STEP_AT_S, 30)
         before = now()
         api.call("flowloop/set_active_profile", extruder="extruder",
-                 profile=WEAK, working_point=0.5)
+                 profile=WEAKER, working_point=0.5)
         after = now()
         stack.wait_until(lambda: now() >= started + PRINT_S + 3.0, 60)
         status = api.query("flowrate_limiter")

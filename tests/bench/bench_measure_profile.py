@@ -63,9 +63,7 @@ def run_measurement(build, venv, seed=0):
     cfg.write_text(CONFIG.format(seed=seed))
     klippy = stack.Klippy(build, venv, cfg, workdir, {"mcu": "atmega2560"})
     try:
-        klippy.wait_ready()
-        client = Client(klippy.api_socket)
-        stack.wait_until(lambda: client.call("info")["state"] == "ready", 30)
+        client = klippy.ready_api(api_class=Client)
         client.call("register_remote_method", response_template={"method": "s"},
                     remote_method="flowloop_store_profile")
         client.call("flowloop/set_active_profile", extruder="extruder",

@@ -215,6 +215,27 @@ def test_the_limiter_says_which_host_it_runs_on(host, klipper_build, klippy_venv
         "[flowrate_limiter]\nmax_flow: 8\n", "flowrate_limiter")
 
 
+def test_ready_api_names_the_config_error_of_a_klippy_that_never_gets_ready(
+        klipper_build, klippy_venv, short_tmp):
+    """Klippy.ready_api (every klippy-tier start-up): a klippy stopped by its
+    configuration raises, with klippy's own message, and hands out no
+    connection to a klippy that is not ready."""
+    config = short_tmp / "bad.cfg"
+    config.write_text(
+        f"[include {stack.PROJECT / 'tests' / 'klippy' / 'flow_sensor_printer.cfg'}]\n"
+        "[flowrate_limiter]\nmax_flow: -1\n")
+    klippy = stack.Klippy(klipper_build, klippy_venv, config, short_tmp,
+                          {"mcu": "atmega2560"})
+    try:
+        with pytest.raises(RuntimeError) as raised:
+            klippy.ready_api()
+    finally:
+        klippy.stop()
+    first = str(raised.value).splitlines()[0]
+    assert first.startswith("klippy is not ready (error):"), first
+    assert "max_flow" in first, first
+
+
 def test_status_now_is_what_a_query_answers_at_once(klipper_build, klippy_venv,
                                                     short_tmp):
     """KlippyApi.status_now (the macro of status_macro.cfg) gives the status

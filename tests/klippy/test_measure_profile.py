@@ -65,9 +65,8 @@ def printer(klipper_build, klippy_venv):
     klippy = stack.Klippy(Harnessed(klipper_build), klippy_venv, CONFIG, workdir,
                           {"mcu": "atmega2560"})
     try:
-        klippy.wait_ready()
-        runner, watcher = Client(klippy.api_socket), Client(klippy.api_socket)
-        stack.wait_until(lambda: watcher.call("info")["state"] == "ready", 30)
+        runner = klippy.ready_api(api_class=Client)
+        watcher = Client(klippy.api_socket)
         runner.call("register_remote_method",
                     response_template={"method": "store"},
                     remote_method="flowloop_store_profile")
