@@ -251,7 +251,7 @@ class GripModel:
         cap = self.fitted.at(temp_c)
         # what it melted when asked for more (its peak if it kept up whole)
         seen = flow.melted_mm3_s
-        if kept_up and flow.grip >= 1.0 + SLIP_TOLERANCE \
+        if flow.grip >= 1.0 + SLIP_TOLERANCE \
                 and flow.peak_mm3_s >= (1.0 - SLIP_TOLERANCE) * cap:
             # at the cap, read over the noise band: the mirror of a window
             # that noise alone reads as a slip (counted, it pulls the fit

@@ -115,6 +115,15 @@ mode: temperature
 """
 
 
+def _klippy_on(klipper_build, klippy_venv, workdir, config_text):
+    """klippy in batch mode (the atmega2560's dictionary) on a printer.cfg
+    in workdir holding config_text ({here}: this directory)."""
+    cfg = workdir / "printer.cfg"
+    cfg.write_text(config_text.format(here=HERE))
+    return stack.Klippy(klipper_build, klippy_venv, cfg, workdir,
+                        {"mcu": "atmega2560"})
+
+
 def _pass_time(api, seconds):
     # The batch-mode thermal model runs on move time: travel back and forth
     moves = int(seconds / 1.5)
@@ -123,10 +132,7 @@ def _pass_time(api, seconds):
 
 def test_the_temperature_cap_follows_the_profile_at_the_hotend_temperature(
         klipper_build, klippy_venv, short_tmp):
-    cfg = short_tmp / "printer.cfg"
-    cfg.write_text(PROFILE_CFG.format(here=HERE))
-    klippy = stack.Klippy(klipper_build, klippy_venv, cfg, short_tmp,
-                          {"mcu": "atmega2560"})
+    klippy = _klippy_on(klipper_build, klippy_venv, short_tmp, PROFILE_CFG)
     try:
         api = klippy.ready_api()
         assert api.query("flowrate_limiter")["reason"] == "none"
@@ -176,10 +182,7 @@ def test_batch_mode_s_temperature_follows_the_simulated_hotend_s_heater(
     for name, text in (("default", PROFILE_CFG), ("slow", SLOW_TWIN_CFG)):
         workdir = short_tmp / name
         workdir.mkdir()
-        cfg = workdir / "printer.cfg"
-        cfg.write_text(text.format(here=HERE))
-        klippy = stack.Klippy(klipper_build, klippy_venv, cfg, workdir,
-                              {"mcu": "atmega2560"})
+        klippy = _klippy_on(klipper_build, klippy_venv, workdir, text)
         try:
             api = klippy.ready_api()
             api.gcode("G28\nSET_HEATER_TEMPERATURE HEATER=extruder TARGET=200")
